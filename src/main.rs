@@ -1,0 +1,5 @@
+//! The `nerflabel` command line: parse, call the library, print.
+
+fn main() {
+    println!("nerflabel");
+}

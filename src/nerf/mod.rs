@@ -1,0 +1,7 @@
+//! The depth-supervised NeRF: multi-resolution hash encoding, small MLPs
+//! with fused SIMD kernels, occupancy-skipped volume rendering, training and
+//! the model file. Knows nothing of boxes, COCO or Parquet.
+
+pub mod hash_grid;
+pub mod mlp;
+pub mod simd;

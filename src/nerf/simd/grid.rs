@@ -1,0 +1,1 @@
+//! SIMD kernels for the hash grid.

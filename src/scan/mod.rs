@@ -1,0 +1,169 @@
+//! Read an RGB-D scan in any supported layout into one in-memory [`Scan`]:
+//! colour frames, optional metric depth on the colour grid, camera-to-world
+//! poses (f64, OpenCV axes) and intrinsics for the colour resolution.
+//!
+//! Must never depend on `nerf`, `boxes` or `synth`: it only reads and checks
+//! outside data.
+
+mod depth;
+mod detect;
+mod error;
+mod image_io;
+mod native;
+mod nerfstudio;
+mod scannet;
+mod stray;
+mod summary;
+mod text;
+mod tum;
+mod validate;
+
+pub use depth::{resample_depth_to, DepthMap};
+pub use detect::{detect_layout, Layout};
+pub use error::ScanError;
+pub use summary::{summarize, ScanSummary};
+pub use validate::{check_intrinsics, check_pose, PoseCheck};
+
+use glam::{DMat4, DVec3};
+use std::path::{Path, PathBuf};
+
+/// Largest accepted image side, in pixels (guards against absurd headers).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Largest accepted number of frames in one scan.
+pub const MAX_FRAMES: usize = 100_000;
+
+/// Pinhole intrinsics for one image resolution (pixels, OpenCV convention:
+/// pixel centres at integer + 0.5 in continuous coordinates is NOT assumed;
+/// `u = fx * x / z + cx` addresses pixel centres at integers).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// Intrinsics for the same camera imaged at another resolution.
+    pub fn scaled(&self, from: (u32, u32), to: (u32, u32)) -> Intrinsics {
+        let sx = to.0 as f64 / from.0 as f64;
+        let sy = to.1 as f64 / from.1 as f64;
+        // Pixel centres stay aligned: continuous coordinate c maps to (c + 0.5) * s - 0.5.
+        Intrinsics {
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+        }
+    }
+
+    /// Camera-frame direction (z = 1) through pixel (u, v).
+    #[inline]
+    pub fn unproject(&self, u: f64, v: f64) -> DVec3 {
+        DVec3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0)
+    }
+
+    /// Pixel of a camera-frame point; `None` behind the camera.
+    #[inline]
+    pub fn project(&self, p: DVec3) -> Option<(f64, f64)> {
+        if p.z <= 0.0 {
+            return None;
+        }
+        Some((self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+    }
+}
+
+/// Colour image, 8-bit RGB, row-major.
+pub type RgbImage = image::RgbImage;
+
+/// One captured frame.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// Integer id from the file stem (frames are paired by it).
+    pub id: u64,
+    /// Name used for outputs of this frame, e.g. `000012`.
+    pub name: String,
+    /// Colour image.
+    pub rgb: RgbImage,
+    /// Depth in metres on the colour grid; 0 = no measurement. `None` when
+    /// the frame has no depth file.
+    pub depth: Option<DepthMap>,
+    /// Camera-to-world pose, OpenCV camera axes, scan world frame.
+    pub camera_to_world: DMat4,
+    /// Intrinsics for the colour resolution.
+    pub intrinsics: Intrinsics,
+}
+
+impl Frame {
+    /// Width and height of the colour image.
+    pub fn size(&self) -> (u32, u32) {
+        self.rgb.dimensions()
+    }
+
+    /// Camera centre in world coordinates.
+    pub fn camera_center(&self) -> DVec3 {
+        self.camera_to_world.w_axis.truncate()
+    }
+}
+
+/// Scene bounds given by the user (`bbox.txt`), world frame, metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bounds {
+    pub min: DVec3,
+    pub max: DVec3,
+}
+
+/// A whole scan, every layout read into the same form.
+#[derive(Clone, Debug)]
+pub struct Scan {
+    /// Folder the scan was read from.
+    pub root: PathBuf,
+    /// Layout it was read as.
+    pub layout: Layout,
+    /// Frames sorted by id.
+    pub frames: Vec<Frame>,
+    /// Optional user-supplied bounds (`bbox.txt`).
+    pub bounds: Option<Bounds>,
+    /// Non-fatal findings (skipped frames, re-orthonormalised poses, ...).
+    pub warnings: Vec<String>,
+}
+
+impl Scan {
+    /// Colour resolution shared by all frames.
+    pub fn size(&self) -> (u32, u32) {
+        self.frames.first().map(|f| f.size()).unwrap_or((0, 0))
+    }
+}
+
+/// How to read a scan.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// Force a layout instead of detecting it.
+    pub layout: Option<Layout>,
+    /// Re-orthonormalise slightly bad rotations (with a warning) instead of failing.
+    pub fix_poses: bool,
+}
+
+/// Load and fully validate a scan (every image decoded, every pose checked).
+pub fn load(root: &Path, options: &LoadOptions) -> Result<Scan, ScanError> {
+    if !root.exists() {
+        return Err(ScanError::MissingFolder(root.to_path_buf()));
+    }
+    if !root.is_dir() {
+        return Err(ScanError::NotAFolder(root.to_path_buf()));
+    }
+    let layout = match options.layout {
+        Some(layout) => layout,
+        None => detect_layout(root)?,
+    };
+    let mut scan = match layout {
+        Layout::Native => native::load(root, options)?,
+        Layout::Tum => tum::load(root, options)?,
+        Layout::Nerfstudio => nerfstudio::load(root, options)?,
+        Layout::Scannet => scannet::load(root, options)?,
+        Layout::Stray => stray::load(root, options)?,
+    };
+    validate::check_scan(&scan)?;
+    scan.frames.sort_by_key(|f| f.id);
+    Ok(scan)
+}

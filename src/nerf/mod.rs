@@ -2,6 +2,10 @@
 //! with fused SIMD kernels, occupancy-skipped volume rendering, training and
 //! the model file. Knows nothing of boxes, COCO or Parquet.
 
+pub mod composite;
 pub mod hash_grid;
+pub mod march;
 pub mod mlp;
+pub mod occupancy;
+pub mod sh;
 pub mod simd;

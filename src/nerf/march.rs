@@ -1,0 +1,154 @@
+//! Ray marching inside the unit cube: step size growing with distance,
+//! empty cells of the occupancy grid skipped whole.
+
+use super::occupancy::{unit_cube_interval, OccupancyGrid};
+
+/// A ray in local (unit-cube) coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalRay {
+    pub origin: [f32; 3],
+    /// Unit direction.
+    pub dir: [f32; 3],
+}
+
+impl LocalRay {
+    /// Point at distance `t`.
+    #[inline]
+    pub fn at(&self, t: f32) -> [f32; 3] {
+        [self.origin[0] + t * self.dir[0], self.origin[1] + t * self.dir[1], self.origin[2] + t * self.dir[2]]
+    }
+}
+
+/// One volume-rendering sample: interval [t, t + dt), evaluated at its middle.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Segment {
+    pub t: f32,
+    pub dt: f32,
+}
+
+impl Segment {
+    /// Where the field is evaluated.
+    #[inline]
+    pub fn mid(&self) -> f32 {
+        self.t + 0.5 * self.dt
+    }
+}
+
+/// How far apart samples are.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepRule {
+    /// Smallest step (local units), about half the finest grid cell.
+    pub min_step: f32,
+    /// Largest step.
+    pub max_step: f32,
+    /// Step grows as `t * cone` far from the camera (0 = constant).
+    pub cone: f32,
+}
+
+impl StepRule {
+    /// Step length at distance `t`.
+    #[inline]
+    pub fn at(&self, t: f32) -> f32 {
+        (t * self.cone).clamp(self.min_step, self.max_step)
+    }
+}
+
+/// Parameter interval of the ray inside the unit cube, starting no closer
+/// than `near`; `None` when the ray misses.
+pub fn ray_interval(ray: &LocalRay, near: f32) -> Option<(f32, f32)> {
+    let (t0, t1) = unit_cube_interval(ray.origin, ray.dir)?;
+    let t0 = t0.max(near);
+    (t0 < t1).then_some((t0, t1))
+}
+
+/// March `ray` over [t0, t1), appending occupied segments to `out`, at most
+/// `max_samples`. `jitter` in [0, 1) offsets the first sample (training).
+/// Returns the t where marching stopped.
+pub fn march(
+    ray: &LocalRay,
+    t0: f32,
+    t1: f32,
+    grid: &OccupancyGrid,
+    rule: &StepRule,
+    jitter: f32,
+    max_samples: usize,
+    out: &mut Vec<Segment>,
+) -> f32 {
+    let mut t = t0 + jitter * rule.at(t0);
+    let mut taken = 0;
+    while t < t1 && taken < max_samples {
+        let dt = rule.at(t);
+        let p = ray.at(t + 0.5 * dt);
+        match grid.cell_of(p) {
+            Some(cell) if grid.is_occupied_cell(cell) => {
+                out.push(Segment { t, dt: dt.min(t1 - t) });
+                taken += 1;
+                t += dt;
+            }
+            Some(_) => {
+                // Skip the empty cell in whole steps so samples stay on the step lattice.
+                let gap = grid.distance_to_cell_exit(p, ray.dir) + 0.5 * dt;
+                t += (gap / dt).ceil().max(1.0) * dt;
+            }
+            None => t += dt,
+        }
+    }
+    t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::occupancy::DepthRay;
+
+    fn rule() -> StepRule {
+        StepRule { min_step: 1.0 / 256.0, max_step: 1.0 / 16.0, cone: 0.0 }
+    }
+
+    #[test]
+    fn full_grid_samples_the_whole_interval_contiguously() {
+        let grid = OccupancyGrid::full(32);
+        let ray = LocalRay { origin: [0.5, 0.5, -0.5], dir: [0.0, 0.0, 1.0] };
+        let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
+        let mut out = Vec::new();
+        march(&ray, t0, t1, &grid, &rule(), 0.0, 10_000, &mut out);
+        assert_eq!(out.len(), 256);
+        for w in out.windows(2) {
+            assert!((w[0].t + w[0].dt - w[1].t).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn empty_space_is_skipped_but_the_surface_is_sampled() {
+        let mut grid = OccupancyGrid::full(32);
+        let mut rays = Vec::new();
+        for i in 0..30 {
+            for j in 0..30 {
+                let (x, y) = (0.02 + 0.032 * i as f32, 0.02 + 0.032 * j as f32);
+                for _ in 0..3 {
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.6 });
+                }
+            }
+        }
+        grid.seed_from_depth(&rays);
+        let ray = LocalRay { origin: [0.5, 0.5, -0.5], dir: [0.0, 0.0, 1.0] };
+        let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
+        let mut out = Vec::new();
+        march(&ray, t0, t1, &grid, &rule(), 0.3, 10_000, &mut out);
+        assert!(out.len() < 256 / 2, "half the ray is carved: {}", out.len());
+        assert!(out.iter().any(|s| (s.mid() - 1.1).abs() < 0.02), "surface at local z = 0.6 is sampled");
+    }
+
+    #[test]
+    fn cone_steps_grow_with_distance_and_cap_the_count() {
+        let grid = OccupancyGrid::full(32);
+        let ray = LocalRay { origin: [0.0, 0.5, 0.5], dir: [1.0, 0.0, 0.0] };
+        let r = StepRule { min_step: 1e-3, max_step: 0.1, cone: 0.05 };
+        let mut out = Vec::new();
+        march(&ray, 0.0, 1.0, &grid, &r, 0.0, 10_000, &mut out);
+        assert!(out.last().unwrap().dt > 5.0 * out[0].dt);
+        let mut capped = Vec::new();
+        march(&ray, 0.0, 1.0, &grid, &r, 0.0, 7, &mut capped);
+        assert_eq!(capped.len(), 7);
+    }
+}

@@ -1,0 +1,366 @@
+//! Occupancy grid over the unit cube: which cells may hold density, so the
+//! marcher skips empty space. Seeded by carving free space with the sensor
+//! depth (unobserved cells stay occupied), refreshed from the model during
+//! training with a decaying maximum of sampled density.
+
+use crate::rng::Rng;
+
+/// Default cells per axis.
+pub const DEFAULT_RESOLUTION: usize = 128;
+
+/// A ray with a measured surface, in local (unit-cube) coordinates.
+#[derive(Clone, Copy, Debug)]
+pub struct DepthRay {
+    pub origin: [f32; 3],
+    /// Unit direction.
+    pub dir: [f32; 3],
+    /// Distance along `dir` to the measured surface.
+    pub t_hit: f32,
+}
+
+/// Bit grid of possibly occupied cells plus the density estimate behind it.
+#[derive(Clone, Debug)]
+pub struct OccupancyGrid {
+    res: usize,
+    density: Vec<f32>,
+    bits: Vec<u64>,
+    threshold: f32,
+    occupied: usize,
+    /// Which 1/REFRESH_PARTS of the cells the next refresh evaluates.
+    refresh_phase: usize,
+}
+
+/// A refresh evaluates one of this many interleaved subsets of the cells.
+const REFRESH_PARTS: usize = 8;
+/// Never let fewer than this fraction of cells stay occupied.
+const MIN_OCCUPIED_FRACTION: f64 = 1e-3;
+
+impl OccupancyGrid {
+    /// Every cell occupied (nothing known yet).
+    pub fn full(res: usize) -> Self {
+        let res = res.clamp(4, 512);
+        let cells = res * res * res;
+        // Opacity below 1 % across one cell is treated as empty.
+        let threshold = 0.01 * res as f32;
+        let mut grid = OccupancyGrid {
+            res,
+            density: vec![threshold * 4.0; cells],
+            bits: vec![0; cells.div_ceil(64)],
+            threshold,
+            occupied: 0,
+            refresh_phase: 0,
+        };
+        grid.rebuild_bits();
+        grid
+    }
+
+    /// Cells per axis.
+    pub fn resolution(&self) -> usize {
+        self.res
+    }
+
+    /// Density above which a cell counts as occupied (local units).
+    pub fn threshold(&self) -> f32 {
+        self.threshold
+    }
+
+    /// Fraction of cells marked occupied.
+    pub fn occupied_fraction(&self) -> f64 {
+        self.occupied as f64 / self.density.len() as f64
+    }
+
+    /// Index of the cell holding `p`, `None` outside the unit cube or NaN.
+    #[inline]
+    pub fn cell_of(&self, p: [f32; 3]) -> Option<usize> {
+        let r = self.res as f32;
+        let mut idx = [0usize; 3];
+        for a in 0..3 {
+            let c = p[a] * r;
+            // Written so NaN fails the test.
+            if !(c >= 0.0 && c < r) {
+                return None;
+            }
+            idx[a] = c as usize;
+        }
+        Some((idx[2] * self.res + idx[1]) * self.res + idx[0])
+    }
+
+    /// Whether the cell with this index may hold density.
+    #[inline]
+    pub fn is_occupied_cell(&self, cell: usize) -> bool {
+        (self.bits[cell >> 6] >> (cell & 63)) & 1 == 1
+    }
+
+    /// Whether the point may hold density (false outside the cube).
+    #[inline]
+    pub fn is_occupied(&self, p: [f32; 3]) -> bool {
+        self.cell_of(p).is_some_and(|c| self.is_occupied_cell(c))
+    }
+
+    /// Carve the free space seen by depth rays: a cell is emptied when rays
+    /// passed through it well before their surface clearly more often than
+    /// rays ended in it; cells no ray observed stay occupied.
+    pub fn seed_from_depth(&mut self, rays: &[DepthRay]) {
+        let res = self.res;
+        let cells = res * res * res;
+        let mut free_votes = vec![0u16; cells];
+        let mut surface_votes = vec![0u16; cells];
+        let cell = 1.0 / res as f32;
+        let step = 0.5 * cell;
+        let margin = 2.0 * cell;
+        for ray in rays {
+            if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
+                continue;
+            }
+            let hit = along(ray.origin, ray.dir, ray.t_hit);
+            if let Some(c) = self.cell_of(hit) {
+                let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
+                for dz in -1i64..=1 {
+                    for dy in -1i64..=1 {
+                        for dx in -1i64..=1 {
+                            let (nx, ny, nz) = (x as i64 + dx, y as i64 + dy, z as i64 + dz);
+                            if [nx, ny, nz].iter().all(|&v| v >= 0 && v < res as i64) {
+                                let n = ((nz as usize) * res + ny as usize) * res + nx as usize;
+                                surface_votes[n] = surface_votes[n].saturating_add(1);
+                            }
+                        }
+                    }
+                }
+            }
+            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
+            let t_end = (ray.t_hit - margin).min(t1);
+            let mut t = t0;
+            let mut last = usize::MAX;
+            while t < t_end {
+                if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
+                    if c != last {
+                        free_votes[c] = free_votes[c].saturating_add(1);
+                        last = c;
+                    }
+                }
+                t += step;
+            }
+        }
+        for i in 0..cells {
+            let free = free_votes[i] as u32;
+            let surface = surface_votes[i] as u32;
+            // A stray flying pixel cannot carve an object: need a clear majority.
+            if surface == 0 && free >= 2 || free > 3 * surface + 2 {
+                self.density[i] = 0.0;
+            }
+        }
+        self.rebuild_bits();
+    }
+
+    /// Re-estimate density in one interleaved subset of the cells from the
+    /// model (`density_at` fills sigma for a batch of local points), decaying
+    /// the old estimate, and rebuild the bits.
+    pub fn refresh<F>(&mut self, decay: f32, rng: &mut Rng, positions: &mut Vec<[f32; 3]>, sigmas: &mut Vec<f32>, mut density_at: F)
+    where
+        F: FnMut(&[[f32; 3]], &mut [f32]),
+    {
+        let res = self.res;
+        let cells = res * res * res;
+        let phase = self.refresh_phase;
+        self.refresh_phase = (phase + 1) % REFRESH_PARTS;
+        positions.clear();
+        let inv = 1.0 / res as f32;
+        let mut cell = phase;
+        while cell < cells {
+            let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+            positions.push([(x as f32 + rng.f32()) * inv, (y as f32 + rng.f32()) * inv, (z as f32 + rng.f32()) * inv]);
+            cell += REFRESH_PARTS;
+        }
+        sigmas.clear();
+        sigmas.resize(positions.len(), 0.0);
+        density_at(positions, sigmas);
+        for (k, &sigma) in sigmas.iter().enumerate() {
+            let c = phase + k * REFRESH_PARTS;
+            let sigma = if sigma.is_finite() { sigma.max(0.0) } else { 0.0 };
+            self.density[c] = (self.density[c] * decay).max(sigma);
+        }
+        self.rebuild_bits();
+    }
+
+    /// Recompute the bit mask from the density estimates; keeps a minimum
+    /// fraction of the densest cells so the grid never empties.
+    fn rebuild_bits(&mut self) {
+        let cells = self.density.len();
+        let min_occupied = ((cells as f64 * MIN_OCCUPIED_FRACTION) as usize).max(1);
+        let mut threshold = self.threshold;
+        let mut count = self.density.iter().filter(|&&d| d > threshold).count();
+        if count < min_occupied {
+            let mut sorted: Vec<f32> = self.density.clone();
+            let k = cells - min_occupied;
+            sorted.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+            // Cells at or above the k-th largest estimate stay occupied.
+            threshold = sorted[k].min(threshold);
+            count = self.density.iter().filter(|&&d| d >= threshold).count();
+        }
+        self.bits.iter_mut().for_each(|w| *w = 0);
+        let strict = count >= min_occupied && threshold == self.threshold;
+        for (i, &d) in self.density.iter().enumerate() {
+            if (strict && d > threshold) || (!strict && d >= threshold) {
+                self.bits[i >> 6] |= 1 << (i & 63);
+            }
+        }
+        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+    }
+
+    /// Distance along a ray from `p` to where it leaves the cell holding `p`.
+    #[inline]
+    pub fn distance_to_cell_exit(&self, p: [f32; 3], dir: [f32; 3]) -> f32 {
+        let r = self.res as f32;
+        let mut best = f32::INFINITY;
+        for a in 0..3 {
+            let d = dir[a];
+            if d == 0.0 {
+                continue;
+            }
+            let c = (p[a] * r).floor();
+            let boundary = if d > 0.0 { (c + 1.0) / r } else { c / r };
+            let t = (boundary - p[a]) / d;
+            if t < best {
+                best = t;
+            }
+        }
+        best.max(0.0)
+    }
+
+    /// Packed occupancy bits (for the model file).
+    pub fn bits(&self) -> &[u64] {
+        &self.bits
+    }
+
+    /// Density estimates (for the model file).
+    pub fn densities(&self) -> &[f32] {
+        &self.density
+    }
+
+    /// Rebuild a grid from saved density estimates.
+    pub fn from_densities(res: usize, density: Vec<f32>) -> Option<Self> {
+        let mut grid = OccupancyGrid::full(res);
+        if density.len() != grid.density.len() {
+            return None;
+        }
+        grid.density = density.into_iter().map(|d| if d.is_finite() { d.max(0.0) } else { 0.0 }).collect();
+        grid.rebuild_bits();
+        Some(grid)
+    }
+}
+
+#[inline]
+fn along(o: [f32; 3], d: [f32; 3], t: f32) -> [f32; 3] {
+    [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]
+}
+
+/// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
+pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
+    let mut t0 = 0.0f32;
+    let mut t1 = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            // Parallel: inside the slab or a clean miss (an origin on a face counts as inside).
+            if !(o[a] >= 0.0 && o[a] <= 1.0) {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d[a];
+        let (mut ta, mut tb) = ((0.0 - o[a]) * inv, (1.0 - o[a]) * inv);
+        if ta > tb {
+            std::mem::swap(&mut ta, &mut tb);
+        }
+        t0 = t0.max(ta);
+        t1 = t1.min(tb);
+    }
+    if t0 <= t1 && t1.is_finite() && t0.is_finite() {
+        Some((t0, t1))
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn carving_empties_seen_free_space_and_keeps_surfaces_and_unseen_cells() {
+        let mut grid = OccupancyGrid::full(32);
+        // Many rays along +z from z=0 hitting a wall at z = 0.5.
+        let mut rays = Vec::new();
+        for i in 0..20 {
+            for j in 0..20 {
+                let (x, y) = (0.3 + 0.02 * i as f32, 0.3 + 0.02 * j as f32);
+                rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
+            }
+        }
+        grid.seed_from_depth(&rays);
+        assert!(!grid.is_occupied([0.5, 0.5, 0.2]), "free space before the wall is carved");
+        assert!(grid.is_occupied([0.5, 0.5, 0.5]), "surface stays");
+        assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
+        assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
+        assert!(grid.occupied_fraction() > 0.5 && grid.occupied_fraction() < 1.0);
+    }
+
+    #[test]
+    fn single_flying_pixel_ray_does_not_carve_a_surface() {
+        let mut grid = OccupancyGrid::full(32);
+        let mut rays: Vec<DepthRay> =
+            (0..5).map(|_| DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.3 }).collect();
+        rays.push(DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 });
+        grid.seed_from_depth(&rays);
+        assert!(grid.is_occupied([0.5, 0.5, 0.3]));
+    }
+
+    #[test]
+    fn refresh_follows_the_model_and_never_empties() {
+        let mut grid = OccupancyGrid::full(16);
+        let mut rng = Rng::new(1, 0);
+        let (mut pos, mut sig) = (Vec::new(), Vec::new());
+        // A model with density only in the lower half of x.
+        for _ in 0..200 {
+            grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |p, s| {
+                for (pi, si) in p.iter().zip(s.iter_mut()) {
+                    *si = if pi[0] < 0.5 { 100.0 } else { 0.0 };
+                }
+            });
+        }
+        assert!(grid.is_occupied([0.25, 0.5, 0.5]));
+        assert!(!grid.is_occupied([0.75, 0.5, 0.5]));
+        assert!((grid.occupied_fraction() - 0.5).abs() < 0.01);
+        // A model that collapsed to zero density everywhere: keep the densest cells.
+        for _ in 0..200 {
+            grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = 0.0));
+        }
+        assert!(grid.occupied_fraction() > 0.0, "grid must never empty");
+        // NaN densities are ignored rather than poisoning the grid.
+        grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = f32::NAN));
+        assert!(grid.densities().iter().all(|d| d.is_finite()));
+    }
+
+    #[test]
+    fn unit_cube_interval_handles_parallel_rays_faces_and_misses() {
+        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
+        // Parallel to a face with the origin on it.
+        assert_eq!(unit_cube_interval([0.0, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
+        assert_eq!(unit_cube_interval([-0.1, 0.5, -1.0], [0.0, 0.0, 1.0]), None);
+        // Looking away.
+        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, -1.0]), None);
+        // Inside.
+        let (t0, t1) = unit_cube_interval([0.5, 0.5, 0.5], [1.0, 0.0, 0.0]).unwrap();
+        assert_eq!(t0, 0.0);
+        assert!((t1 - 0.5).abs() < 1e-6);
+        assert_eq!(unit_cube_interval([f32::NAN, 0.5, 0.5], [1.0, 0.0, 0.0]), None);
+    }
+
+    #[test]
+    fn cell_exit_distance_is_exact_on_axes() {
+        let grid = OccupancyGrid::full(4);
+        let d = grid.distance_to_cell_exit([0.1, 0.1, 0.1], [1.0, 0.0, 0.0]);
+        assert!((d - 0.15).abs() < 1e-6);
+        let d = grid.distance_to_cell_exit([0.1, 0.1, 0.1], [0.0, -1.0, 0.0]);
+        assert!((d - 0.1).abs() < 1e-6);
+    }
+}

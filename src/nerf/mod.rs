@@ -2,6 +2,7 @@
 //! with fused SIMD kernels, occupancy-skipped volume rendering, training and
 //! the model file. Knows nothing of boxes, COCO or Parquet.
 
+pub mod adam;
 pub mod composite;
 pub mod hash_grid;
 pub mod march;
@@ -9,3 +10,9 @@ pub mod mlp;
 pub mod occupancy;
 pub mod sh;
 pub mod simd;
+pub mod camera;
+pub mod field;
+pub mod metrics;
+pub mod model_file;
+pub mod render;
+pub mod train;

@@ -1,0 +1,294 @@
+//! The radiance field: hash encoding -> density MLP (log-density + geometry
+//! features) -> colour MLP (geometry features + SH view direction).
+//! Batched, feature-major, with reusable workspaces; a density-only path
+//! skips the colour branch entirely.
+
+use super::hash_grid::{GridGrad, HashGrid, HashGridConfig};
+use super::mlp::{Mlp, MlpConfig, MlpWorkspace};
+use super::sh::{self, SH_COEFFS};
+use crate::rng::Rng;
+use serde::{Deserialize, Serialize};
+
+/// Outputs of the density network: raw log-density plus geometry features.
+pub const DENSITY_OUTPUTS: usize = 16;
+/// Raw log-density is clamped here in the forward pass (sigma <= e^20).
+const MAX_LOG_DENSITY: f32 = 20.0;
+/// Gradient of trunc_exp uses exp(clamp(x, -15, 15)).
+const GRAD_LOG_DENSITY: f32 = 15.0;
+
+/// Network widths and the hash grid.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FieldConfig {
+    pub grid: GridSpec,
+    pub density_hidden: Vec<usize>,
+    pub color_hidden: Vec<usize>,
+}
+
+/// Serialisable copy of [`HashGridConfig`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GridSpec {
+    pub levels: usize,
+    pub features_per_level: usize,
+    pub log2_table_size: u32,
+    pub base_resolution: u32,
+    pub finest_resolution: u32,
+}
+
+impl From<GridSpec> for HashGridConfig {
+    fn from(g: GridSpec) -> Self {
+        HashGridConfig {
+            levels: g.levels,
+            features_per_level: g.features_per_level,
+            log2_table_size: g.log2_table_size,
+            base_resolution: g.base_resolution,
+            finest_resolution: g.finest_resolution,
+        }
+    }
+}
+
+impl From<&HashGridConfig> for GridSpec {
+    fn from(g: &HashGridConfig) -> Self {
+        GridSpec {
+            levels: g.levels,
+            features_per_level: g.features_per_level,
+            log2_table_size: g.log2_table_size,
+            base_resolution: g.base_resolution,
+            finest_resolution: g.finest_resolution,
+        }
+    }
+}
+
+impl FieldConfig {
+    fn density_mlp(&self) -> MlpConfig {
+        let grid: HashGridConfig = self.grid.into();
+        MlpConfig { input: grid.output_dim(), hidden: self.density_hidden.clone(), output: DENSITY_OUTPUTS }
+    }
+
+    fn color_mlp(&self) -> MlpConfig {
+        MlpConfig { input: DENSITY_OUTPUTS + SH_COEFFS, hidden: self.color_hidden.clone(), output: 3 }
+    }
+}
+
+/// The trainable field.
+#[derive(Clone)]
+pub struct Field {
+    pub config: FieldConfig,
+    pub grid: HashGrid,
+    pub density: Mlp,
+    pub color: Mlp,
+}
+
+/// Gradients of every parameter of a [`Field`].
+pub struct FieldGrad {
+    pub grid: GridGrad,
+    pub density: Vec<f32>,
+    pub color: Vec<f32>,
+}
+
+impl FieldGrad {
+    /// Zero every gradient (the grid only where touched).
+    pub fn clear(&mut self) {
+        self.grid.clear();
+        self.density.iter_mut().for_each(|g| *g = 0.0);
+        self.color.iter_mut().for_each(|g| *g = 0.0);
+    }
+
+    /// Add another buffer into this one (callers fix the order).
+    pub fn merge_from(&mut self, other: &FieldGrad) {
+        self.grid.merge_from(&other.grid);
+        for (a, b) in self.density.iter_mut().zip(&other.density) {
+            *a += b;
+        }
+        for (a, b) in self.color.iter_mut().zip(&other.color) {
+            *a += b;
+        }
+    }
+
+    /// True when every dense gradient is finite (grid checked where touched).
+    pub fn all_finite(&self) -> bool {
+        self.density.iter().chain(&self.color).all(|g| g.is_finite())
+            && self.grid.touched().into_iter().all(|i| self.grid.values[i].is_finite())
+    }
+}
+
+/// Buffers for one batch of samples, reused across calls.
+#[derive(Default)]
+pub struct FieldWorkspace {
+    encoded: Vec<f32>,
+    density_out: Vec<f32>,
+    color_in: Vec<f32>,
+    color_out: Vec<f32>,
+    d_density_out: Vec<f32>,
+    d_color_out: Vec<f32>,
+    d_color_in: Vec<f32>,
+    d_encoded: Vec<f32>,
+    density_ws: Option<MlpWorkspace>,
+    color_ws: Option<MlpWorkspace>,
+    /// Density per sample (local units) of the last forward.
+    pub sigma: Vec<f32>,
+    /// Colour per sample in [0,1], feature-major [3][n], of the last forward.
+    pub rgb: Vec<f32>,
+    n: usize,
+}
+
+fn sized(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {
+    if buf.len() < len {
+        buf.resize(len, 0.0);
+    }
+    &mut buf[..len]
+}
+
+/// sigma = exp(raw), clamped so it never overflows.
+#[inline]
+pub fn density_activation(raw: f32) -> f32 {
+    if raw.is_nan() {
+        return 0.0;
+    }
+    raw.min(MAX_LOG_DENSITY).exp()
+}
+
+/// d sigma / d raw of the truncated exponential.
+#[inline]
+fn density_activation_grad(raw: f32) -> f32 {
+    if raw.is_nan() {
+        return 0.0;
+    }
+    raw.clamp(-GRAD_LOG_DENSITY, GRAD_LOG_DENSITY).exp()
+}
+
+#[inline]
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+impl Field {
+    /// A freshly initialised field.
+    pub fn new(config: FieldConfig, rng: &mut Rng) -> Field {
+        let grid = HashGrid::new(config.grid.into(), rng);
+        let density = Mlp::new(config.density_mlp(), rng);
+        let color = Mlp::new(config.color_mlp(), rng);
+        Field { config, grid, density, color }
+    }
+
+    /// Rebuild from saved parameters; `None` when the lengths do not fit.
+    pub fn from_params(config: FieldConfig, grid: Vec<f32>, density: Vec<f32>, color: Vec<f32>) -> Option<Field> {
+        let grid = HashGrid::from_params(config.grid.into(), grid).ok()?;
+        let density = Mlp::from_params(config.density_mlp(), density).ok()?;
+        let color = Mlp::from_params(config.color_mlp(), color).ok()?;
+        Some(Field { config, grid, density, color })
+    }
+
+    /// Total trainable parameters.
+    pub fn param_count(&self) -> usize {
+        self.grid.param_count() + self.density.param_count() + self.color.param_count()
+    }
+
+    /// Zeroed gradient buffers for this field.
+    pub fn new_grad(&self) -> FieldGrad {
+        FieldGrad {
+            grid: GridGrad::new(self.grid.param_count()),
+            density: vec![0.0; self.density.param_count()],
+            color: vec![0.0; self.color.param_count()],
+        }
+    }
+
+    /// Density only (no colour branch) for a batch of local points.
+    pub fn density_only(&self, positions: &[[f32; 3]], ws: &mut FieldWorkspace, sigma: &mut [f32]) {
+        let n = positions.len();
+        if n == 0 {
+            return;
+        }
+        let enc_dim = self.grid.config.output_dim();
+        let encoded = sized(&mut ws.encoded, enc_dim * n);
+        self.grid.encode(positions, encoded);
+        let out = sized(&mut ws.density_out, DENSITY_OUTPUTS * n);
+        let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
+        self.density.forward(&ws.encoded[..enc_dim * n], n, mlp_ws, out);
+        for (s, &raw) in sigma.iter_mut().zip(&out[..n]) {
+            *s = density_activation(raw);
+        }
+    }
+
+    /// Density and colour for a batch; `train` keeps activations for
+    /// [`Field::backward`]. Results land in `ws.sigma` and `ws.rgb`.
+    pub fn forward(&self, positions: &[[f32; 3]], dirs: &[[f32; 3]], ws: &mut FieldWorkspace, train: bool) {
+        let n = positions.len();
+        ws.n = n;
+        sized(&mut ws.sigma, n);
+        sized(&mut ws.rgb, 3 * n);
+        if n == 0 {
+            return;
+        }
+        let enc_dim = self.grid.config.output_dim();
+        self.grid.encode(positions, sized(&mut ws.encoded, enc_dim * n));
+        sized(&mut ws.density_out, DENSITY_OUTPUTS * n);
+        {
+            let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
+            let (input, out) = (&ws.encoded[..enc_dim * n], &mut ws.density_out[..DENSITY_OUTPUTS * n]);
+            if train {
+                self.density.forward_train(input, n, mlp_ws, out);
+            } else {
+                self.density.forward(input, n, mlp_ws, out);
+            }
+        }
+        for b in 0..n {
+            ws.sigma[b] = density_activation(ws.density_out[b]);
+        }
+        // Colour input: the density outputs then the SH of the direction.
+        let color_in = sized(&mut ws.color_in, (DENSITY_OUTPUTS + SH_COEFFS) * n);
+        color_in[..DENSITY_OUTPUTS * n].copy_from_slice(&ws.density_out[..DENSITY_OUTPUTS * n]);
+        let mut coeffs = [0.0f32; SH_COEFFS];
+        for (b, d) in dirs.iter().enumerate().take(n) {
+            sh::encode(*d, &mut coeffs);
+            for (k, c) in coeffs.iter().enumerate() {
+                color_in[(DENSITY_OUTPUTS + k) * n + b] = *c;
+            }
+        }
+        sized(&mut ws.color_out, 3 * n);
+        {
+            let mlp_ws = ws.color_ws.get_or_insert_with(MlpWorkspace::new);
+            let input = &ws.color_in[..(DENSITY_OUTPUTS + SH_COEFFS) * n];
+            let out = &mut ws.color_out[..3 * n];
+            if train {
+                self.color.forward_train(input, n, mlp_ws, out);
+            } else {
+                self.color.forward(input, n, mlp_ws, out);
+            }
+        }
+        for i in 0..3 * n {
+            ws.rgb[i] = sigmoid(ws.color_out[i]);
+        }
+    }
+
+    /// Backward of the last training forward: `d_sigma[n]` and
+    /// `d_rgb` (feature-major [3][n]) accumulate into `grad`.
+    pub fn backward(&self, positions: &[[f32; 3]], ws: &mut FieldWorkspace, d_sigma: &[f32], d_rgb: &[f32], grad: &mut FieldGrad) {
+        let n = ws.n;
+        if n == 0 {
+            return;
+        }
+        let color_dim = DENSITY_OUTPUTS + SH_COEFFS;
+        let d_color_out = sized(&mut ws.d_color_out, 3 * n);
+        for i in 0..3 * n {
+            let s = ws.rgb[i];
+            d_color_out[i] = d_rgb[i] * s * (1.0 - s);
+        }
+        sized(&mut ws.d_color_in, color_dim * n);
+        {
+            let mlp_ws = ws.color_ws.get_or_insert_with(MlpWorkspace::new);
+            self.color.backward(mlp_ws, &ws.d_color_out[..3 * n], n, &mut grad.color, Some(&mut ws.d_color_in[..color_dim * n]));
+        }
+        let d_density_out = sized(&mut ws.d_density_out, DENSITY_OUTPUTS * n);
+        d_density_out.copy_from_slice(&ws.d_color_in[..DENSITY_OUTPUTS * n]);
+        for b in 0..n {
+            d_density_out[b] += d_sigma[b] * density_activation_grad(ws.density_out[b]);
+        }
+        let enc_dim = self.grid.config.output_dim();
+        sized(&mut ws.d_encoded, enc_dim * n);
+        {
+            let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
+            self.density.backward(mlp_ws, &ws.d_density_out[..DENSITY_OUTPUTS * n], n, &mut grad.density, Some(&mut ws.d_encoded[..enc_dim * n]));
+        }
+        self.grid.backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
+    }
+}

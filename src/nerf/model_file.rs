@@ -1,0 +1,154 @@
+//! The model file (`model.nlf`): magic, version, JSON header (configs,
+//! scene transform, provenance), raw little-endian f32 sections, and a CRC32
+//! of everything before it. Written atomically; every defect on load is a
+//! clear error.
+
+use super::field::{Field, FieldConfig};
+use super::occupancy::OccupancyGrid;
+use super::train::{StepSpec, TrainConfig};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// First bytes of every model file.
+pub const MAGIC: &[u8; 8] = b"NERFLBL\0";
+/// Format version written by this build.
+pub const VERSION: u32 = 1;
+/// Header JSON larger than this is rejected.
+const MAX_HEADER: usize = 1 << 20;
+/// Model files larger than this are rejected (4 GiB).
+const MAX_FILE: u64 = 1 << 32;
+
+/// Everything about a model except its parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelHeader {
+    pub nerflabel_version: String,
+    pub field: FieldConfig,
+    pub train: TrainConfig,
+    /// World-to-local similarity, row-major 4x4.
+    pub world_to_local: [f64; 16],
+    /// Local units per metre (the similarity's scale).
+    pub units_per_metre: f64,
+    pub occupancy_resolution: usize,
+    pub background: [f32; 3],
+    pub render_step: StepSpec,
+    pub steps: u64,
+    pub seed: u64,
+    pub scan: String,
+    /// Lengths of the f32 sections: grid, density MLP, colour MLP, occupancy.
+    pub sections: [usize; 4],
+}
+
+/// A trained model: field, occupancy grid and header.
+#[derive(Clone)]
+pub struct Model {
+    pub header: ModelHeader,
+    pub field: Field,
+    pub occupancy: OccupancyGrid,
+}
+
+/// Why a model file could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("{path}: cannot read the model file: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("{path}: cannot write the model file: {source}")]
+    Write { path: PathBuf, source: std::io::Error },
+    #[error("{0}: not a nerflabel model (wrong magic bytes)")]
+    Magic(PathBuf),
+    #[error("{path}: model format version {found} is not supported (this build reads version {VERSION})")]
+    Version { path: PathBuf, found: u32 },
+    #[error("{0}: model file is corrupted (checksum mismatch)")]
+    Checksum(PathBuf),
+    #[error("{path}: model file is damaged: {what}")]
+    Damaged { path: PathBuf, what: String },
+}
+
+impl Model {
+    /// Serialise to bytes (header sections filled in from the parameters).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut header = self.header.clone();
+        header.field = self.field.config.clone();
+        header.occupancy_resolution = self.occupancy.resolution();
+        let sections: [&[f32]; 4] =
+            [&self.field.grid.params, &self.field.density.params, &self.field.color.params, self.occupancy.densities()];
+        header.sections = sections.map(|s| s.len());
+        let json = serde_json::to_vec(&header).unwrap_or_default();
+        let floats: usize = sections.iter().map(|s| s.len()).sum();
+        let mut bytes = Vec::with_capacity(20 + json.len() + 4 * floats + 4);
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        bytes.extend_from_slice(&json);
+        for section in sections {
+            for v in section {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let crc = crc32fast::hash(&bytes);
+        bytes.extend_from_slice(&crc.to_le_bytes());
+        bytes
+    }
+
+    /// Write atomically (temp file + rename).
+    pub fn save(&self, path: &Path) -> Result<(), ModelError> {
+        crate::atomic::write_file(path, &self.to_bytes()).map_err(|source| ModelError::Write { path: path.to_path_buf(), source })
+    }
+
+    /// Read and verify a model file.
+    pub fn load(path: &Path) -> Result<Model, ModelError> {
+        let read_err = |source| ModelError::Read { path: path.to_path_buf(), source };
+        let size = std::fs::metadata(path).map_err(read_err)?.len();
+        if size > MAX_FILE {
+            return Err(damaged(path, format!("{size} bytes is larger than any model")));
+        }
+        let bytes = std::fs::read(path).map_err(read_err)?;
+        Model::from_bytes(&bytes, path)
+    }
+
+    /// Parse bytes; `path` only names the source in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Model, ModelError> {
+        if bytes.len() < 8 || &bytes[..8] != MAGIC {
+            return Err(ModelError::Magic(path.to_path_buf()));
+        }
+        if bytes.len() < 20 {
+            return Err(damaged(path, "truncated header".into()));
+        }
+        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+        if version != VERSION {
+            return Err(ModelError::Version { path: path.to_path_buf(), found: version });
+        }
+        let (body, crc_bytes) = bytes.split_at(bytes.len() - 4);
+        let stored = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
+        if crc32fast::hash(body) != stored {
+            return Err(ModelError::Checksum(path.to_path_buf()));
+        }
+        let header_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
+        if header_len > MAX_HEADER || 16 + header_len > body.len() {
+            return Err(damaged(path, format!("header length {header_len} does not fit the file")));
+        }
+        let header: ModelHeader = serde_json::from_slice(&body[16..16 + header_len])
+            .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
+        let floats: usize = header
+            .sections
+            .iter()
+            .try_fold(0usize, |acc, &n| acc.checked_add(n))
+            .ok_or_else(|| damaged(path, "section sizes overflow".into()))?;
+        let data = &body[16 + header_len..];
+        if floats.checked_mul(4) != Some(data.len()) {
+            return Err(damaged(path, format!("expected {floats} parameters, found {} bytes", data.len())));
+        }
+        let mut values = data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
+        let mut take = |n: usize| -> Vec<f32> { values.by_ref().take(n).collect() };
+        let [g, d, c, o] = header.sections;
+        let (grid, density, color, occupancy) = (take(g), take(d), take(c), take(o));
+        let field = Field::from_params(header.field.clone(), grid, density, color)
+            .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration".into()))?;
+        let occupancy = OccupancyGrid::from_densities(header.occupancy_resolution, occupancy)
+            .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
+        Ok(Model { header, field, occupancy })
+    }
+}
+
+fn damaged(path: &Path, what: String) -> ModelError {
+    ModelError::Damaged { path: path.to_path_buf(), what }
+}

@@ -1,0 +1,467 @@
+//! One training step: draw a fixed number of samples worth of rays, render
+//! them, apply the photometric + depth losses, backpropagate through
+//! compositing and the field, and update with Adam, guarded against NaN and
+//! divergence. Chunks map to threads deterministically for a given seed and
+//! thread count.
+
+use super::adam::Adam;
+use super::camera::View;
+use super::composite::{optical_depth_backward, weights_from_optical_depth};
+use super::field::{Field, FieldGrad, FieldWorkspace};
+use super::march::{march, ray_interval, Segment, StepRule};
+use super::occupancy::OccupancyGrid;
+use crate::rng::Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Loss gradients are scaled by this (Adam is scale invariant; it keeps
+/// magnitudes moderate).
+const GRAD_SCALE: f32 = 1.0 / 1024.0;
+/// Samples of whole rays processed together by the field.
+const SUB_BATCH: usize = 4096;
+
+/// Training hyper-parameters (local units where lengths are involved).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    pub samples_per_step: usize,
+    pub max_samples_per_ray: usize,
+    pub learning_rate: f32,
+    pub warmup_steps: u64,
+    /// Weight of the L1 loss on expected depth.
+    pub lambda_depth: f32,
+    /// Weight of the line-of-sight terms (empty space before the surface,
+    /// all weight within the surface window).
+    pub lambda_line_of_sight: f32,
+    /// Half-width of the surface window around measured depth (local units).
+    pub surface_window: f32,
+    pub step: StepSpec,
+    pub occupancy_every: u64,
+    pub occupancy_decay: f32,
+    pub seed: u64,
+}
+
+/// Serialisable [`StepRule`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepSpec {
+    pub min_step: f32,
+    pub max_step: f32,
+    pub cone: f32,
+}
+
+impl From<StepSpec> for StepRule {
+    fn from(s: StepSpec) -> Self {
+        StepRule { min_step: s.min_step, max_step: s.max_step, cone: s.cone }
+    }
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepStats {
+    pub loss: f64,
+    pub loss_rgb: f64,
+    pub loss_depth: f64,
+    pub rays: usize,
+    pub samples: usize,
+    pub skipped: bool,
+}
+
+/// Counters kept over a whole fit.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct TrainCounters {
+    pub steps: u64,
+    pub skipped_batches: u64,
+    pub samples: u64,
+    pub rays: u64,
+    pub occupancy_refreshes: u64,
+}
+
+struct RayRecord {
+    first: usize,
+    count: usize,
+    target: [f32; 3],
+    /// Measured depth as distance along the ray (local units).
+    depth_t: Option<f32>,
+    t_end: f32,
+}
+
+#[derive(Default)]
+struct ChunkStats {
+    loss_rgb: f64,
+    loss_depth: f64,
+    rays: usize,
+    samples: usize,
+}
+
+/// Per-thread buffers, allocated once and reused every step.
+struct Chunk {
+    ws: FieldWorkspace,
+    grad: FieldGrad,
+    rays: Vec<RayRecord>,
+    segments: Vec<Segment>,
+    ray_origins: Vec<[f32; 3]>,
+    ray_dirs: Vec<[f32; 3]>,
+    sample_positions: Vec<[f32; 3]>,
+    sample_dirs: Vec<[f32; 3]>,
+    tau: Vec<f32>,
+    weights: Vec<f32>,
+    grad_w: Vec<f32>,
+    grad_tau: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+}
+
+/// Trains a [`Field`] on a set of views.
+pub struct Trainer {
+    pub field: Field,
+    pub occupancy: OccupancyGrid,
+    pub config: TrainConfig,
+    pub counters: TrainCounters,
+    background: [f32; 3],
+    adam_grid: Adam,
+    adam_density: Adam,
+    adam_color: Adam,
+    chunks: Vec<Chunk>,
+    lr_scale: f32,
+    loss_ema: f64,
+    occupancy_positions: Vec<[f32; 3]>,
+    occupancy_sigmas: Vec<f32>,
+    occupancy_ws: FieldWorkspace,
+}
+
+impl Trainer {
+    /// Trainer for `field`; `background` is the colour behind empty rays.
+    pub fn new(field: Field, occupancy: OccupancyGrid, config: TrainConfig, background: [f32; 3]) -> Trainer {
+        let threads = rayon::current_num_threads().max(1);
+        let chunks = (0..threads)
+            .map(|_| Chunk {
+                ws: FieldWorkspace::default(),
+                grad: field.new_grad(),
+                rays: Vec::new(),
+                segments: Vec::new(),
+                ray_origins: Vec::new(),
+                ray_dirs: Vec::new(),
+                sample_positions: Vec::new(),
+                sample_dirs: Vec::new(),
+                tau: Vec::new(),
+                weights: Vec::new(),
+                grad_w: Vec::new(),
+                grad_tau: Vec::new(),
+                d_sigma: Vec::new(),
+                d_rgb: Vec::new(),
+            })
+            .collect();
+        Trainer {
+            adam_grid: Adam::new(field.grid.param_count()),
+            adam_density: Adam::new(field.density.param_count()),
+            adam_color: Adam::new(field.color.param_count()),
+            field,
+            occupancy,
+            config,
+            counters: TrainCounters::default(),
+            background,
+            chunks,
+            lr_scale: 1.0,
+            loss_ema: 0.0,
+            occupancy_positions: Vec::new(),
+            occupancy_sigmas: Vec::new(),
+            occupancy_ws: FieldWorkspace::default(),
+        }
+    }
+
+    /// Learning-rate multiplier: warm-up, then step decay over `progress` in [0, 1].
+    fn schedule(&self, progress: f32) -> f32 {
+        let warm = self.config.warmup_steps.max(1) as f32;
+        let warmup = ((self.counters.steps as f32 + 1.0) / warm).min(1.0);
+        let decay = if progress < 0.5 {
+            1.0
+        } else if progress < 0.75 {
+            0.33
+        } else {
+            0.1
+        };
+        warmup * decay
+    }
+
+    /// Run one step; `progress` is the fraction of the budget already used.
+    pub fn step(&mut self, views: &[View], progress: f32) -> StepStats {
+        let step_index = self.counters.steps;
+        self.maybe_refresh_occupancy(step_index);
+        let threads = self.chunks.len();
+        let budget = (self.config.samples_per_step / threads).max(64);
+        let ctx = StepContext {
+            field: &self.field,
+            occupancy: &self.occupancy,
+            views,
+            config: &self.config,
+            rule: self.config.step.into(),
+            background: self.background,
+        };
+        let seed = self.config.seed;
+        let stats: Vec<ChunkStats> = self
+            .chunks
+            .par_iter_mut()
+            .enumerate()
+            .map(|(c, chunk)| {
+                let mut rng = Rng::new(seed, 1 + step_index * 1024 + c as u64);
+                chunk.grad.clear();
+                run_chunk(&ctx, chunk, &mut rng, budget)
+            })
+            .collect();
+        // Merge in chunk order so results do not depend on scheduling.
+        let (first, rest) = self.chunks.split_at_mut(1);
+        for other in rest.iter() {
+            first[0].grad.merge_from(&other.grad);
+        }
+        let mut total = StepStats::default();
+        for s in &stats {
+            total.loss_rgb += s.loss_rgb;
+            total.loss_depth += s.loss_depth;
+            total.rays += s.rays;
+            total.samples += s.samples;
+        }
+        let rays = total.rays.max(1) as f64;
+        total.loss_rgb /= rays;
+        total.loss_depth /= rays;
+        total.loss = total.loss_rgb + total.loss_depth;
+        self.counters.steps += 1;
+        self.counters.samples += total.samples as u64;
+        self.counters.rays += total.rays as u64;
+
+        let grad = &first[0].grad;
+        let diverged = self.counters.steps > 50 && self.loss_ema > 0.0 && total.loss > 20.0 * self.loss_ema + 1e-3;
+        if !total.loss.is_finite() || !grad.all_finite() || diverged || total.rays == 0 {
+            // Skip the batch and back off the step size.
+            total.skipped = true;
+            self.counters.skipped_batches += 1;
+            self.lr_scale = (self.lr_scale * 0.5).max(1e-4);
+            return total;
+        }
+        self.loss_ema = if self.loss_ema == 0.0 { total.loss } else { 0.95 * self.loss_ema + 0.05 * total.loss };
+        self.lr_scale = (self.lr_scale * 1.02).min(1.0);
+        let lr = self.config.learning_rate * self.schedule(progress) * self.lr_scale;
+        let touched = grad.grid.touched();
+        self.adam_grid.step_sparse(&mut self.field.grid.params, &grad.grid.values, touched, lr);
+        self.adam_density.step_dense(&mut self.field.density.params, &grad.density, lr, 1e-6);
+        self.adam_color.step_dense(&mut self.field.color.params, &grad.color, lr, 1e-6);
+        total
+    }
+
+    fn maybe_refresh_occupancy(&mut self, step: u64) {
+        let warmup = self.config.warmup_steps;
+        let every = self.config.occupancy_every.max(1);
+        if step < warmup || (step - warmup) % every != 0 {
+            return;
+        }
+        // The first refresh after warm-up covers every cell; later ones a subset each.
+        let passes = if step == warmup { 8 } else { 1 };
+        let mut rng = Rng::new(self.config.seed, u64::MAX - step);
+        for _ in 0..passes {
+            let field = &self.field;
+            let ws = &mut self.occupancy_ws;
+            self.occupancy.refresh(
+                self.config.occupancy_decay,
+                &mut rng,
+                &mut self.occupancy_positions,
+                &mut self.occupancy_sigmas,
+                |positions, sigmas| density_batched(field, ws, positions, sigmas),
+            );
+        }
+        self.counters.occupancy_refreshes += 1;
+    }
+}
+
+/// Density for many points, in parallel blocks.
+pub fn density_batched(field: &Field, _ws: &mut FieldWorkspace, positions: &[[f32; 3]], sigmas: &mut [f32]) {
+    const BLOCK: usize = 8192;
+    positions.par_chunks(BLOCK).zip(sigmas.par_chunks_mut(BLOCK)).for_each_init(FieldWorkspace::default, |ws, (p, s)| {
+        field.density_only(p, ws, s);
+    });
+}
+
+struct StepContext<'a> {
+    field: &'a Field,
+    occupancy: &'a OccupancyGrid,
+    views: &'a [View],
+    config: &'a TrainConfig,
+    rule: StepRule,
+    background: [f32; 3],
+}
+
+fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) -> ChunkStats {
+    draw_rays(ctx, chunk, rng, budget);
+    let mut stats = ChunkStats { rays: chunk.rays.len(), samples: chunk.segments.len(), ..Default::default() };
+    let mut start = 0;
+    while start < chunk.rays.len() {
+        // Whole rays up to SUB_BATCH samples (a longer single ray goes alone).
+        let mut end = start;
+        let mut samples = 0;
+        while end < chunk.rays.len() && (end == start || samples + chunk.rays[end].count <= SUB_BATCH) {
+            samples += chunk.rays[end].count;
+            end += 1;
+        }
+        train_sub_batch(ctx, chunk, start..end, &mut stats);
+        start = end;
+    }
+    stats
+}
+
+/// Draw random pixels of random views and march them until `budget` samples.
+fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) {
+    chunk.rays.clear();
+    chunk.segments.clear();
+    chunk.ray_origins.clear();
+    chunk.ray_dirs.clear();
+    let cfg = ctx.config;
+    let window = cfg.surface_window;
+    let fine_step = 0.5 * ctx.rule.min_step;
+    let mut attempts = 0usize;
+    // Bounded attempts: views that see nothing must not hang the step.
+    while chunk.segments.len() < budget && attempts < 4 * budget {
+        attempts += 1;
+        let view = &ctx.views[rng.below(ctx.views.len() as u64) as usize];
+        let pixel = rng.below(view.camera.pixels() as u64) as usize;
+        let width = view.camera.width as usize;
+        let (ray, t_per_z) = view.camera.ray((pixel % width) as f32, (pixel / width) as f32);
+        let Some((t0, t1)) = ray_interval(&ray, ctx.rule.min_step) else { continue };
+        let depth_t = view.depth.as_ref().and_then(|d| {
+            let z = d[pixel];
+            (z > 0.0 && z.is_finite()).then_some(z * t_per_z)
+        });
+        let first = chunk.segments.len();
+        let max = cfg.max_samples_per_ray;
+        let jitter = rng.f32();
+        let t_end = match depth_t {
+            Some(td) if td - window < t1 && td + window > t0 => {
+                // Occupancy-skipped up to the surface window, dense inside it
+                // whatever the grid says, and nothing behind it.
+                let (w0, w1) = ((td - window).max(t0), (td + window).min(t1));
+                march(&ray, t0, w0, ctx.occupancy, &ctx.rule, jitter, max, &mut chunk.segments);
+                let mut t = w0 + jitter * fine_step;
+                while t < w1 && chunk.segments.len() - first < max {
+                    chunk.segments.push(Segment { t, dt: fine_step.min(w1 - t) });
+                    t += fine_step;
+                }
+                w1
+            }
+            _ => march(&ray, t0, t1, ctx.occupancy, &ctx.rule, jitter, max, &mut chunk.segments).min(t1),
+        };
+        let count = chunk.segments.len() - first;
+        if count == 0 {
+            continue;
+        }
+        if chunk.segments.len() > budget && !chunk.rays.is_empty() {
+            chunk.segments.truncate(first);
+            break;
+        }
+        let px = 3 * pixel;
+        let target = [view.rgb[px] as f32 / 255.0, view.rgb[px + 1] as f32 / 255.0, view.rgb[px + 2] as f32 / 255.0];
+        chunk.rays.push(RayRecord { first, count, target, depth_t, t_end });
+        chunk.ray_origins.push(ray.origin);
+        chunk.ray_dirs.push(ray.dir);
+    }
+}
+
+fn sized<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
+    if buf.len() < len {
+        buf.resize(len, T::default());
+    }
+    &mut buf[..len]
+}
+
+fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usize>, stats: &mut ChunkStats) {
+    let cfg = ctx.config;
+    let base = chunk.rays[rays.start].first;
+    let last = &chunk.rays[rays.end - 1];
+    let n = last.first + last.count - base;
+    chunk.sample_positions.clear();
+    chunk.sample_dirs.clear();
+    for r in rays.clone() {
+        let rec = &chunk.rays[r];
+        let (o, d) = (chunk.ray_origins[r], chunk.ray_dirs[r]);
+        for seg in &chunk.segments[rec.first..rec.first + rec.count] {
+            let t = seg.mid();
+            chunk.sample_positions.push([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+            chunk.sample_dirs.push(d);
+        }
+    }
+    ctx.field.forward(&chunk.sample_positions, &chunk.sample_dirs, &mut chunk.ws, true);
+    let tau = sized(&mut chunk.tau, n);
+    let weights = sized(&mut chunk.weights, n);
+    let grad_w = sized(&mut chunk.grad_w, n);
+    let grad_tau = sized(&mut chunk.grad_tau, n);
+    let d_sigma = sized(&mut chunk.d_sigma, n);
+    let d_rgb = sized(&mut chunk.d_rgb, 3 * n);
+    let sigma = &chunk.ws.sigma;
+    let rgb = &chunk.ws.rgb;
+    let bg = ctx.background;
+    let (lambda_d, lambda_los, window) = (cfg.lambda_depth, cfg.lambda_line_of_sight, cfg.surface_window);
+    for r in rays {
+        let rec = &chunk.rays[r];
+        let o = rec.first - base;
+        let segs = &chunk.segments[rec.first..rec.first + rec.count];
+        let k = rec.count;
+        for i in 0..k {
+            tau[o + i] = sigma[o + i] * segs[i].dt;
+        }
+        let comp = weights_from_optical_depth(&tau[o..o + k], &mut weights[o..o + k]);
+        let t_final = comp.transmittance;
+        let mut color = [bg[0] * t_final, bg[1] * t_final, bg[2] * t_final];
+        let mut depth = t_final * rec.t_end;
+        for i in 0..k {
+            let w = weights[o + i];
+            for c in 0..3 {
+                color[c] += w * rgb[c * n + o + i];
+            }
+            depth += w * segs[i].mid();
+        }
+        let err = [color[0] - rec.target[0], color[1] - rec.target[1], color[2] - rec.target[2]];
+        stats.loss_rgb += (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]) as f64 / 3.0;
+        let two_err = [2.0 * err[0] / 3.0, 2.0 * err[1] / 3.0, 2.0 * err[2] / 3.0];
+        let mut g_t = two_err[0] * bg[0] + two_err[1] * bg[1] + two_err[2] * bg[2];
+        for i in 0..k {
+            let j = o + i;
+            grad_w[j] = two_err[0] * rgb[j] + two_err[1] * rgb[n + j] + two_err[2] * rgb[2 * n + j];
+        }
+        if let Some(td) = rec.depth_t {
+            // L1 on expected depth (the paper's term).
+            let sign = (depth - td).signum();
+            stats.loss_depth += (lambda_d * (depth - td).abs()) as f64;
+            g_t += lambda_d * sign * rec.t_end;
+            // Line of sight: no weight in front of the surface, all of it near the surface.
+            let mut near = 0.0f32;
+            for i in 0..k {
+                let m = segs[i].mid();
+                let j = o + i;
+                grad_w[j] += lambda_d * sign * m;
+                if m < td - window {
+                    stats.loss_depth += (lambda_los * weights[j]) as f64;
+                    grad_w[j] += lambda_los;
+                } else if m <= td + window {
+                    near += weights[j];
+                }
+            }
+            let miss = 1.0 - near;
+            stats.loss_depth += (lambda_los * miss * miss) as f64;
+            for i in 0..k {
+                let m = segs[i].mid();
+                if m >= td - window && m <= td + window {
+                    grad_w[o + i] -= 2.0 * lambda_los * miss;
+                }
+            }
+        }
+        for g in grad_w[o..o + k].iter_mut() {
+            *g *= GRAD_SCALE;
+        }
+        optical_depth_backward(&tau[o..o + k], &weights[o..o + k], &comp, &grad_w[o..o + k], g_t * GRAD_SCALE, &mut grad_tau[o..o + k]);
+        for i in 0..k {
+            let j = o + i;
+            d_sigma[j] = grad_tau[j] * segs[i].dt;
+            let w = weights[j] * GRAD_SCALE;
+            d_rgb[j] = two_err[0] * w;
+            d_rgb[n + j] = two_err[1] * w;
+            d_rgb[2 * n + j] = two_err[2] * w;
+        }
+    }
+    ctx.field.backward(&chunk.sample_positions, &mut chunk.ws, &chunk.d_sigma[..n], &chunk.d_rgb[..3 * n], &mut chunk.grad);
+    let _ = stats;
+}

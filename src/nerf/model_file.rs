@@ -24,8 +24,8 @@ pub struct ModelHeader {
     pub nerflabel_version: String,
     pub field: FieldConfig,
     pub train: TrainConfig,
-    /// World-to-local similarity, row-major 4x4.
-    pub world_to_local: [f64; 16],
+    /// World-to-local similarity (`SceneTransform::to_array`).
+    pub scene_transform: Vec<f64>,
     /// Local units per metre (the similarity's scale).
     pub units_per_metre: f64,
     pub occupancy_resolution: usize,

@@ -205,3 +205,42 @@ fn shade_contributing(field: &Field, ws: &mut RenderWorkspace) {
         }
     }
 }
+
+/// Rays per parallel work item.
+const PACKET: usize = 2048;
+
+/// Render the given pixel positions of a camera in parallel (deterministic).
+pub fn render_pixels(
+    field: &Field,
+    grid: &OccupancyGrid,
+    opts: &RenderOptions,
+    camera: &super::camera::LocalCamera,
+    pixels: &[(f32, f32)],
+) -> Vec<RayOutput> {
+    use rayon::prelude::*;
+    let near = opts.rule.min_step;
+    let mut out = vec![RayOutput::default(); pixels.len()];
+    pixels.par_chunks(PACKET).zip(out.par_chunks_mut(PACKET)).for_each_init(
+        || (RenderWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
+        |(ws, rays, index, results), (px, out)| {
+            rays.clear();
+            index.clear();
+            for (k, &(u, v)) in px.iter().enumerate() {
+                if let Some(r) = RenderRay::through_cube(camera.ray(u, v).0, near) {
+                    rays.push(r);
+                    index.push(k);
+                }
+            }
+            results.clear();
+            results.resize(rays.len(), RayOutput::default());
+            render_rays(field, grid, rays, opts, ws, results);
+            for o in out.iter_mut() {
+                *o = RayOutput { rgb: opts.background, ..Default::default() };
+            }
+            for (&k, r) in index.iter().zip(results.iter()) {
+                out[k] = *r;
+            }
+        },
+    );
+    out
+}

@@ -1,0 +1,224 @@
+//! Argument definitions and the dispatch of each subcommand.
+
+mod info;
+
+use clap::{Args, Parser, Subcommand};
+use nerflabel::scan::{Layout, LoadOptions};
+use std::path::PathBuf;
+
+/// Turn a handheld RGB-D scan into training data for object detectors:
+/// fit a depth-supervised NeRF on the CPU, then label 3D boxes into masks,
+/// 2D boxes, object poses and COCO, or render novel views to Parquet.
+#[derive(Parser, Debug)]
+#[command(name = "nerflabel", version, about, long_about = None, propagate_version = true)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Validate a scan fully and print a summary (layout, frames, depth coverage, bounds).
+    Info(InfoArgs),
+    /// Write the fused, voxel-downsampled, coloured point cloud as binary PLY (to place boxes).
+    Cloud(CloudArgs),
+    /// Generate a procedural scan with exact ground truth (for tests and demos).
+    Fixture(FixtureArgs),
+    /// Generate a fixture scan and run every stage on it, printing accuracy against ground truth.
+    Demo(DemoArgs),
+    /// Fit the depth-supervised NeRF of a scan (writes SCAN/nerflabel/model.nlf).
+    Fit(FitArgs),
+    /// Print the error-against-run-time curve of the last fit.
+    Report(ReportArgs),
+    /// Label 3D boxes into instance masks, 2D boxes, object poses and COCO for every frame.
+    Label(LabelArgs),
+    /// Render novel views (colour, depth, mask) to one Parquet file.
+    Synth(SynthArgs),
+}
+
+/// How to read the scan.
+#[derive(Args, Debug, Clone)]
+pub struct ScanArgs {
+    /// Scan folder (any supported layout).
+    #[arg(default_value = ".")]
+    pub scan: PathBuf,
+    /// Force the layout instead of detecting it: native, tum, nerfstudio, scannet, stray.
+    #[arg(long, value_name = "LAYOUT")]
+    pub format: Option<Layout>,
+    /// Re-orthonormalise slightly non-orthonormal pose rotations (with a warning) instead of failing.
+    #[arg(long)]
+    pub fix_poses: bool,
+}
+
+impl ScanArgs {
+    pub fn load_options(&self) -> LoadOptions {
+        LoadOptions { layout: self.format, fix_poses: self.fix_poses }
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct InfoArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct CloudArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+    /// Output PLY file.
+    #[arg(short, long, default_value = "cloud.ply")]
+    pub output: PathBuf,
+    /// Voxel size in metres (default: derived from the scene size).
+    #[arg(long)]
+    pub voxel: Option<f64>,
+}
+
+#[derive(Args, Debug)]
+pub struct FixtureArgs {
+    /// Output folder for the scan (ground truth goes to OUT/gt).
+    pub out: PathBuf,
+    /// Scene: tabletop, small or cabinet.
+    #[arg(long, default_value = "tabletop")]
+    pub scene: String,
+    /// Number of frames (default depends on the scene).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Colour image width.
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Colour image height.
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Random seed (trajectory jitter, sensor noise).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Multiply all geometry by this factor.
+    #[arg(long, default_value_t = 1.0)]
+    pub scale: f64,
+    /// Layout to write: native or nerfstudio.
+    #[arg(long, default_value = "native")]
+    pub layout: String,
+}
+
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Folder for the demo scan and its outputs.
+    #[arg(default_value = "nerflabel-demo")]
+    pub out: PathBuf,
+    /// Training time budget in seconds.
+    #[arg(long, default_value_t = 60.0)]
+    pub time: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct FitArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+    /// Stop after this much wall time (seconds).
+    #[arg(long)]
+    pub time: Option<f64>,
+    /// Stop after this many steps.
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Random seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Model file (default SCAN/nerflabel/model.nlf).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Quality/speed preset: fast, default or quality.
+    #[arg(long, default_value = "default")]
+    pub preset: String,
+    /// Hold out every K-th frame for evaluation (0 = none).
+    #[arg(long, default_value_t = 10)]
+    pub holdout: usize,
+    /// Weight of the depth loss.
+    #[arg(long)]
+    pub lambda_depth: Option<f32>,
+    /// Continue from the last checkpoint of this model.
+    #[arg(long)]
+    pub resume: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct ReportArgs {
+    /// Scan folder.
+    #[arg(default_value = ".")]
+    pub scan: PathBuf,
+    /// Draw PSNR and depth error against seconds into this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct LabelArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+    /// boxes.json with oriented 3D boxes in the scan's world frame.
+    #[arg(long)]
+    pub boxes: PathBuf,
+    /// Output folder (default SCAN/nerflabel/labels).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Also write completed depth for every pixel (depth/*.png, mm).
+    #[arg(long)]
+    pub depth: bool,
+    /// Model file (default SCAN/nerflabel/model.nlf).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Only frames A..B (ids, inclusive start, exclusive end).
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Depth source: nerf, sensor or fused.
+    #[arg(long)]
+    pub source: Option<String>,
+    /// Also write YOLO txt boxes.
+    #[arg(long)]
+    pub yolo: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct SynthArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+    /// boxes.json (default SCAN/boxes.json).
+    #[arg(long)]
+    pub boxes: Option<PathBuf>,
+    /// Number of views to sample.
+    #[arg(long, default_value_t = 500)]
+    pub n: usize,
+    /// Image width (default: the scan's).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height (default: the scan's).
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Random seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Render the views listed in this JSON file instead of sampling.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// Output Parquet file (default SCAN/nerflabel/synth.parquet).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Model file (default SCAN/nerflabel/model.nlf).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Minimum distance of a sampled camera to the scanned surface, metres (default: scaled to the scene).
+    #[arg(long)]
+    pub clearance: Option<f64>,
+}
+
+/// Run one parsed command.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Info(args) => info::run(&args),
+        Command::Cloud(_) | Command::Fixture(_) | Command::Demo(_) | Command::Fit(_) | Command::Report(_) => {
+            anyhow::bail!("this command is not available in this build yet")
+        }
+        Command::Label(_) => anyhow::bail!("`label` is not available in this build yet"),
+        Command::Synth(_) => anyhow::bail!("`synth` is not available in this build yet"),
+    }
+}

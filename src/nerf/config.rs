@@ -1,0 +1,88 @@
+//! Model and training settings derived from the scene itself: the finest
+//! grid cell, step sizes and depth-loss widths follow the scene's scale, so
+//! a tabletop and a room (or the same scene at 1/100 scale) get the same
+//! treatment in local units.
+
+use super::field::{FieldConfig, GridSpec};
+use super::hash_grid::HashGridConfig;
+use super::occupancy::DEFAULT_RESOLUTION;
+use super::train::{StepSpec, TrainConfig};
+use serde::{Deserialize, Serialize};
+use std::str::FromStr;
+
+/// Speed/quality trade-off.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    Fast,
+    Default,
+    Quality,
+}
+
+impl FromStr for Preset {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "fast" => Ok(Preset::Fast),
+            "default" => Ok(Preset::Default),
+            "quality" => Ok(Preset::Quality),
+            other => Err(format!("unknown preset `{other}` (expected fast, default or quality)")),
+        }
+    }
+}
+
+impl Preset {
+    /// Finest grid cells across the unit cube.
+    fn finest_cells(self) -> f64 {
+        match self {
+            Preset::Fast => 128.0,
+            Preset::Default => 256.0,
+            Preset::Quality => 512.0,
+        }
+    }
+
+    fn samples_per_step(self) -> usize {
+        match self {
+            Preset::Fast => 1 << 15,
+            Preset::Default => 1 << 16,
+            Preset::Quality => 1 << 17,
+        }
+    }
+}
+
+/// Everything needed to build and train a model for one scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NerfSettings {
+    pub field: FieldConfig,
+    pub train: TrainConfig,
+    pub occupancy_resolution: usize,
+    pub render_step: StepSpec,
+}
+
+/// Settings for a scene whose unit cube spans `metres_per_unit` metres.
+pub fn settings_for_scene(metres_per_unit: f64, preset: Preset, seed: u64, lambda_depth: Option<f32>) -> NerfSettings {
+    let cells = preset.finest_cells();
+    let grid = HashGridConfig::for_scene(metres_per_unit, metres_per_unit / cells);
+    let finest = grid.finest_resolution.max(16) as f32;
+    // About one finest cell per step; far steps grow slowly for big scenes.
+    let step = StepSpec { min_step: 0.75 / finest, max_step: 1.0 / 32.0, cone: 1.0 / 256.0 };
+    let train = TrainConfig {
+        samples_per_step: preset.samples_per_step(),
+        max_samples_per_ray: 1024,
+        learning_rate: 1e-2,
+        warmup_steps: 128,
+        lambda_depth: lambda_depth.unwrap_or(0.1),
+        lambda_line_of_sight: 0.1,
+        surface_window: 2.0 / finest,
+        step,
+        occupancy_every: 16,
+        occupancy_decay: 0.95,
+        seed,
+    };
+    NerfSettings {
+        field: FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![64], color_hidden: vec![64, 64] },
+        train,
+        occupancy_resolution: DEFAULT_RESOLUTION,
+        render_step: step,
+    }
+}

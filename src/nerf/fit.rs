@@ -1,0 +1,286 @@
+//! `fit`: normalise the scene, build views, seed the occupancy grid from
+//! sensor depth, train within a time or step budget while measuring
+//! held-out accuracy against training time, and produce the model and the
+//! fit report. Reports progress through a callback; never prints.
+
+use super::config::{settings_for_scene, Preset};
+use super::dataset::{self, Dataset};
+use super::evaluate::{evaluate, EvalResult};
+use super::field::Field;
+use super::model_file::{Model, ModelHeader};
+use super::occupancy::OccupancyGrid;
+use super::render::RenderOptions;
+use super::train::{StepStats, TrainCounters, Trainer};
+use crate::poses::{normalize, scene_bounds, BoundsOptions, GeometryError, NormalizeOptions, SceneTransform};
+use crate::rng::Rng;
+use crate::scan::Scan;
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// Budget and knobs of one fit.
+#[derive(Clone, Debug)]
+pub struct FitOptions {
+    /// Wall-time budget for training, seconds.
+    pub time: Option<f64>,
+    /// Step budget.
+    pub steps: Option<u64>,
+    pub seed: u64,
+    pub preset: Preset,
+    /// Hold out every K-th frame (0 = none).
+    pub holdout_every: usize,
+    pub lambda_depth: Option<f32>,
+    /// Training seconds between held-out evaluations.
+    pub eval_interval_s: f64,
+    /// Longer side of the evaluation pixel grid.
+    pub eval_max_side: u32,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            time: None,
+            steps: None,
+            seed: 0,
+            preset: Preset::Default,
+            holdout_every: 10,
+            lambda_depth: None,
+            eval_interval_s: 10.0,
+            eval_max_side: 160,
+        }
+    }
+}
+
+/// Default training time when neither `time` nor `steps` is given.
+pub const DEFAULT_TIME_S: f64 = 120.0;
+
+/// One point of the error-against-run-time curve.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CurvePoint {
+    /// Training wall time so far (evaluation excluded).
+    pub seconds: f64,
+    pub step: u64,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub depth_mae_m: Option<f64>,
+    /// Training throughput since the previous point.
+    pub samples_per_s: f64,
+}
+
+/// Seconds spent in each phase.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct Timings {
+    pub bounds_s: f64,
+    pub views_s: f64,
+    pub occupancy_seed_s: f64,
+    pub train_s: f64,
+    pub eval_s: f64,
+}
+
+/// Contents of `fit_report.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FitReport {
+    pub nerflabel_version: String,
+    pub scan: String,
+    pub seed: u64,
+    pub preset: Preset,
+    pub threads: usize,
+    pub train_frames: usize,
+    pub holdout_frames: Vec<String>,
+    pub metres_per_unit: f64,
+    pub param_count: usize,
+    pub field: super::field::FieldConfig,
+    pub train: super::train::TrainConfig,
+    pub timings: Timings,
+    pub counters: TrainCounters,
+    pub interrupted: bool,
+    pub occupied_fraction: f64,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// What the caller hears during a fit.
+pub enum FitEvent<'a> {
+    /// Set-up done; training starts.
+    Prepared { train_views: usize, holdout_views: usize, param_count: usize, occupied_fraction: f64 },
+    /// A step finished; `progress` in [0, 1].
+    Step { step: u64, stats: &'a StepStats, train_seconds: f64, progress: f64 },
+    /// A held-out evaluation finished.
+    Eval(&'a CurvePoint),
+}
+
+/// A trained model and its report.
+pub struct FitOutcome {
+    pub model: Model,
+    pub report: FitReport,
+}
+
+/// Why fitting could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    #[error("cannot place the scene: {0}")]
+    Geometry(#[from] GeometryError),
+    #[error("the scan has no frame left for training")]
+    NoTrainingFrames,
+}
+
+/// Render settings stored with a model.
+pub fn render_options(model: &Model, color: bool) -> RenderOptions {
+    RenderOptions {
+        color,
+        rule: model.header.render_step.into(),
+        max_samples_per_ray: 4096,
+        background: model.header.background,
+    }
+}
+
+/// The scene transform stored in a model.
+pub fn model_transform(model: &Model) -> Result<SceneTransform, GeometryError> {
+    let values: [f64; SceneTransform::ARRAY_LEN] = model
+        .header
+        .scene_transform
+        .as_slice()
+        .try_into()
+        .map_err(|_| GeometryError::InvalidTransform("the model's scene transform has the wrong length".into()))?;
+    SceneTransform::from_array(&values)
+}
+
+/// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable model.
+pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
+    let mut timings = Timings::default();
+    let t = Instant::now();
+    let bounds = scene_bounds(scan, &BoundsOptions::default())?;
+    let norm = normalize(&bounds, &NormalizeOptions::default())?;
+    let transform = norm.transform;
+    let metres_per_unit = 1.0 / transform.scale;
+    timings.bounds_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let data: Dataset = dataset::build(scan, &transform, opts.holdout_every);
+    if data.train.is_empty() {
+        return Err(FitError::NoTrainingFrames);
+    }
+    timings.views_s = t.elapsed().as_secs_f64();
+
+    let settings = settings_for_scene(metres_per_unit, opts.preset, opts.seed, opts.lambda_depth);
+    let t = Instant::now();
+    let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
+    let rays = dataset::depth_rays(&data.train, 4);
+    if !rays.is_empty() {
+        occupancy.seed_from_depth(&rays);
+    }
+    drop(rays);
+    timings.occupancy_seed_s = t.elapsed().as_secs_f64();
+
+    let mut rng = Rng::new(opts.seed, 0);
+    let field = Field::new(settings.field.clone(), &mut rng);
+    let param_count = field.param_count();
+    let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    on_event(FitEvent::Prepared {
+        train_views: data.train.len(),
+        holdout_views: data.holdout.len(),
+        param_count,
+        occupied_fraction: trainer.occupancy.occupied_fraction(),
+    });
+
+    let time_budget = match (opts.time, opts.steps) {
+        (None, None) => Some(DEFAULT_TIME_S),
+        (time, _) => time,
+    };
+    let render_opts = RenderOptions {
+        color: true,
+        rule: settings.render_step.into(),
+        max_samples_per_ray: 4096,
+        background: data.background,
+    };
+    let mut curve = Vec::new();
+    let mut train_seconds = 0.0f64;
+    let mut next_eval = opts.eval_interval_s;
+    let mut last_point = (0.0f64, 0u64);
+    let mut interrupted = false;
+    let mut evaluate_now = |trainer: &Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| {
+        if data.holdout.is_empty() {
+            return;
+        }
+        let t = Instant::now();
+        let r: EvalResult =
+            evaluate(&trainer.field, &trainer.occupancy, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
+        timings.eval_s += t.elapsed().as_secs_f64();
+        let samples = trainer.counters.samples;
+        let dt = (train_seconds - last.0).max(1e-9);
+        let point = CurvePoint {
+            seconds: train_seconds,
+            step: trainer.counters.steps,
+            psnr: r.psnr,
+            ssim: r.ssim,
+            depth_mae_m: r.depth_mae_m,
+            samples_per_s: (samples - last.1) as f64 / dt,
+        };
+        *last = (train_seconds, samples);
+        curve.push(point);
+        on_event(FitEvent::Eval(&point));
+    };
+    loop {
+        let progress = match (time_budget, opts.steps) {
+            (Some(limit), Some(steps)) => (train_seconds / limit).max(trainer.counters.steps as f64 / steps as f64),
+            (Some(limit), None) => train_seconds / limit,
+            (None, Some(steps)) => trainer.counters.steps as f64 / steps.max(1) as f64,
+            (None, None) => 1.0,
+        };
+        if progress >= 1.0 {
+            break;
+        }
+        if stop.load(Ordering::Relaxed) {
+            interrupted = true;
+            break;
+        }
+        let t = Instant::now();
+        let stats = trainer.step(&data.train, progress as f32);
+        train_seconds += t.elapsed().as_secs_f64();
+        on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds, progress });
+        if train_seconds >= next_eval {
+            evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point);
+            while next_eval <= train_seconds {
+                next_eval += opts.eval_interval_s;
+            }
+        }
+    }
+    if curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
+        evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point);
+    }
+    timings.train_s = train_seconds;
+
+    let header = ModelHeader {
+        nerflabel_version: env!("CARGO_PKG_VERSION").to_string(),
+        field: settings.field.clone(),
+        train: settings.train.clone(),
+        scene_transform: transform.to_array().to_vec(),
+        units_per_metre: transform.scale,
+        occupancy_resolution: trainer.occupancy.resolution(),
+        background: data.background,
+        render_step: settings.render_step,
+        steps: trainer.counters.steps,
+        seed: opts.seed,
+        scan: scan.root.display().to_string(),
+        sections: [0; 4],
+    };
+    let report = FitReport {
+        nerflabel_version: header.nerflabel_version.clone(),
+        scan: header.scan.clone(),
+        seed: opts.seed,
+        preset: opts.preset,
+        threads: rayon::current_num_threads(),
+        train_frames: data.train.len(),
+        holdout_frames: data.holdout_frames.iter().map(|&i| scan.frames[i].name.clone()).collect(),
+        metres_per_unit,
+        param_count,
+        field: settings.field,
+        train: settings.train,
+        timings,
+        counters: trainer.counters,
+        interrupted,
+        occupied_fraction: trainer.occupancy.occupied_fraction(),
+        curve,
+    };
+    let model = Model { header, field: trainer.field, occupancy: trainer.occupancy };
+    Ok(FitOutcome { model, report })
+}

@@ -1,1 +1,231 @@
-//! SIMD kernels for the hash grid.
+//! AVX2 kernels for the hash grid: corner indices and trilinear weights of 8
+//! positions at once, and a forward kernel for 2-feature levels that gathers
+//! each corner's feature pair as one 64-bit element.
+//!
+//! The kernels repeat the scalar path's operations in the same order (no FMA
+//! contraction), so their results are bit-identical to
+//! `GridLevel::corners` and the scalar encode.
+
+use crate::nerf::hash_grid::{GridLevel, PRIMES};
+
+/// True when the AVX2+FMA kernels can run on this CPU.
+pub fn available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Table entries a level's indices can reach, if its geometry is consistent
+/// and small enough for 32-bit gather offsets.
+fn entries_reachable(level: &GridLevel) -> Option<usize> {
+    let res = level.resolution as u64;
+    if res == 0 {
+        return None;
+    }
+    let n = if level.dense {
+        let side = res + 1;
+        if level.stride_y as u64 != side || level.stride_z as u64 != side * side {
+            return None;
+        }
+        side * side * side
+    } else {
+        level.mask as u64 + 1
+    };
+    (n <= 1 << 28).then_some(n as usize)
+}
+
+/// Encodes one level for a block of positions into two feature rows.
+///
+/// `xyz` are clamped coordinate columns padded to a multiple of 8 and at least
+/// `out0.len()` long; `table` is the level's table (2 f32 per entry). Returns
+/// false (writing nothing) when AVX2 is missing or the inputs do not fit.
+pub fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) -> bool {
+    let n = out0.len();
+    let padded = xyz[0].len();
+    let shapes_ok = padded % 8 == 0
+        && padded >= n
+        && xyz[1].len() == padded
+        && xyz[2].len() == padded
+        && out1.len() == n;
+    let table_ok = entries_reachable(level).is_some_and(|e| table.len() >= 2 * e);
+    if !(shapes_ok && table_ok && available()) {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        // SAFETY: AVX2 and FMA were detected above; every index the kernel
+        // forms is below `entries_reachable(level)`, and `table` holds 2 f32
+        // for each of those entries; slices are only read/written in bounds.
+        unsafe { avx2::encode_level_f2(level, table, xyz, out0, out1) };
+        true
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Corner table entries (`idx[corner][lane]`) and trilinear weights of 8
+/// positions given as coordinate columns of length 8. Returns false (writing
+/// nothing) when AVX2 is missing or a column is not 8 long.
+pub fn corners8(level: &GridLevel, xyz: [&[f32]; 3], idx: &mut [[u32; 8]; 8], w: &mut [[f32; 8]; 8]) -> bool {
+    if xyz.iter().any(|c| c.len() != 8) || level.resolution == 0 || !available() {
+        return false;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        // SAFETY: AVX2 and FMA were detected above; the columns are 8 long and
+        // the outputs are arrays of 8 x 8 elements.
+        unsafe { avx2::corners8(level, xyz, idx, w) };
+        true
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::*;
+    use std::arch::x86_64::*;
+
+    /// Cell coordinate (clamped to 0..res-1) and fraction of 8 coordinates.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn axis(v: __m256, res_f: __m256, res_max: __m256i) -> (__m256i, __m256) {
+        let v = _mm256_min_ps(_mm256_max_ps(v, _mm256_setzero_ps()), _mm256_set1_ps(1.0));
+        let p = _mm256_mul_ps(v, res_f);
+        let i = _mm256_cvttps_epi32(_mm256_floor_ps(p));
+        // Integer clamp keeps indices in range whatever the float did.
+        let i = _mm256_min_epi32(_mm256_max_epi32(i, _mm256_setzero_si256()), res_max);
+        (i, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i)))
+    }
+
+    /// Corner entries and weights of 8 positions; corner bit 0/1/2 = +x/+y/+z.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn corners(level: &GridLevel, x: __m256, y: __m256, z: __m256) -> ([__m256i; 8], [__m256; 8]) {
+        let res_f = _mm256_set1_ps(level.resolution as f32);
+        let res_max = _mm256_set1_epi32(level.resolution as i32 - 1);
+        let (ix, fx) = axis(x, res_f, res_max);
+        let (iy, fy) = axis(y, res_f, res_max);
+        let (iz, fz) = axis(z, res_f, res_max);
+        let one = _mm256_set1_ps(1.0);
+        let wx = [_mm256_sub_ps(one, fx), fx];
+        let wy = [_mm256_sub_ps(one, fy), fy];
+        let wz = [_mm256_sub_ps(one, fz), fz];
+        let xs = [ix, _mm256_add_epi32(ix, _mm256_set1_epi32(1))];
+        let (sy, sz) = if level.dense {
+            (level.stride_y, level.stride_z)
+        } else {
+            (PRIMES[1], PRIMES[2])
+        };
+        let (sy, sz) = (_mm256_set1_epi32(sy as i32), _mm256_set1_epi32(sz as i32));
+        let y0 = _mm256_mullo_epi32(iy, sy);
+        let z0 = _mm256_mullo_epi32(iz, sz);
+        let ys = [y0, _mm256_add_epi32(y0, sy)];
+        let zs = [z0, _mm256_add_epi32(z0, sz)];
+        let mask = _mm256_set1_epi32(level.mask as i32);
+        let mut idx = [_mm256_setzero_si256(); 8];
+        let mut w = [_mm256_setzero_ps(); 8];
+        for c in 0..8 {
+            let (i, j, k) = (c & 1, (c >> 1) & 1, c >> 2);
+            idx[c] = if level.dense {
+                _mm256_add_epi32(_mm256_add_epi32(xs[i], ys[j]), zs[k])
+            } else {
+                _mm256_and_si256(_mm256_xor_si256(_mm256_xor_si256(xs[i], ys[j]), zs[k]), mask)
+            };
+            w[c] = _mm256_mul_ps(_mm256_mul_ps(wx[i], wy[j]), wz[k]);
+        }
+        (idx, w)
+    }
+
+    /// See [`super::corners8`].
+    ///
+    /// # Safety
+    /// AVX2 and FMA must be available; each column must be 8 long.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn corners8(level: &GridLevel, xyz: [&[f32]; 3], idx: &mut [[u32; 8]; 8], w: &mut [[f32; 8]; 8]) {
+        // SAFETY: the caller guarantees 8 readable f32 per column.
+        let (x, y, z) = unsafe {
+            (_mm256_loadu_ps(xyz[0].as_ptr()), _mm256_loadu_ps(xyz[1].as_ptr()), _mm256_loadu_ps(xyz[2].as_ptr()))
+        };
+        let (ci, cw) = corners(level, x, y, z);
+        for c in 0..8 {
+            // SAFETY: idx[c] and w[c] are arrays of 8 elements (32 bytes).
+            unsafe {
+                _mm256_storeu_si256(idx[c].as_mut_ptr().cast(), ci[c]);
+                _mm256_storeu_ps(w[c].as_mut_ptr(), cw[c]);
+            }
+        }
+    }
+
+    /// See [`super::encode_level_f2`].
+    ///
+    /// # Safety
+    /// AVX2 and FMA must be available; the columns must be padded to a
+    /// multiple of 8 and cover `out0`; `table` must hold 2 f32 for every entry
+    /// index the level's geometry can produce (`entries_reachable`).
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) {
+        let n = out0.len();
+        let base = table.as_ptr().cast::<f64>();
+        let dup_lo = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
+        let dup_hi = _mm256_setr_epi32(4, 4, 5, 5, 6, 6, 7, 7);
+        let mut s = 0;
+        while s < n {
+            // SAFETY: s + 8 <= padded column length (padded >= n, multiple of 8).
+            let (x, y, z) = unsafe {
+                (
+                    _mm256_loadu_ps(xyz[0].as_ptr().add(s)),
+                    _mm256_loadu_ps(xyz[1].as_ptr().add(s)),
+                    _mm256_loadu_ps(xyz[2].as_ptr().add(s)),
+                )
+            };
+            let (idx, w) = corners(level, x, y, z);
+            // Pairs (f0, f1) of samples 0-3 in `lo`, 4-7 in `hi`.
+            let mut lo = _mm256_setzero_ps();
+            let mut hi = _mm256_setzero_ps();
+            for c in 0..8 {
+                // SAFETY: idx[c] lanes are entry indices below the reachable
+                // count, and entry e occupies table[2e..2e+2] (8 bytes at base + 8e).
+                let (vl, vh) = unsafe {
+                    (
+                        _mm256_i32gather_pd::<8>(base, _mm256_castsi256_si128(idx[c])),
+                        _mm256_i32gather_pd::<8>(base, _mm256_extracti128_si256::<1>(idx[c])),
+                    )
+                };
+                let wl = _mm256_permutevar8x32_ps(w[c], dup_lo);
+                let wh = _mm256_permutevar8x32_ps(w[c], dup_hi);
+                lo = _mm256_add_ps(lo, _mm256_mul_ps(wl, _mm256_castpd_ps(vl)));
+                hi = _mm256_add_ps(hi, _mm256_mul_ps(wh, _mm256_castpd_ps(vh)));
+            }
+            // De-interleave: shuffle gives samples 0 1 4 5 | 2 3 6 7, the 64-bit permute restores order.
+            let f0 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(_mm256_shuffle_ps::<0b10_00_10_00>(lo, hi))));
+            let f1 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(_mm256_shuffle_ps::<0b11_01_11_01>(lo, hi))));
+            if s + 8 <= n {
+                // SAFETY: out0 and out1 have n >= s + 8 elements.
+                unsafe {
+                    _mm256_storeu_ps(out0.as_mut_ptr().add(s), f0);
+                    _mm256_storeu_ps(out1.as_mut_ptr().add(s), f1);
+                }
+            } else {
+                let (mut t0, mut t1) = ([0f32; 8], [0f32; 8]);
+                // SAFETY: t0 and t1 are 8 f32 each.
+                unsafe {
+                    _mm256_storeu_ps(t0.as_mut_ptr(), f0);
+                    _mm256_storeu_ps(t1.as_mut_ptr(), f1);
+                }
+                out0[s..].copy_from_slice(&t0[..n - s]);
+                out1[s..].copy_from_slice(&t1[..n - s]);
+            }
+            s += 8;
+        }
+    }
+}

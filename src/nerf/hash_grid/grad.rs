@@ -1,0 +1,128 @@
+//! Sparse-aware gradient buffer for the hash grid.
+//!
+//! `values` is dense (indexed like the grid's params) and allocated once;
+//! a bitset with one bit per parameter records what backward touched, and a
+//! summary bitset with one bit per 64-parameter word lets `clear`, `merge_from`
+//! and `touched` visit only touched words, in ascending order.
+
+/// Gradient of the grid's parameters plus the set of touched parameters.
+///
+/// Invariant: `values` is zero outside the touched parameters (it is written
+/// by [`super::HashGrid::backward`], and reset by [`GridGrad::clear`]).
+#[derive(Clone, Debug)]
+pub struct GridGrad {
+    /// Accumulated gradient, same indexing as `HashGrid::params`.
+    pub values: Vec<f32>,
+    /// One bit per parameter.
+    pub(super) bits: Vec<u64>,
+    /// One bit per word of `bits`.
+    pub(super) summary: Vec<u64>,
+}
+
+impl GridGrad {
+    /// Zeroed buffer for a grid with `param_count` parameters.
+    ///
+    /// Memory is written here so the pages are mapped before training starts.
+    pub fn new(param_count: usize) -> GridGrad {
+        let words = param_count.div_ceil(64);
+        GridGrad {
+            values: filled(param_count, 0.0),
+            bits: filled(words, 0),
+            summary: filled(words.div_ceil(64), 0),
+        }
+    }
+
+    /// Number of parameters this buffer covers.
+    pub fn param_count(&self) -> usize {
+        self.values.len()
+    }
+
+    /// Adds `w * d[f]` to the F parameters of table entry `e` and marks them.
+    #[inline(always)]
+    pub(crate) fn add_entry<const F: usize>(&mut self, e: usize, w: f32, d: &[f32; F]) {
+        let p = e * F;
+        let v = &mut self.values[p..p + F];
+        for f in 0..F {
+            v[f] += w * d[f];
+        }
+        // F divides 64, so an entry's bits never straddle two words.
+        let word = p >> 6;
+        let mask = (u64::MAX >> (64 - F)) << (p & 63);
+        self.bits[word] |= mask;
+        self.summary[word >> 6] |= 1u64 << (word & 63);
+    }
+
+    /// Touched parameter indices since the last clear, ascending, without repeats.
+    pub fn touched(&self) -> impl Iterator<Item = usize> + '_ {
+        self.touched_words().flat_map(|(first, bits)| ones(bits).map(move |b| first + b))
+    }
+
+    /// Touched parameters as `(first index, bitmask)` over 64-parameter words,
+    /// ascending: bit b set means parameter `first + b` was touched.
+    pub fn touched_words(&self) -> impl Iterator<Item = (usize, u64)> + '_ {
+        self.touched_word_indices().map(|w| (w * 64, self.bits[w]))
+    }
+
+    /// Number of touched parameters.
+    pub fn touched_count(&self) -> usize {
+        self.touched_words().map(|(_, b)| b.count_ones() as usize).sum()
+    }
+
+    /// Zeroes the touched values and forgets them; cost follows what was touched.
+    pub fn clear(&mut self) {
+        for s in 0..self.summary.len() {
+            let mut sw = self.summary[s];
+            while sw != 0 {
+                let w = s * 64 + sw.trailing_zeros() as usize;
+                sw &= sw - 1;
+                let end = (w * 64 + 64).min(self.values.len());
+                self.values[w * 64..end].fill(0.0);
+                self.bits[w] = 0;
+            }
+            self.summary[s] = 0;
+        }
+    }
+
+    /// Adds `other`'s touched values into `self` and takes over its touched set.
+    /// Deterministic for a fixed merge order. Panics if the sizes differ.
+    pub fn merge_from(&mut self, other: &GridGrad) {
+        assert_eq!(self.values.len(), other.values.len(), "GridGrad::merge_from: buffers of different grids");
+        for w in other.touched_word_indices() {
+            let end = (w * 64 + 64).min(self.values.len());
+            // Untouched values of `other` are zero, so adding the whole word is exact.
+            for (a, b) in self.values[w * 64..end].iter_mut().zip(&other.values[w * 64..end]) {
+                *a += *b;
+            }
+            self.bits[w] |= other.bits[w];
+        }
+        for (a, b) in self.summary.iter_mut().zip(&other.summary) {
+            *a |= *b;
+        }
+    }
+
+    /// Indices of words of `bits` with a touched parameter, ascending.
+    fn touched_word_indices(&self) -> impl Iterator<Item = usize> + '_ {
+        self.summary.iter().enumerate().flat_map(|(s, &sw)| ones(sw).map(move |b| s * 64 + b))
+    }
+}
+
+/// Positions of the set bits of `word`, ascending.
+fn ones(mut word: u64) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        if word == 0 {
+            return None;
+        }
+        let b = word.trailing_zeros() as usize;
+        word &= word - 1;
+        Some(b)
+    })
+}
+
+/// A vector of `n` copies of `v`, written element by element so that its pages
+/// are mapped now rather than on first use in the training loop.
+fn filled<T: Copy>(n: usize, v: T) -> Vec<T> {
+    let mut out = Vec::with_capacity(n);
+    // Opaque value: keeps LLVM from turning the fill into a lazily mapped calloc.
+    out.resize(n, std::hint::black_box(v));
+    out
+}

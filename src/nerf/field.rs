@@ -292,3 +292,80 @@ impl Field {
         self.grid.backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn loss(field: &Field, pos: &[[f32; 3]], dirs: &[[f32; 3]], a: &[f32], c: &[f32]) -> f64 {
+        let mut ws = FieldWorkspace::default();
+        field.forward(pos, dirs, &mut ws, false);
+        let n = pos.len();
+        let mut l = 0.0f64;
+        for b in 0..n {
+            l += (a[b] * ws.sigma[b]) as f64;
+        }
+        for i in 0..3 * n {
+            l += (c[i] * ws.rgb[i]) as f64;
+        }
+        l
+    }
+
+    #[test]
+    fn field_backward_matches_finite_differences() {
+        let mut rng = Rng::new(9, 0);
+        let grid = HashGridConfig::for_scene(1.0, 1.0 / 32.0);
+        let config = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![16], color_hidden: vec![16] };
+        let mut field = Field::new(config, &mut rng);
+        // Larger grid values so the encoding matters for the check.
+        for p in field.grid.params.iter_mut() {
+            *p = rng.f32() - 0.5;
+        }
+        let n = 37;
+        let pos: Vec<[f32; 3]> = (0..n).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
+        let dirs: Vec<[f32; 3]> = (0..n)
+            .map(|_| {
+                let d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
+                let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                [d[0] / l, d[1] / l, d[2] / l]
+            })
+            .collect();
+        let a: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+        let c: Vec<f32> = (0..3 * n).map(|_| rng.f32() - 0.5).collect();
+        let mut ws = FieldWorkspace::default();
+        field.forward(&pos, &dirs, &mut ws, true);
+        let mut grad = field.new_grad();
+        field.backward(&pos, &mut ws, &a, &c, &mut grad);
+
+        let check = |analytic: f32, numeric: f64, what: &str| {
+            assert!((analytic as f64 - numeric).abs() < 2e-2 * (1.0 + numeric.abs()), "{what}: analytic {analytic} numeric {numeric}");
+        };
+        let eps = 1e-2f32;
+        for k in (0..field.density.params.len()).step_by(37) {
+            let mut f = field.clone();
+            f.density.params[k] += eps;
+            let up = loss(&f, &pos, &dirs, &a, &c);
+            f.density.params[k] -= 2.0 * eps;
+            let down = loss(&f, &pos, &dirs, &a, &c);
+            check(grad.density[k], (up - down) / (2.0 * eps as f64), &format!("density param {k}"));
+        }
+        for k in (0..field.color.params.len()).step_by(23) {
+            let mut f = field.clone();
+            f.color.params[k] += eps;
+            let up = loss(&f, &pos, &dirs, &a, &c);
+            f.color.params[k] -= 2.0 * eps;
+            let down = loss(&f, &pos, &dirs, &a, &c);
+            check(grad.color[k], (up - down) / (2.0 * eps as f64), &format!("colour param {k}"));
+        }
+        let touched: Vec<usize> = grad.grid.touched().collect();
+        assert!(!touched.is_empty());
+        for &k in touched.iter().step_by(touched.len() / 20 + 1) {
+            let mut f = field.clone();
+            f.grid.params[k] += eps;
+            let up = loss(&f, &pos, &dirs, &a, &c);
+            f.grid.params[k] -= 2.0 * eps;
+            let down = loss(&f, &pos, &dirs, &a, &c);
+            check(grad.grid.values[k], (up - down) / (2.0 * eps as f64), &format!("grid param {k}"));
+        }
+    }
+}

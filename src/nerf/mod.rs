@@ -10,9 +10,9 @@ pub mod mlp;
 pub mod occupancy;
 pub mod sh;
 pub mod simd;
-// pub mod camera; (enabled once the kernels land)
-// pub mod field; (enabled once the kernels land)
+pub mod camera;
+pub mod field;
 pub mod metrics;
-// pub mod model_file; (enabled once the kernels land)
-// pub mod render; (enabled once the kernels land)
-// pub mod train; (enabled once the kernels land)
+pub mod model_file;
+pub mod render;
+pub mod train;

@@ -3,7 +3,11 @@
 //! fused point cloud. Depends on `scan` only; knows nothing of the NeRF.
 
 mod aabb;
+mod bounds;
 mod error;
+#[cfg(test)]
+mod test_scene;
 
 pub use aabb::{Aabb, DAabb};
+pub use bounds::{sample_depth_points, scene_bounds, BoundsOptions, BoundsSource, DepthSamples, PointStats, SceneBounds};
 pub use error::GeometryError;

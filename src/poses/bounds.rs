@@ -118,6 +118,8 @@ pub struct SceneBounds {
     pub samples: Vec<DVec3>,
     /// Camera centres, scan order.
     pub cameras: Vec<DVec3>,
+    /// Options the bounds were made with (the normalisation reuses them).
+    pub options: BoundsOptions,
 }
 
 /// Compute robust scene bounds for `scan`.
@@ -148,7 +150,7 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
     if !(aabb.max_extent() > 0.0) {
         return Err(GeometryError::NoScale { cameras: cameras.len() });
     }
-    Ok(SceneBounds { aabb, source, stats, samples: samples.points, cameras })
+    Ok(SceneBounds { aabb, source, stats, samples: samples.points, cameras, options: options.clone() })
 }
 
 /// Camera centres, failing on a non-finite pose.

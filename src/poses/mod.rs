@@ -5,9 +5,12 @@
 mod aabb;
 mod bounds;
 mod error;
+mod normalize;
+mod orient;
 #[cfg(test)]
 mod test_scene;
 
 pub use aabb::{Aabb, DAabb};
 pub use bounds::{sample_depth_points, scene_bounds, BoundsOptions, BoundsSource, DepthSamples, PointStats, SceneBounds};
 pub use error::GeometryError;
+pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};

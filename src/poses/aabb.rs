@@ -7,7 +7,7 @@ use glam::{DVec3, Vec3};
 macro_rules! aabb_type {
     ($name:ident, $vec:ident, $t:ident, $doc:literal) => {
         #[doc = $doc]
-        #[derive(Clone, Copy, Debug, PartialEq)]
+        #[derive(Clone, Copy, Debug, Default, PartialEq)]
         pub struct $name {
             pub min: $vec,
             pub max: $vec,

@@ -147,7 +147,7 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
     } else {
         (frusta_bounds(scan, &cameras, options)?, BoundsSource::CameraFrusta)
     };
-    if !(aabb.max_extent() > 0.0) {
+    if !(aabb.max_extent().is_finite() && aabb.max_extent() > 0.0) {
         return Err(GeometryError::NoScale { cameras: cameras.len() });
     }
     Ok(SceneBounds { aabb, source, stats, samples: samples.points, cameras, options: options.clone() })
@@ -300,7 +300,7 @@ fn frusta_bounds(scan: &Scan, cameras: &[DVec3], options: &BoundsOptions) -> Res
     let no_scale = GeometryError::NoScale { cameras: cameras.len() };
     let Some(centres) = DAabb::from_points(cameras.iter().copied()) else { return Err(no_scale) };
     let far = options.far_factor * centres.extent().length();
-    if !(far > 0.0) || !far.is_finite() {
+    if !(far.is_finite() && far > 0.0) {
         return Err(no_scale);
     }
     let mut b = centres;

@@ -146,10 +146,10 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
     let extent = bounds.max_extent();
     let voxel = options.voxel_size.unwrap_or(extent / f64::from(options.voxels_per_extent.max(1)));
     let bad = |reason: String| GeometryError::BadVoxelSize { voxel, extent, reason };
-    if !bounds.is_valid() || !(extent > 0.0) {
+    if !(bounds.is_valid() && extent > 0.0) {
         return Err(bad(format!("the scene box {bounds:?} is empty")));
     }
-    if !(voxel > 0.0) || !voxel.is_finite() {
+    if !(voxel.is_finite() && voxel > 0.0) {
         return Err(bad("it must be a positive finite number".into()));
     }
     let per_axis = (bounds.extent() / voxel).ceil().max(DVec3::ONE);
@@ -197,8 +197,8 @@ fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
             acc.offset[0] += frac.x as u64;
             acc.offset[1] += frac.y as u64;
             acc.offset[2] += frac.z as u64;
-            for c in 0..3 {
-                acc.rgb[c] += u64::from(px[c]);
+            for (sum, c) in acc.rgb.iter_mut().zip(px) {
+                *sum += u64::from(c);
             }
         }
     }

@@ -84,7 +84,7 @@ impl SceneTransform {
     /// edge spanning `1 - 2 * margin`.
     pub fn fit(rotation: DQuat, rotated_box: &DAabb, margin: f64) -> Result<SceneTransform, GeometryError> {
         let extent = rotated_box.max_extent();
-        if !rotated_box.is_valid() || !(extent > 0.0) {
+        if !(rotated_box.is_valid() && extent > 0.0) {
             return Err(GeometryError::InvalidTransform(format!("cannot fit a box with corners {rotated_box:?}")));
         }
         if !(0.0..0.5).contains(&margin) {
@@ -179,7 +179,7 @@ impl SceneTransform {
         if (q.length() - 1.0).abs() > 1e-6 {
             return Err(GeometryError::InvalidTransform(format!("rotation quaternion has length {}", q.length())));
         }
-        if !(a[7] > 0.0) {
+        if a[7] <= 0.0 {
             return Err(GeometryError::InvalidTransform(format!("scale {} is not positive", a[7])));
         }
         // Keep an already unit quaternion bit for bit, so save/load/save is exact.
@@ -246,7 +246,7 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
 /// cell order (deterministic).
 fn cell_centroids(points: &[DVec3], b: &DAabb) -> Vec<DVec3> {
     let cell = b.max_extent() / ORIENT_CELLS;
-    if !(cell > 0.0) {
+    if !(cell.is_finite() && cell > 0.0) {
         return points.to_vec();
     }
     let mut cells: HashMap<[i64; 3], (DVec3, u64)> = HashMap::new();

@@ -20,7 +20,7 @@ pub(crate) fn symmetric_eigen(m: DMat3) -> (DVec3, DMat3) {
     for _sweep in 0..64 {
         let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
         // Relative test keeps the result independent of the matrix's scale.
-        if !(off > 1e-32 * norm2) {
+        if off.is_nan() || off <= 1e-32 * norm2 {
             break;
         }
         for (p, q) in [(0, 1), (0, 2), (1, 2)] {
@@ -36,11 +36,9 @@ pub(crate) fn symmetric_eigen(m: DMat3) -> (DVec3, DMat3) {
                 row[p] = c * kp - s * kq;
                 row[q] = s * kp + c * kq;
             }
-            for k in 0..3 {
-                let (pk, qk) = (a[p][k], a[q][k]);
-                a[p][k] = c * pk - s * qk;
-                a[q][k] = s * pk + c * qk;
-            }
+            let (row_p, row_q) = (a[p], a[q]);
+            a[p] = std::array::from_fn(|k| c * row_p[k] - s * row_q[k]);
+            a[q] = std::array::from_fn(|k| s * row_p[k] + c * row_q[k]);
             a[p][q] = 0.0;
             a[q][p] = 0.0;
             for row in v.iter_mut() {
@@ -82,7 +80,7 @@ pub(crate) fn covariance(points: &[DVec3]) -> Option<DMat3> {
 pub(crate) fn principal_axes(points: &[DVec3]) -> Option<DMat3> {
     let cov = covariance(points)?;
     let (values, vectors) = symmetric_eigen(cov);
-    if !(values.x > 0.0) || !vectors.is_finite() {
+    if !(values.x.is_finite() && values.x > 0.0 && vectors.is_finite()) {
         return None;
     }
     Some(closest_to_identity(vectors))

@@ -1,3 +1,18 @@
 //! Scene geometry: robust scene bounds, the global-to-local similarity that
 //! maps the scene into the NeRF's unit cube, ray/box intersection, and the
 //! fused point cloud. Depends on `scan` only; knows nothing of the NeRF.
+
+mod aabb;
+mod bounds;
+mod cloud;
+mod error;
+mod normalize;
+mod orient;
+#[cfg(test)]
+mod test_scene;
+
+pub use aabb::{Aabb, DAabb};
+pub use bounds::{sample_depth_points, scene_bounds, BoundsOptions, BoundsSource, DepthSamples, PointStats, SceneBounds};
+pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
+pub use error::GeometryError;
+pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};

@@ -1,0 +1,337 @@
+//! The global-to-local similarity: world (metres, scan frame) to the NeRF's
+//! local frame, where the scene's oriented box sits centred in [0, 1]^3 with
+//! a margin. `local = scale * (rotation * world) + translation`.
+//!
+//! Orientation (as in Inspection-NeRF, an oriented box of the point cloud):
+//! the robust point set is reduced to the mean points of the occupied cells
+//! of a 64^3 grid (so densely filmed areas do not dominate); its principal
+//! axes, and the world axes, each start a descent on the volume of the
+//! rotated bounding box, and the smaller result wins. [`Orientation::Auto`]
+//! keeps the world axes unless the oriented box is at least 10 % smaller in
+//! volume (an unrotated frame is easier to read). User (`bbox.txt`) and
+//! frustum-fallback bounds keep the world axes.
+
+use super::bounds::{pad_relative, robust_box};
+use super::orient::{min_volume_rotation, principal_axes};
+use super::{BoundsSource, DAabb, GeometryError, SceneBounds};
+use glam::{DMat3, DMat4, DQuat, DVec3};
+use std::collections::HashMap;
+use std::ops::Mul;
+
+/// Cells per side of the grid the orientation is measured on.
+const ORIENT_CELLS: f64 = 64.0;
+/// Auto orientation rotates only if that shrinks the box volume below this fraction.
+const ROTATE_IF_VOLUME_BELOW: f64 = 0.9;
+
+/// How to orient the local frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Orientation {
+    /// The oriented box when it is clearly smaller, else the world axes.
+    #[default]
+    Auto,
+    /// Always the oriented (minimal-volume) box of the depth points.
+    Oriented,
+    /// Always the world axes.
+    Identity,
+}
+
+/// Options of the normalisation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NormalizeOptions {
+    /// Free space left on each side of the unit cube, in local units.
+    pub margin: f64,
+    /// How to orient the local axes.
+    pub orientation: Orientation,
+}
+
+impl Default for NormalizeOptions {
+    fn default() -> Self {
+        NormalizeOptions { margin: 0.05, orientation: Orientation::Auto }
+    }
+}
+
+/// Similarity `local = scale * (rotation * world) + translation` (f64).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneTransform {
+    /// World-to-local rotation.
+    pub rotation: DQuat,
+    /// Local-frame offset, applied after rotation and scaling.
+    pub translation: DVec3,
+    /// Local units per metre.
+    pub scale: f64,
+}
+
+/// The normalisation of one scene.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Normalization {
+    /// World-to-local similarity.
+    pub transform: SceneTransform,
+    /// The scene's box in local coordinates (inside [margin, 1 - margin]^3).
+    pub local_aabb: DAabb,
+    /// Whether the oriented box was used (else the world axes).
+    pub rotated: bool,
+}
+
+impl SceneTransform {
+    /// Number of f64 values in [`Self::to_array`].
+    pub const ARRAY_LEN: usize = 8;
+
+    /// The identity mapping.
+    pub const IDENTITY: SceneTransform = SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
+
+    /// Map that rotates by `rotation` and places `rotated_box` (a box in
+    /// rotated world coordinates, metres) centred in [0, 1]^3, its longest
+    /// edge spanning `1 - 2 * margin`.
+    pub fn fit(rotation: DQuat, rotated_box: &DAabb, margin: f64) -> Result<SceneTransform, GeometryError> {
+        let extent = rotated_box.max_extent();
+        if !(rotated_box.is_valid() && extent > 0.0) {
+            return Err(GeometryError::InvalidTransform(format!("cannot fit a box with corners {rotated_box:?}")));
+        }
+        if !(0.0..0.5).contains(&margin) {
+            return Err(GeometryError::InvalidTransform(format!("margin {margin} is outside [0, 0.5)")));
+        }
+        let scale = (1.0 - 2.0 * margin) / extent;
+        let translation = DVec3::splat(0.5) - rotated_box.center() * scale;
+        Ok(SceneTransform { rotation: rotation.normalize(), translation, scale })
+    }
+
+    /// World point (metres) to local coordinates.
+    #[inline]
+    pub fn world_to_local_point(&self, p: DVec3) -> DVec3 {
+        self.rotation * p * self.scale + self.translation
+    }
+
+    /// Local point to world coordinates (metres).
+    #[inline]
+    pub fn local_to_world_point(&self, p: DVec3) -> DVec3 {
+        self.rotation.inverse() * ((p - self.translation) / self.scale)
+    }
+
+    /// World direction to local (rotation only; lengths are kept).
+    #[inline]
+    pub fn world_to_local_direction(&self, d: DVec3) -> DVec3 {
+        self.rotation * d
+    }
+
+    /// Local direction to world (rotation only; lengths are kept).
+    #[inline]
+    pub fn local_to_world_direction(&self, d: DVec3) -> DVec3 {
+        self.rotation.inverse() * d
+    }
+
+    /// Metres to local units.
+    #[inline]
+    pub fn world_to_local_distance(&self, metres: f64) -> f64 {
+        metres * self.scale
+    }
+
+    /// Local units to metres.
+    #[inline]
+    pub fn local_to_world_distance(&self, local: f64) -> f64 {
+        local / self.scale
+    }
+
+    /// World camera-to-world pose to a local camera-to-local pose (the
+    /// rotation part stays orthonormal; the camera axes are unchanged).
+    pub fn world_to_local_pose(&self, camera_to_world: &DMat4) -> DMat4 {
+        let r = DMat3::from_quat(self.rotation) * DMat3::from_mat4(*camera_to_world);
+        let t = self.world_to_local_point(camera_to_world.w_axis.truncate());
+        pose(r, t)
+    }
+
+    /// Local camera-to-local pose back to a world camera-to-world pose.
+    pub fn local_to_world_pose(&self, camera_to_local: &DMat4) -> DMat4 {
+        let r = DMat3::from_quat(self.rotation.inverse()) * DMat3::from_mat4(*camera_to_local);
+        let t = self.local_to_world_point(camera_to_local.w_axis.truncate());
+        pose(r, t)
+    }
+
+    /// The inverse similarity (local to world).
+    pub fn inverse(&self) -> SceneTransform {
+        let rotation = self.rotation.inverse();
+        let scale = 1.0 / self.scale;
+        SceneTransform { rotation, translation: -(rotation * self.translation) * scale, scale }
+    }
+
+    /// Apply `self`, then `next`.
+    pub fn then(&self, next: &SceneTransform) -> SceneTransform {
+        *next * *self
+    }
+
+    /// World-to-local as a 4x4 matrix.
+    pub fn to_matrix(&self) -> DMat4 {
+        DMat4::from_scale_rotation_translation(DVec3::splat(self.scale), self.rotation, self.translation)
+    }
+
+    /// `[qx, qy, qz, qw, tx, ty, tz, scale]` for the model file.
+    pub fn to_array(&self) -> [f64; Self::ARRAY_LEN] {
+        let q = self.rotation;
+        let t = self.translation;
+        [q.x, q.y, q.z, q.w, t.x, t.y, t.z, self.scale]
+    }
+
+    /// Read [`Self::to_array`] back, checking that it is a valid similarity.
+    pub fn from_array(a: &[f64; Self::ARRAY_LEN]) -> Result<SceneTransform, GeometryError> {
+        if a.iter().any(|x| !x.is_finite()) {
+            return Err(GeometryError::InvalidTransform(format!("non-finite value in {a:?}")));
+        }
+        let q = DQuat::from_xyzw(a[0], a[1], a[2], a[3]);
+        if (q.length() - 1.0).abs() > 1e-6 {
+            return Err(GeometryError::InvalidTransform(format!("rotation quaternion has length {}", q.length())));
+        }
+        if a[7] <= 0.0 {
+            return Err(GeometryError::InvalidTransform(format!("scale {} is not positive", a[7])));
+        }
+        // Keep an already unit quaternion bit for bit, so save/load/save is exact.
+        let rotation = if (q.length_squared() - 1.0).abs() < 1e-14 { q } else { q.normalize() };
+        Ok(SceneTransform { rotation, translation: DVec3::new(a[4], a[5], a[6]), scale: a[7] })
+    }
+}
+
+/// Composition: `(a * b)(x) = a(b(x))`.
+impl Mul for SceneTransform {
+    type Output = SceneTransform;
+
+    fn mul(self, b: SceneTransform) -> SceneTransform {
+        SceneTransform {
+            rotation: (self.rotation * b.rotation).normalize(),
+            translation: self.rotation * b.translation * self.scale + self.translation,
+            scale: self.scale * b.scale,
+        }
+    }
+}
+
+/// Rigid 4x4 from a rotation and a translation.
+fn pose(r: DMat3, t: DVec3) -> DMat4 {
+    DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0))
+}
+
+/// Fit the world-to-local similarity of a scene (module doc for the rule).
+pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Normalization, GeometryError> {
+    let world_box = bounds.aabb;
+    let mut chosen = (DQuat::IDENTITY, world_box, false);
+    let point_box = bounds.stats.point_box.filter(|_| bounds.source == BoundsSource::Depth);
+    if let (Some(point_box), true) = (point_box, options.orientation != Orientation::Identity) {
+        let inliers: Vec<DVec3> = bounds.samples.iter().copied().filter(|p| point_box.contains(*p)).collect();
+        let cells = cell_centroids(&inliers, &point_box);
+        if cells.len() >= 2 {
+            let mut best = min_volume_rotation(&cells, DQuat::IDENTITY);
+            if let Some(axes) = principal_axes(&cells) {
+                let pca = min_volume_rotation(&cells, DQuat::from_mat3(&axes.transpose()));
+                if pca.1 < best.1 {
+                    best = pca;
+                }
+            }
+            let rotation = best.0;
+            let opts = &bounds.options;
+            let rotated = robust_box(&bounds.samples, |p| rotation * p, opts.low_percentile, opts.high_percentile);
+            if let Some(b) = rotated {
+                let b = bounds.cameras.iter().fold(b, |b, c| b.including(rotation * *c));
+                let b = pad_relative(&b, opts.padding);
+                let smaller = b.volume() < ROTATE_IF_VOLUME_BELOW * world_box.volume();
+                if options.orientation == Orientation::Oriented || smaller {
+                    chosen = (rotation, b, true);
+                }
+            }
+        }
+    }
+    let (rotation, rotated_box, rotated) = chosen;
+    let transform = SceneTransform::fit(rotation, &rotated_box, options.margin)?;
+    let s = transform.scale;
+    let local_aabb = DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
+    Ok(Normalization { transform, local_aabb, rotated })
+}
+
+/// Mean point of every occupied cell of a `ORIENT_CELLS`^3 grid over `b`, in
+/// cell order (deterministic).
+fn cell_centroids(points: &[DVec3], b: &DAabb) -> Vec<DVec3> {
+    let cell = b.max_extent() / ORIENT_CELLS;
+    if !(cell.is_finite() && cell > 0.0) {
+        return points.to_vec();
+    }
+    let mut cells: HashMap<[i64; 3], (DVec3, u64)> = HashMap::new();
+    for p in points {
+        let k = ((*p - b.min) / cell).floor().as_i64vec3().to_array();
+        let e = cells.entry(k).or_insert((DVec3::ZERO, 0));
+        e.0 += *p;
+        e.1 += 1;
+    }
+    let mut sorted: Vec<_> = cells.into_iter().collect();
+    sorted.sort_unstable_by_key(|(k, _)| *k);
+    sorted.into_iter().map(|(_, (sum, n))| sum / n as f64).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    fn random_transform(rng: &mut Rng) -> SceneTransform {
+        let q = DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize();
+        let t = DVec3::new(rng.normal(), rng.normal(), rng.normal());
+        SceneTransform { rotation: q, translation: t, scale: rng.range(0.01, 100.0) }
+    }
+
+    #[test]
+    fn composition_inverse_and_matrix_agree() {
+        let mut rng = Rng::new(3, 0);
+        for _ in 0..100 {
+            let (a, b) = (random_transform(&mut rng), random_transform(&mut rng));
+            let p = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0;
+            let tol = 1e-9 * (1.0 + a.scale * b.scale * p.length());
+            assert!(((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol);
+            assert!((b.then(&a).world_to_local_point(p) - (a * b).world_to_local_point(p)).length() < tol);
+            assert!((a.to_matrix().transform_point3(p) - a.world_to_local_point(p)).length() < tol);
+            let id = a * a.inverse();
+            assert!((id.world_to_local_point(p) - p).length() < 1e-9 * (1.0 + p.length()));
+            assert!((a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length()));
+        }
+    }
+
+    #[test]
+    fn array_round_trip_and_invalid_arrays() {
+        let t = random_transform(&mut Rng::new(4, 0));
+        assert_eq!(SceneTransform::from_array(&t.to_array()).unwrap().to_array(), t.to_array());
+        let mut bad = t.to_array();
+        bad[7] = 0.0;
+        assert!(SceneTransform::from_array(&bad).is_err());
+        bad = t.to_array();
+        bad[0] += 0.5;
+        assert!(SceneTransform::from_array(&bad).is_err());
+        bad = t.to_array();
+        bad[5] = f64::NAN;
+        assert!(SceneTransform::from_array(&bad).is_err());
+    }
+
+    #[test]
+    fn fit_centres_the_box_with_the_margin() {
+        let b = DAabb::new(DVec3::new(-3.0, 10.0, 0.0), DVec3::new(1.0, 12.0, 1.0));
+        let t = SceneTransform::fit(DQuat::IDENTITY, &b, 0.05).unwrap();
+        let lo = t.world_to_local_point(b.min);
+        let hi = t.world_to_local_point(b.max);
+        assert!((lo - DVec3::new(0.05, 0.275, 0.3875)).length() < 1e-12, "{lo}");
+        assert!((hi - DVec3::new(0.95, 0.725, 0.6125)).length() < 1e-12, "{hi}");
+        assert!(SceneTransform::fit(DQuat::IDENTITY, &DAabb::new(DVec3::ONE, DVec3::ONE), 0.05).is_err());
+        assert!(SceneTransform::fit(DQuat::IDENTITY, &b, 0.5).is_err());
+    }
+
+    #[test]
+    fn rotated_room_is_aligned_with_its_walls() {
+        use crate::poses::test_scene::Room;
+        use crate::poses::{scene_bounds, BoundsOptions};
+        let room = Room { rotation: DQuat::from_rotation_z(0.5) * DQuat::from_rotation_x(0.2), ..Room::default() };
+        let bounds = scene_bounds(&room.scan(), &BoundsOptions::default()).unwrap();
+        let n = normalize(&bounds, &NormalizeOptions::default()).unwrap();
+        assert!(n.rotated);
+        // The oriented box is the padded room: 4 x 3 x 2.5 m plus 2 x 5 % of 4 m.
+        let e = n.local_aabb.extent() / n.transform.scale;
+        assert!((e - DVec3::new(4.4, 3.4, 2.9)).abs().max_element() < 0.05, "{e}");
+        // Room axes map onto the local axes.
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+            let local = n.transform.world_to_local_direction(room.rotation * axis);
+            assert!(local.dot(axis) > 0.999, "{axis} -> {local}");
+        }
+        let straight = normalize(&scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(), &NormalizeOptions::default());
+        assert!(!straight.unwrap().rotated, "an axis-aligned room keeps the world axes");
+    }
+}

@@ -197,9 +197,9 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
     let mut next_eval = opts.eval_interval_s;
     let mut last_point = (0.0f64, 0u64);
     let mut interrupted = false;
-    let mut evaluate_now = |trainer: &Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| {
+    let evaluate_now = |trainer: &Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| -> Option<CurvePoint> {
         if data.holdout.is_empty() {
-            return;
+            return None;
         }
         let t = Instant::now();
         let r: EvalResult =
@@ -217,7 +217,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         };
         *last = (train_seconds, samples);
         curve.push(point);
-        on_event(FitEvent::Eval(&point));
+        Some(point)
     };
     loop {
         let progress = match (time_budget, opts.steps) {
@@ -238,14 +238,18 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         train_seconds += t.elapsed().as_secs_f64();
         on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds, progress });
         if train_seconds >= next_eval {
-            evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point);
+            if let Some(point) = evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+                on_event(FitEvent::Eval(&point));
+            }
             while next_eval <= train_seconds {
                 next_eval += opts.eval_interval_s;
             }
         }
     }
     if curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
-        evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point);
+        if let Some(point) = evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+            on_event(FitEvent::Eval(&point));
+        }
     }
     timings.train_s = train_seconds;
 

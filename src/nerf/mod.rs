@@ -16,3 +16,7 @@ pub mod metrics;
 pub mod model_file;
 pub mod render;
 pub mod train;
+pub mod config;
+pub mod dataset;
+pub mod evaluate;
+pub mod fit;

@@ -1,12 +1,26 @@
 //! `nerflabel info`: validate a scan and print its summary.
 
+use super::common::load_scan;
 use super::InfoArgs;
 use anyhow::Context;
+use nerflabel::poses::{scene_bounds, BoundsOptions, BoundsSource};
 
 pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
-    let scan = nerflabel::scan::load(&args.scan.scan, &args.scan.load_options())
-        .with_context(|| format!("cannot read the scan {}", args.scan.scan.display()))?;
+    let scan = load_scan(&args.scan)?;
     let summary = nerflabel::scan::summarize(&scan);
-    println!("{summary:?}");
+    println!("{summary}");
+    let bounds = scene_bounds(&scan, &BoundsOptions::default()).context("cannot compute the scene bounds")?;
+    let source = match bounds.source {
+        BoundsSource::User => "bbox.txt",
+        BoundsSource::Depth => "depth percentiles + cameras",
+        BoundsSource::CameraFrusta => "camera frusta (no depth)",
+    };
+    let (lo, hi) = (bounds.aabb.min, bounds.aabb.max);
+    println!(
+        "scene bounds:   [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}] m  ({source})",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
+    let e = bounds.aabb.extent();
+    println!("scene size:     {:.3} x {:.3} x {:.3} m", e.x, e.y, e.z);
     Ok(())
 }

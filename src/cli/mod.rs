@@ -1,6 +1,10 @@
 //! Argument definitions and the dispatch of each subcommand.
 
+mod cloud;
+mod common;
+mod fit;
 mod info;
+mod report;
 
 use clap::{Args, Parser, Subcommand};
 use nerflabel::scan::{Layout, LoadOptions};
@@ -215,9 +219,10 @@ pub struct SynthArgs {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(args) => info::run(&args),
-        Command::Cloud(_) | Command::Fixture(_) | Command::Demo(_) | Command::Fit(_) | Command::Report(_) => {
-            anyhow::bail!("this command is not available in this build yet")
-        }
+        Command::Cloud(args) => cloud::run(&args),
+        Command::Fit(args) => fit::run(&args),
+        Command::Report(args) => report::run(&args),
+        Command::Fixture(_) | Command::Demo(_) => anyhow::bail!("this command is not available in this build yet"),
         Command::Label(_) => anyhow::bail!("`label` is not available in this build yet"),
         Command::Synth(_) => anyhow::bail!("`synth` is not available in this build yet"),
     }

@@ -1,0 +1,91 @@
+//! `nerflabel fit`: train the NeRF of a scan and write the model and report.
+
+use super::common::{load_scan, model_path, progress_bar, stop_flag};
+use super::FitArgs;
+use anyhow::{bail, Context};
+use nerflabel::nerf::config::Preset;
+use nerflabel::nerf::fit::{fit, FitEvent, FitOptions, DEFAULT_TIME_S};
+
+pub fn run(args: &FitArgs) -> anyhow::Result<()> {
+    if args.resume {
+        bail!("--resume needs a checkpoint written by this version; none is supported yet");
+    }
+    if let Some(t) = args.time {
+        if !(t.is_finite() && t > 0.0) {
+            bail!("--time must be a positive number of seconds, got {t}");
+        }
+    }
+    if args.steps == Some(0) {
+        bail!("--steps must be at least 1");
+    }
+    let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
+    let scan = load_scan(&args.scan)?;
+    let model_path = model_path(&args.scan.scan, args.model.as_ref());
+    let report_path = model_path.with_file_name("fit_report.json");
+    let options = FitOptions {
+        time: args.time,
+        steps: args.steps,
+        seed: args.seed,
+        preset,
+        holdout_every: args.holdout,
+        lambda_depth: args.lambda_depth,
+        ..FitOptions::default()
+    };
+    let budget = match (args.time, args.steps) {
+        (Some(t), Some(s)) => format!("{t} s or {s} steps"),
+        (Some(t), None) => format!("{t} s"),
+        (None, Some(s)) => format!("{s} steps"),
+        (None, None) => format!("{DEFAULT_TIME_S} s"),
+    };
+    eprintln!("fitting {} frames of {} ({budget}, preset {})", scan.frames.len(), args.scan.scan.display(), args.preset);
+    let bar = progress_bar(1000, "{spinner} [{elapsed_precise}] [{bar:30}] {msg} (ETA {eta})");
+    let stop = stop_flag();
+    let mut last_eval = String::new();
+    let outcome = fit(&scan, &options, stop, &mut |event| match event {
+        FitEvent::Prepared { train_views, holdout_views, param_count, occupied_fraction } => {
+            bar.println(format!(
+                "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
+                occupied_fraction * 100.0
+            ));
+        }
+        FitEvent::Step { step, stats, progress, .. } => {
+            bar.set_position((progress * 1000.0) as u64);
+            if step % 8 == 0 {
+                bar.set_message(format!("step {step}  loss {:.4}  {last_eval}", stats.loss));
+            }
+        }
+        FitEvent::Eval(p) => {
+            last_eval = format!(
+                "held-out PSNR {:.2} dB, depth MAE {}  {:.0} k samples/s",
+                p.psnr,
+                p.depth_mae_m.map(|d| format!("{:.1} mm", d * 1e3)).unwrap_or_else(|| "n/a".into()),
+                p.samples_per_s / 1e3
+            );
+        }
+    })?;
+    bar.finish_and_clear();
+    outcome.model.save(&model_path)?;
+    let json = serde_json::to_vec_pretty(&outcome.report).context("cannot serialise the fit report")?;
+    nerflabel::atomic::write_file(&report_path, &json).with_context(|| format!("cannot write {}", report_path.display()))?;
+    let r = &outcome.report;
+    if r.interrupted {
+        eprintln!("interrupted: saved the model trained so far");
+    }
+    println!(
+        "trained {} steps in {:.1} s ({} batches skipped); model: {}",
+        r.counters.steps,
+        r.timings.train_s,
+        r.counters.skipped_batches,
+        model_path.display()
+    );
+    if let Some(p) = r.curve.last() {
+        println!(
+            "held-out: PSNR {:.2} dB, SSIM {:.3}, depth MAE {}",
+            p.psnr,
+            p.ssim,
+            p.depth_mae_m.map(|d| format!("{:.1} mm", d * 1e3)).unwrap_or_else(|| "n/a".into())
+        );
+    }
+    println!("report: {}", report_path.display());
+    Ok(())
+}

@@ -140,7 +140,8 @@ fn decode_frame(spec: &FrameSpec, listing: &Listing) -> Result<Frame, ScanError>
         Some(path) => {
             let raw = decode_depth(path, listing.depth_metres_per_unit)?;
             let size = (raw.width, raw.height);
-            (Some(resample_depth_to(&raw, w, h)), Some(size))
+            let on_grid = if size == (w, h) { raw } else { resample_depth_to(&raw, w, h) };
+            (Some(on_grid), Some(size))
         }
         None => (None, None),
     };

@@ -13,7 +13,12 @@ use std::path::{Path, PathBuf};
 
 const W: u32 = 80;
 const H: u32 = 60;
-const K: Intrinsics = Intrinsics { fx: 70.0, fy: 68.0, cx: 39.5, cy: 29.5 };
+const K: Intrinsics = Intrinsics {
+    fx: 70.0,
+    fy: 68.0,
+    cx: 39.5,
+    cy: 29.5,
+};
 
 /// The scene: the plane n . X = PLANE_D (n normalised below).
 const PLANE_N: [f64; 3] = [0.1, -0.05, 1.0];
@@ -22,7 +27,11 @@ const PLANE_D: f64 = 2.0;
 /// Rotation from an axis and angle by Rodrigues' formula (independent of glam's quaternions).
 fn rodrigues(axis: DVec3, angle: f64) -> DMat3 {
     let a = axis.normalize();
-    let k = DMat3::from_cols(DVec3::new(0.0, a.z, -a.y), DVec3::new(-a.z, 0.0, a.x), DVec3::new(a.y, -a.x, 0.0));
+    let k = DMat3::from_cols(
+        DVec3::new(0.0, a.z, -a.y),
+        DVec3::new(-a.z, 0.0, a.x),
+        DVec3::new(a.y, -a.x, 0.0),
+    );
     DMat3::IDENTITY + k * angle.sin() + k * k * (1.0 - angle.cos())
 }
 
@@ -49,9 +58,21 @@ impl Cam {
 
 fn cams() -> Vec<Cam> {
     vec![
-        Cam { axis: DVec3::Y, angle: 0.0, centre: DVec3::ZERO },
-        Cam { axis: DVec3::Y, angle: 0.1, centre: DVec3::new(0.2, 0.0, 0.05) },
-        Cam { axis: DVec3::new(1.0, 0.5, 0.2), angle: -0.12, centre: DVec3::new(-0.1, 0.1, 0.1) },
+        Cam {
+            axis: DVec3::Y,
+            angle: 0.0,
+            centre: DVec3::ZERO,
+        },
+        Cam {
+            axis: DVec3::Y,
+            angle: 0.1,
+            centre: DVec3::new(0.2, 0.0, 0.05),
+        },
+        Cam {
+            axis: DVec3::new(1.0, 0.5, 0.2),
+            angle: -0.12,
+            centre: DVec3::new(-0.1, 0.1, 0.1),
+        },
     ]
 }
 
@@ -75,7 +96,9 @@ fn write_depth(path: &Path, c2w: &DMat4, (w, h): (u32, u32), units_per_metre: f6
 }
 
 fn write_rgb(path: &Path, seed: u8) {
-    let img = RgbImage::from_fn(W, H, |u, v| image::Rgb([(u * 3) as u8, (v * 4) as u8, seed.wrapping_mul(60)]));
+    let img = RgbImage::from_fn(W, H, |u, v| {
+        image::Rgb([(u * 3) as u8, (v * 4) as u8, seed.wrapping_mul(60)])
+    });
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     img.save(path).unwrap();
 }
@@ -106,7 +129,12 @@ fn sample(depth: &DepthMap, u: f64, v: f64) -> Option<f64> {
     let (x0, y0) = (u.floor() as u32, v.floor() as u32);
     let (x1, y1) = ((x0 + 1).min(depth.width - 1), (y0 + 1).min(depth.height - 1));
     let (fx, fy) = (u - x0 as f64, v - y0 as f64);
-    let d = [depth.get(x0, y0), depth.get(x1, y0), depth.get(x0, y1), depth.get(x1, y1)];
+    let d = [
+        depth.get(x0, y0),
+        depth.get(x1, y0),
+        depth.get(x0, y1),
+        depth.get(x1, y1),
+    ];
     if d.iter().any(|&z| z <= 0.0) {
         return None;
     }
@@ -119,7 +147,9 @@ fn sample(depth: &DepthMap, u: f64, v: f64) -> Option<f64> {
 /// |predicted - observed| depth of frame `a`'s depth points seen from `b`,
 /// ignoring `margin` pixels at the borders of both images.
 fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64> {
-    let (Some(da), Some(db)) = (&a.depth, &b.depth) else { return Vec::new() };
+    let (Some(da), Some(db)) = (&a.depth, &b.depth) else {
+        return Vec::new();
+    };
     let w2c_b = b.camera_to_world.inverse();
     let m = margin as f64;
     let mut out = Vec::new();
@@ -129,9 +159,13 @@ fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64>
             if z <= 0.0 {
                 continue;
             }
-            let world = a.camera_to_world.transform_point3(a.intrinsics.unproject(u as f64, v as f64) * z);
+            let world = a
+                .camera_to_world
+                .transform_point3(a.intrinsics.unproject(u as f64, v as f64) * z);
             let in_b = w2c_b.transform_point3(world);
-            let Some((ub, vb)) = b.intrinsics.project(in_b) else { continue };
+            let Some((ub, vb)) = b.intrinsics.project(in_b) else {
+                continue;
+            };
             if ub < m || vb < m || ub > (db.width - 1) as f64 - m || vb > (db.height - 1) as f64 - m {
                 continue;
             }
@@ -160,8 +194,19 @@ fn check_frame(frame: &Frame, cam: &Cam, k: &Intrinsics, depth_tolerance: f64) {
         frame.camera_to_world,
         truth
     );
-    for (got, want) in [(frame.intrinsics.fx, k.fx), (frame.intrinsics.fy, k.fy), (frame.intrinsics.cx, k.cx), (frame.intrinsics.cy, k.cy)] {
-        assert!((got - want).abs() < 1e-9, "frame {} intrinsics {:?} vs {:?}", frame.name, frame.intrinsics, k);
+    for (got, want) in [
+        (frame.intrinsics.fx, k.fx),
+        (frame.intrinsics.fy, k.fy),
+        (frame.intrinsics.cx, k.cx),
+        (frame.intrinsics.cy, k.cy),
+    ] {
+        assert!(
+            (got - want).abs() < 1e-9,
+            "frame {} intrinsics {:?} vs {:?}",
+            frame.name,
+            frame.intrinsics,
+            k
+        );
     }
     let Some(depth) = &frame.depth else { return };
     assert_eq!((depth.width, depth.height), (W, H));
@@ -187,7 +232,13 @@ fn check_reprojection(scan: &Scan) {
                 continue;
             }
             let errors = reprojection_errors(a, b, 1, 2);
-            assert!(errors.len() > 1200, "{} -> {}: only {} points overlap", a.name, b.name, errors.len());
+            assert!(
+                errors.len() > 1200,
+                "{} -> {}: only {} points overlap",
+                a.name,
+                b.name,
+                errors.len()
+            );
             let worst = errors.iter().cloned().fold(0.0, f64::max);
             assert!(median(errors) < 0.002, "{} -> {}", a.name, b.name);
             assert!(worst < 0.006, "{} -> {}: worst {worst}", a.name, b.name);
@@ -201,7 +252,10 @@ fn write_native(root: &Path) {
     for (i, cam) in cams().iter().enumerate() {
         // Unpadded rgb names pair with padded pose names by integer value.
         write_rgb(&root.join(format!("rgb/{i}.png")), i as u8);
-        write(&root.join(format!("pose/{i:06}.txt")), &matrix_text(&cam.c2w().inverse()));
+        write(
+            &root.join(format!("pose/{i:06}.txt")),
+            &matrix_text(&cam.c2w().inverse()),
+        );
         if i < 2 {
             write_depth(&root.join(format!("depth/{i:06}.png")), &cam.c2w(), (32, 24), 1000.0);
         }
@@ -215,14 +269,21 @@ fn native_layout_loads_world_to_camera_and_low_res_depth() {
     let scan = load(dir.path(), &LoadOptions::default()).unwrap();
     assert_eq!(scan.layout, Layout::Native);
     assert_eq!(scan.frames.len(), 3);
-    assert_eq!(scan.frames.iter().map(|f| f.name.as_str()).collect::<Vec<_>>(), ["0", "1", "2"]);
+    assert_eq!(
+        scan.frames.iter().map(|f| f.name.as_str()).collect::<Vec<_>>(),
+        ["0", "1", "2"]
+    );
     for (frame, cam) in scan.frames.iter().zip(cams()) {
         check_frame(frame, &cam, &K, 0.003);
     }
     // Depth at 1/2.5 of the colour resolution, resampled to it.
     assert_eq!(scan.frames[0].depth_size, Some((32, 24)));
     assert!(scan.frames[2].depth.is_none() && scan.frames[2].depth_size.is_none());
-    assert!(scan.warnings.iter().any(|w| w.contains("no depth")), "{:?}", scan.warnings);
+    assert!(
+        scan.warnings.iter().any(|w| w.contains("no depth")),
+        "{:?}",
+        scan.warnings
+    );
     let bounds = scan.bounds.unwrap();
     assert_eq!((bounds.min.z, bounds.max.z), (0.5, 3.0));
     check_reprojection(&scan);
@@ -231,7 +292,10 @@ fn native_layout_loads_world_to_camera_and_low_res_depth() {
     assert_eq!(summary.frames_with_depth, 2);
     assert_eq!(summary.depth_sizes, vec![((32, 24), 2)]);
     let range = summary.depth_range.unwrap();
-    assert!(range.min > 1.7 && range.max < 2.4 && range.median > range.min, "{range:?}");
+    assert!(
+        range.min > 1.7 && range.max < 2.4 && range.median > range.min,
+        "{range:?}"
+    );
     let moved = (cams()[1].centre - cams()[0].centre).length() + (cams()[2].centre - cams()[1].centre).length();
     assert!((summary.trajectory_length - moved).abs() < 1e-9);
     assert!(summary.to_string().contains("32x24 (2 frames) on disk") || summary.to_string().contains("32x24 on disk"));
@@ -242,7 +306,13 @@ fn native_layout_loads_world_to_camera_and_low_res_depth() {
 fn tum_layout_associates_timestamps_and_reads_quaternions() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("rgbd_dataset_freiburg2_synthetic");
-    let k = Intrinsics { fx: 520.9, fy: 521.0, cx: 325.1, cy: 249.7 }.scaled((640, 480), (W, H));
+    let k = Intrinsics {
+        fx: 520.9,
+        fy: 521.0,
+        cx: 325.1,
+        cy: 249.7,
+    }
+    .scaled((640, 480), (W, H));
     let (mut rgb_txt, mut depth_txt, mut gt) = (String::from("# color images\n"), String::new(), String::new());
     for (i, cam) in cams().iter().enumerate() {
         let t = 100.0 + i as f64 * 0.1;
@@ -277,8 +347,18 @@ fn tum_layout_associates_timestamps_and_reads_quaternions() {
     for (frame, cam) in scan.frames.iter().zip(cams()) {
         check_frame(frame, &cam, &k, 0.002);
     }
-    assert!(scan.warnings.iter().any(|w| w.contains("1 of 5 listed image(s) are missing")), "{:?}", scan.warnings);
-    assert!(scan.warnings.iter().any(|w| w.contains("no depth image within 20 ms")), "{:?}", scan.warnings);
+    assert!(
+        scan.warnings
+            .iter()
+            .any(|w| w.contains("1 of 5 listed image(s) are missing")),
+        "{:?}",
+        scan.warnings
+    );
+    assert!(
+        scan.warnings.iter().any(|w| w.contains("no depth image within 20 ms")),
+        "{:?}",
+        scan.warnings
+    );
     check_reprojection(&scan);
 }
 
@@ -318,9 +398,18 @@ fn nerfstudio_layout_converts_opengl_axes() {
     let mut frames = Vec::new();
     for (i, cam) in cams().iter().enumerate() {
         write_rgb(&root.join(format!("images/frame_{:05}.png", i + 1)), i as u8);
-        write_depth(&root.join(format!("depth/frame_{:05}.png", i + 1)), &cam.c2w(), (W, H), 1000.0);
+        write_depth(
+            &root.join(format!("depth/frame_{:05}.png", i + 1)),
+            &cam.c2w(),
+            (W, H),
+            1000.0,
+        );
         // instant-ngp writes paths without extension.
-        let file = if i == 0 { format!("images/frame_{:05}", i + 1) } else { format!("./images/frame_{:05}.png", i + 1) };
+        let file = if i == 0 {
+            format!("images/frame_{:05}", i + 1)
+        } else {
+            format!("./images/frame_{:05}.png", i + 1)
+        };
         frames.push(serde_json::json!({
             "file_path": file,
             "depth_file_path": format!("depth/frame_{:05}.png", i + 1),
@@ -349,7 +438,12 @@ fn nerfstudio_camera_angle_and_depth_unit_scale() {
     let root = dir.path();
     let cam = &cams()[1];
     let angle_x = 2.0 * (0.5 * W as f64 / K.fx).atan();
-    let k = Intrinsics { fx: K.fx, fy: K.fx, cx: K.cx, cy: K.cy };
+    let k = Intrinsics {
+        fx: K.fx,
+        fy: K.fx,
+        cx: K.cx,
+        cy: K.cy,
+    };
     write_rgb(&root.join("r_0.png"), 0);
     let img = ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(W, H, |u, v| {
         Luma([(plane_depth(&cam.c2w(), &k, u as f64, v as f64) / 0.0002).round() as u16])
@@ -361,7 +455,14 @@ fn nerfstudio_camera_angle_and_depth_unit_scale() {
         "frames": [{ "file_path": "r_0", "depth_file_path": "r_0_depth", "transform_matrix": gl_rows(&cam.c2w()) }],
     });
     write(&root.join("transforms.json"), &json.to_string());
-    let scan = load(root, &LoadOptions { layout: Some(Layout::Nerfstudio), ..LoadOptions::default() }).unwrap();
+    let scan = load(
+        root,
+        &LoadOptions {
+            layout: Some(Layout::Nerfstudio),
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
     assert_eq!(scan.frames.len(), 1);
     check_frame(&scan.frames[0], cam, &k, 0.0005);
 }
@@ -382,7 +483,11 @@ fn scannet_layout_skips_lost_poses_and_upsamples_quarter_depth() {
     let scan = load(root, &LoadOptions::default()).unwrap();
     assert_eq!(scan.layout, Layout::Scannet);
     assert_eq!(scan.frames.len(), 3);
-    assert!(scan.warnings.iter().any(|w| w.contains("skipped: 3")), "{:?}", scan.warnings);
+    assert!(
+        scan.warnings.iter().any(|w| w.contains("skipped: 3")),
+        "{:?}",
+        scan.warnings
+    );
     for (frame, cam) in scan.frames.iter().zip(cams()) {
         assert_eq!(frame.depth_size, Some((W / 4, H / 4)));
         check_frame(frame, &cam, &K, 0.003);
@@ -395,14 +500,30 @@ fn stray_layout_scales_video_intrinsics() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let kv = K.scaled((W, H), (1920, 1440));
-    write(&root.join("camera_matrix.csv"), &format!("{}, 0.0, {}\n0.0, {}, {}\n0.0, 0.0, 1.0\n", kv.fx, kv.cx, kv.fy, kv.cy));
+    write(
+        &root.join("camera_matrix.csv"),
+        &format!("{}, 0.0, {}\n0.0, {}, {}\n0.0, 0.0, 1.0\n", kv.fx, kv.cx, kv.fy, kv.cy),
+    );
     let mut odometry = String::from("timestamp, frame, x, y, z, qx, qy, qz, qw\n");
     for (i, cam) in cams().iter().enumerate() {
         write_rgb(&root.join(format!("rgb/{i:06}.jpg")), i as u8);
-        write_depth(&root.join(format!("depth/{i:06}.png")), &cam.c2w(), (W / 4, H / 4), 1000.0);
+        write_depth(
+            &root.join(format!("depth/{i:06}.png")),
+            &cam.c2w(),
+            (W / 4, H / 4),
+            1000.0,
+        );
         let [qx, qy, qz, qw] = cam.quaternion();
         let c = cam.centre;
-        writeln!(odometry, "{}, {i}, {}, {}, {}, {qx}, {qy}, {qz}, {qw}", 0.5 + i as f64, c.x, c.y, c.z).unwrap();
+        writeln!(
+            odometry,
+            "{}, {i}, {}, {}, {}, {qx}, {qy}, {qz}, {qw}",
+            0.5 + i as f64,
+            c.x,
+            c.y,
+            c.z
+        )
+        .unwrap();
     }
     // Odometry has rows for every video frame; only some were extracted.
     writeln!(odometry, "9.0, 7, 0, 0, 0, 0, 0, 0, 1").unwrap();
@@ -425,8 +546,18 @@ fn fix_poses_reorthonormalises_with_a_warning() {
     bad.x_axis.x += 0.004;
     write(&dir.path().join("pose/000001.txt"), &matrix_text(&bad));
     assert!(load(dir.path(), &LoadOptions::default()).is_err());
-    let scan = load(dir.path(), &LoadOptions { fix_poses: true, ..LoadOptions::default() }).unwrap();
-    assert!(scan.warnings.iter().any(|w| w.contains("000001.txt") && w.contains("re-orthonormalised")));
+    let scan = load(
+        dir.path(),
+        &LoadOptions {
+            fix_poses: true,
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
+    assert!(scan
+        .warnings
+        .iter()
+        .any(|w| w.contains("000001.txt") && w.contains("re-orthonormalised")));
     assert!(scan.frames[1].camera_to_world.abs_diff_eq(cams()[1].c2w(), 5e-3));
 }
 
@@ -467,7 +598,10 @@ fn real_cabinet_scan_reprojects_consistently() {
     assert!(overall < 0.02, "median disagreement {overall} m");
     assert!(worst < 0.06, "worst pair {worst} m");
     let summary = summarize(&scan);
-    assert!(summary.depth_coverage > 0.3 && summary.trajectory_length > 2.0, "{summary}");
+    assert!(
+        summary.depth_coverage > 0.3 && summary.trajectory_length > 2.0,
+        "{summary}"
+    );
 }
 
 #[test]
@@ -482,7 +616,15 @@ fn real_tum_desk_loads_and_reprojects_consistently() {
     assert_eq!(scan.frames.len(), 9, "{:?}", scan.warnings);
     assert_eq!(scan.size(), (640, 480));
     // fr1 from the folder name.
-    assert_eq!(scan.frames[0].intrinsics, Intrinsics { fx: 517.3, fy: 516.5, cx: 318.6, cy: 255.3 });
+    assert_eq!(
+        scan.frames[0].intrinsics,
+        Intrinsics {
+            fx: 517.3,
+            fy: 516.5,
+            cx: 318.6,
+            cy: 255.3
+        }
+    );
     let medians = neighbour_medians(&scan, 0);
     assert_eq!(medians.len(), 8);
     let worst = medians.iter().cloned().fold(0.0, f64::max);
@@ -497,9 +639,16 @@ fn real_tum_desk_loads_and_reprojects_consistently() {
 fn load_500_frames_timing() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
-    let k = Intrinsics { fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5 };
+    let k = Intrinsics {
+        fx: 525.0,
+        fy: 525.0,
+        cx: 319.5,
+        cy: 239.5,
+    };
     write(&root.join("intrinsics.txt"), &k_text(&k));
-    let rgb = RgbImage::from_fn(640, 480, |u, v| image::Rgb([(u % 256) as u8, (v % 256) as u8, ((u * v) % 251) as u8]));
+    let rgb = RgbImage::from_fn(640, 480, |u, v| {
+        image::Rgb([(u % 256) as u8, (v % 256) as u8, ((u * v) % 251) as u8])
+    });
     let depth = ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(640, 480, |u, v| Luma([1000 + ((u + v) % 500) as u16]));
     std::fs::create_dir_all(root.join("rgb")).unwrap();
     std::fs::create_dir_all(root.join("depth")).unwrap();
@@ -510,10 +659,17 @@ fn load_500_frames_timing() {
             std::fs::copy(root.join("rgb/000000.png"), root.join(format!("rgb/{i:06}.png"))).unwrap();
             std::fs::copy(root.join("depth/000000.png"), root.join(format!("depth/{i:06}.png"))).unwrap();
         }
-        write(&root.join(format!("pose/{i:06}.txt")), &matrix_text(&DMat4::from_translation(DVec3::new(i as f64 * 0.01, 0.0, 0.0))));
+        write(
+            &root.join(format!("pose/{i:06}.txt")),
+            &matrix_text(&DMat4::from_translation(DVec3::new(i as f64 * 0.01, 0.0, 0.0))),
+        );
     }
     let start = std::time::Instant::now();
     let scan = load(root, &LoadOptions::default()).unwrap();
-    println!("loaded {} frames of 640x480 in {:.2} s", scan.frames.len(), start.elapsed().as_secs_f64());
+    println!(
+        "loaded {} frames of 640x480 in {:.2} s",
+        scan.frames.len(),
+        start.elapsed().as_secs_f64()
+    );
     assert_eq!(scan.frames.len(), 500);
 }

@@ -69,7 +69,11 @@ impl Listing {
 /// Fail early when a listing is larger than [`MAX_FRAMES`].
 pub(crate) fn check_frame_count(path: &Path, count: usize) -> Result<(), ScanError> {
     if count > MAX_FRAMES {
-        return Err(ScanError::TooManyFrames { path: path.to_path_buf(), count, max: MAX_FRAMES });
+        return Err(ScanError::TooManyFrames {
+            path: path.to_path_buf(),
+            count,
+            max: MAX_FRAMES,
+        });
     }
     Ok(())
 }
@@ -77,7 +81,10 @@ pub(crate) fn check_frame_count(path: &Path, count: usize) -> Result<(), ScanErr
 /// Decode and check every frame of `listing`.
 pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Scan, ScanError> {
     if listing.frames.is_empty() {
-        return Err(ScanError::NoFrames(listing.root.clone(), "the layout's file lists are empty".into()));
+        return Err(ScanError::NoFrames(
+            listing.root.clone(),
+            "the layout's file lists are empty".into(),
+        ));
     }
     check_frame_count(&listing.root, listing.frames.len())?;
     listing.frames.sort_by_key(|f| f.id);
@@ -99,8 +106,11 @@ pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Sc
             PoseKind::WorldToCamera => rigid_inverse(&pose),
         };
     }
-    let decoded: Vec<Result<Frame, ScanError>> =
-        listing.frames.par_iter().map(|spec| decode_frame(spec, &listing)).collect();
+    let decoded: Vec<Result<Frame, ScanError>> = listing
+        .frames
+        .par_iter()
+        .map(|spec| decode_frame(spec, &listing))
+        .collect();
     let mut frames = Vec::with_capacity(decoded.len());
     for result in decoded {
         frames.push(result?);
@@ -121,7 +131,13 @@ pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Sc
             }
         }
     }
-    Ok(Scan { root: listing.root, layout: listing.layout, frames, bounds: listing.bounds, warnings })
+    Ok(Scan {
+        root: listing.root,
+        layout: listing.layout,
+        frames,
+        bounds: listing.bounds,
+        warnings,
+    })
 }
 
 /// Decode one frame's colour and depth (one rayon task).
@@ -140,7 +156,11 @@ fn decode_frame(spec: &FrameSpec, listing: &Listing) -> Result<Frame, ScanError>
         Some(path) => {
             let raw = decode_depth(path, listing.depth_metres_per_unit)?;
             let size = (raw.width, raw.height);
-            let on_grid = if size == (w, h) { raw } else { resample_depth_to(&raw, w, h) };
+            let on_grid = if size == (w, h) {
+                raw
+            } else {
+                resample_depth_to(&raw, w, h)
+            };
             (Some(on_grid), Some(size))
         }
         None => (None, None),

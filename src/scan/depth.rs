@@ -44,7 +44,11 @@ pub fn resample_depth_to(depth: &DepthMap, width: u32, height: u32) -> DepthMap 
     }
     let mut out = vec![0.0f32; tw * th];
     if sw == 0 || sh == 0 || depth.metres.len() != sw * sh {
-        return DepthMap { width, height, metres: out };
+        return DepthMap {
+            width,
+            height,
+            metres: out,
+        };
     }
     let src = &depth.metres;
     let xs = axis_taps(sw, tw);
@@ -77,7 +81,11 @@ pub fn resample_depth_to(depth: &DepthMap, width: u32, height: u32) -> DepthMap 
             };
         }
     }
-    DepthMap { width, height, metres: out }
+    DepthMap {
+        width,
+        height,
+        metres: out,
+    }
 }
 
 /// Source neighbours and weight of one target pixel along one axis.
@@ -99,7 +107,11 @@ fn axis_taps(source: usize, target: usize) -> Vec<Tap> {
             let lo = c.floor();
             let frac = (c - lo) as f32;
             let lo = lo as usize;
-            Tap { lo, hi: (lo + 1).min(source.saturating_sub(1)), frac }
+            Tap {
+                lo,
+                hi: (lo + 1).min(source.saturating_sub(1)),
+                frac,
+            }
         })
         .collect()
 }
@@ -109,7 +121,10 @@ mod tests {
     use super::*;
 
     fn map(width: u32, height: u32, f: impl Fn(u32, u32) -> f32) -> DepthMap {
-        let metres = (0..height).flat_map(|y| (0..width).map(move |x| (x, y))).map(|(x, y)| f(x, y)).collect();
+        let metres = (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .map(|(x, y)| f(x, y))
+            .collect();
         DepthMap { width, height, metres }
     }
 
@@ -128,7 +143,11 @@ mod tests {
         for u in 2..30u32 {
             let c = (u as f32 + 0.5) / 4.0 - 0.5;
             let want = 1.0 + 0.01 * c;
-            assert!((up.get(u, 10) - want).abs() < 1e-5, "u {u}: {} vs {want}", up.get(u, 10));
+            assert!(
+                (up.get(u, 10) - want).abs() < 1e-5,
+                "u {u}: {} vs {want}",
+                up.get(u, 10)
+            );
         }
         // Integer factor 2.5: centres of target pixels 2 and 7 fall on source centres 0.5 and 2.5.
         let up = resample_depth_to(&d, 20, 15);
@@ -161,7 +180,13 @@ mod tests {
 
     #[test]
     fn holes_stay_empty_and_do_not_leak() {
-        let d = map(8, 8, |x, y| if (3..5).contains(&x) && (3..5).contains(&y) { 0.0 } else { 2.0 });
+        let d = map(8, 8, |x, y| {
+            if (3..5).contains(&x) && (3..5).contains(&y) {
+                0.0
+            } else {
+                2.0
+            }
+        });
         let up = resample_depth_to(&d, 32, 32);
         for v in 0..32 {
             for u in 0..32 {

@@ -23,7 +23,13 @@ pub enum Layout {
 
 impl Layout {
     /// Every layout, in detection order.
-    pub const ALL: [Layout; 5] = [Layout::Native, Layout::Nerfstudio, Layout::Tum, Layout::Scannet, Layout::Stray];
+    pub const ALL: [Layout; 5] = [
+        Layout::Native,
+        Layout::Nerfstudio,
+        Layout::Tum,
+        Layout::Scannet,
+        Layout::Stray,
+    ];
 
     /// Name used by `--format` and in reports.
     pub fn name(self) -> &'static str {

@@ -78,11 +78,18 @@ fn fmt_parse(path: &std::path::Path, line: usize, reason: &str) -> String {
 impl ScanError {
     /// Wrap an I/O error with the path it happened on.
     pub(crate) fn io(path: &std::path::Path, source: std::io::Error) -> ScanError {
-        ScanError::Io { path: path.to_path_buf(), source }
+        ScanError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
     }
 
     /// Attach a path to a text parse error.
     pub(crate) fn parse(path: &std::path::Path, err: super::text::TextError) -> ScanError {
-        ScanError::Parse { path: path.to_path_buf(), line: err.line, reason: err.reason }
+        ScanError::Parse {
+            path: path.to_path_buf(),
+            line: err.line,
+            reason: err.reason,
+        }
     }
 }

@@ -16,7 +16,9 @@ pub(crate) fn stem_id(path: &Path) -> Option<u64> {
 
 /// File stem as text (for frame names).
 pub(crate) fn stem(path: &Path) -> String {
-    path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+    path.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default()
 }
 
 /// Path relative to `root` for messages, or the path itself.
@@ -38,22 +40,37 @@ pub(crate) fn files_by_id(
     for entry in entries {
         let entry = entry.map_err(|e| ScanError::io(dir, e))?;
         let path = entry.path();
-        let hidden = path.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with('.'));
+        let hidden = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with('.'));
         if hidden || !super::image_io::has_extension(&path, exts) || path.is_dir() {
             continue;
         }
         let Some(id) = stem_id(&path) else {
-            skipped.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
+            skipped.push(
+                path.file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default(),
+            );
             continue;
         };
         if let Some(previous) = by_id.insert(id, path.clone()) {
             return Err(ScanError::Frame {
                 frame: id.to_string(),
-                reason: format!("two files for the same frame: {} and {}", previous.display(), path.display()),
+                reason: format!(
+                    "two files for the same frame: {} and {}",
+                    previous.display(),
+                    path.display()
+                ),
             });
         }
         if by_id.len() > MAX_FRAMES {
-            return Err(ScanError::TooManyFrames { path: dir.to_path_buf(), count: by_id.len(), max: MAX_FRAMES });
+            return Err(ScanError::TooManyFrames {
+                path: dir.to_path_buf(),
+                count: by_id.len(),
+                max: MAX_FRAMES,
+            });
         }
     }
     if !skipped.is_empty() {
@@ -106,7 +123,9 @@ mod tests {
         assert_eq!(warnings.len(), 1);
         assert!(warnings[0].contains("notes.png"));
         std::fs::write(dir.path().join("01.png"), b"x").unwrap();
-        let err = files_by_id(dir.path(), &["png", "jpg"], &mut warnings).unwrap_err().to_string();
+        let err = files_by_id(dir.path(), &["png", "jpg"], &mut warnings)
+            .unwrap_err()
+            .to_string();
         assert!(err.starts_with("frame 1: two files"), "{err}");
     }
 

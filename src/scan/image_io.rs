@@ -21,7 +21,10 @@ pub fn has_extension(path: &Path, exts: &[&str]) -> bool {
 }
 
 fn image_error(path: &Path, reason: impl Into<String>) -> ScanError {
-    ScanError::Image { path: path.to_path_buf(), reason: reason.into() }
+    ScanError::Image {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
 }
 
 fn check_dimensions(path: &Path, (w, h): (u32, u32)) -> Result<(), ScanError> {
@@ -43,7 +46,9 @@ pub fn dimensions(path: &Path) -> Result<(u32, u32), ScanError> {
     if reader.format().is_none() {
         return Err(image_error(path, "not a PNG or JPEG image"));
     }
-    let dims = reader.into_dimensions().map_err(|e| image_error(path, format!("cannot read image header: {e}")))?;
+    let dims = reader
+        .into_dimensions()
+        .map_err(|e| image_error(path, format!("cannot read image header: {e}")))?;
     check_dimensions(path, dims)?;
     Ok(dims)
 }
@@ -63,14 +68,24 @@ fn decoder<'a>(path: &Path, bytes: &'a [u8]) -> Result<(ImageFormat, impl ImageD
         .map_err(|e| ScanError::io(path, e))?;
     let format = match reader.format() {
         Some(f @ (ImageFormat::Png | ImageFormat::Jpeg)) => f,
-        Some(other) => return Err(image_error(path, format!("unsupported image format {other:?}, expected PNG or JPEG"))),
+        Some(other) => {
+            return Err(image_error(
+                path,
+                format!("unsupported image format {other:?}, expected PNG or JPEG"),
+            ))
+        }
         None if bytes.is_empty() => return Err(image_error(path, "cannot decode image: empty file")),
         None => return Err(image_error(path, "cannot decode image: not a PNG or JPEG file")),
     };
     if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
-        return Err(image_error(path, "cannot decode image: truncated JPEG (no end-of-image marker)"));
+        return Err(image_error(
+            path,
+            "cannot decode image: truncated JPEG (no end-of-image marker)",
+        ));
     }
-    let decoder = reader.into_decoder().map_err(|e| image_error(path, format!("cannot decode image header: {e}")))?;
+    let decoder = reader
+        .into_decoder()
+        .map_err(|e| image_error(path, format!("cannot decode image header: {e}")))?;
     check_dimensions(path, decoder.dimensions())?;
     Ok((format, decoder))
 }
@@ -93,11 +108,17 @@ pub fn decode_depth(path: &Path, metres_per_unit: f32) -> Result<DepthMap, ScanE
     let color = decoder.color_type();
     if format != ImageFormat::Png || color != ColorType::L16 {
         let kind = if format == ImageFormat::Png { "" } else { " JPEG" };
-        return Err(ScanError::DepthFormat { path: path.to_path_buf(), found: format!("{}{kind}", describe(color)) });
+        return Err(ScanError::DepthFormat {
+            path: path.to_path_buf(),
+            found: format!("{}{kind}", describe(color)),
+        });
     }
     let (width, height) = decoder.dimensions();
     let DynamicImage::ImageLuma16(raw) = decode_all(path, decoder)? else {
-        return Err(ScanError::DepthFormat { path: path.to_path_buf(), found: "a different pixel type".into() });
+        return Err(ScanError::DepthFormat {
+            path: path.to_path_buf(),
+            found: "a different pixel type".into(),
+        });
     };
     let metres = raw.into_raw().into_iter().map(|v| v as f32 * metres_per_unit).collect();
     Ok(DepthMap { width, height, metres })
@@ -151,7 +172,9 @@ fn jpeg_is_complete(bytes: &[u8]) -> bool {
         i = next;
     };
     // Entropy-coded data stuffs FF as FF 00, so FF D9 after SOS is the real end.
-    bytes.get(sos_end..).is_some_and(|rest| rest.windows(2).any(|w| w == [0xFF, 0xD9]))
+    bytes
+        .get(sos_end..)
+        .is_some_and(|rest| rest.windows(2).any(|w| w == [0xFF, 0xD9]))
 }
 
 #[cfg(test)]
@@ -187,16 +210,24 @@ mod tests {
         assert_eq!(rgb.get_pixel(1, 1).0, [77, 77, 77]);
 
         let depth = dir.path().join("d.png");
-        ImageBuffer::<Luma<u16>, _>::from_fn(4, 3, |x, _| Luma([1000 + x as u16])).save(&depth).unwrap();
+        ImageBuffer::<Luma<u16>, _>::from_fn(4, 3, |x, _| Luma([1000 + x as u16]))
+            .save(&depth)
+            .unwrap();
         let d = decode_depth(&depth, 0.001).unwrap();
         assert_eq!((d.width, d.height), (4, 3));
         assert!((d.get(3, 2) - 1.003).abs() < 1e-6);
 
         let err = decode_depth(&gray, 0.001).unwrap_err().to_string();
-        assert!(err.ends_with("g.png: expected a 16-bit single-channel PNG, found 8-bit gray"), "{err}");
+        assert!(
+            err.ends_with("g.png: expected a 16-bit single-channel PNG, found 8-bit gray"),
+            "{err}"
+        );
         let jpg = dir.path().join("c.jpg");
         std::fs::write(&jpg, jpeg_bytes()).unwrap();
-        assert!(decode_depth(&jpg, 0.001).unwrap_err().to_string().contains("8-bit RGB JPEG"));
+        assert!(decode_depth(&jpg, 0.001)
+            .unwrap_err()
+            .to_string()
+            .contains("8-bit RGB JPEG"));
         assert_eq!(dimensions(&jpg).unwrap(), (16, 8));
     }
 }

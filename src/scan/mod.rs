@@ -111,7 +111,15 @@ impl Frame {
         intrinsics: Intrinsics,
     ) -> Frame {
         let depth_size = depth.as_ref().map(|d| (d.width, d.height));
-        Frame { id, name: name.into(), rgb, depth, depth_size, camera_to_world, intrinsics }
+        Frame {
+            id,
+            name: name.into(),
+            rgb,
+            depth,
+            depth_size,
+            camera_to_world,
+            intrinsics,
+        }
     }
 
     /// Width and height of the colour image.

@@ -14,7 +14,10 @@ use std::path::{Path, PathBuf};
 pub(crate) fn require_dir(root: &Path, name: &str, what: &str) -> Result<PathBuf, ScanError> {
     let dir = root.join(name);
     if !dir.is_dir() {
-        return Err(ScanError::MissingFile { path: dir, what: what.into() });
+        return Err(ScanError::MissingFile {
+            path: dir,
+            what: what.into(),
+        });
     }
     Ok(dir)
 }
@@ -23,7 +26,10 @@ pub(crate) fn require_dir(root: &Path, name: &str, what: &str) -> Result<PathBuf
 pub(crate) fn require_file(root: &Path, name: &str, what: &str) -> Result<PathBuf, ScanError> {
     let path = root.join(name);
     if !path.is_file() {
-        return Err(ScanError::MissingFile { path, what: what.into() });
+        return Err(ScanError::MissingFile {
+            path,
+            what: what.into(),
+        });
     }
     Ok(path)
 }
@@ -47,21 +53,34 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let depth = if depth_dir.is_dir() {
         files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
     } else {
-        listing.warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        listing.warnings.push(format!(
+            "{}: no depth folder, frames have no depth supervision",
+            depth_dir.display()
+        ));
         BTreeMap::new()
     };
     if rgb.is_empty() && poses.is_empty() {
-        return Err(ScanError::NoFrames(root.to_path_buf(), "rgb/ and pose/ hold no frame files".into()));
+        return Err(ScanError::NoFrames(
+            root.to_path_buf(),
+            "rgb/ and pose/ hold no frame files".into(),
+        ));
     }
     check_frame_count(&rgb_dir, rgb.len())?;
     pair_parts(root, &rgb, &poses)?;
     let orphans: Vec<u64> = depth.keys().filter(|id| !rgb.contains_key(id)).copied().collect();
     if !orphans.is_empty() {
-        listing.warnings.push(format!("depth/ has files for frames without rgb, ignored: {}", id_list(&orphans)));
+        listing.warnings.push(format!(
+            "depth/ has files for frames without rgb, ignored: {}",
+            id_list(&orphans)
+        ));
     }
     let no_depth: Vec<u64> = rgb.keys().filter(|id| !depth.contains_key(id)).copied().collect();
     if !no_depth.is_empty() && !depth.is_empty() {
-        listing.warnings.push(format!("{} frame(s) have no depth: {}", no_depth.len(), id_list(&no_depth)));
+        listing.warnings.push(format!(
+            "{} frame(s) have no depth: {}",
+            no_depth.len(),
+            id_list(&no_depth)
+        ));
     }
 
     for (id, rgb_path) in &rgb {
@@ -73,7 +92,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
             rgb: rgb_path.clone(),
             depth: depth.get(id).cloned(),
             pose,
-            pose_source: rel(root, pose_path),
+            pose_source: pose_path.display().to_string(),
             intrinsics,
             intrinsics_size: None,
         });
@@ -90,7 +109,11 @@ pub(crate) fn pair_parts(
     if let Some((_, path)) = rgb.iter().find(|(id, _)| !poses.contains_key(id)) {
         return Err(ScanError::Frame {
             frame: stem(path),
-            reason: format!("{} has no pose file (expected pose/{}.txt)", rel(root, path), stem(path)),
+            reason: format!(
+                "{} has no pose file (expected pose/{}.txt)",
+                rel(root, path),
+                stem(path)
+            ),
         });
     }
     if let Some((_, path)) = poses.iter().find(|(id, _)| !rgb.contains_key(id)) {

@@ -56,7 +56,10 @@ impl Camera {
     }
 
     fn has_distortion(&self) -> bool {
-        [self.k1, self.k2, self.p1, self.p2].iter().flatten().any(|v| v.abs() > 1e-9)
+        [self.k1, self.k2, self.p1, self.p2]
+            .iter()
+            .flatten()
+            .any(|v| v.abs() > 1e-9)
     }
 }
 
@@ -98,19 +101,26 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let mut listing = Listing::new(root, Layout::Nerfstudio, PoseKind::CameraToWorld, json_path.clone());
     if let Some(scale) = parsed.depth_unit_scale_factor {
         if !(scale.is_finite() && scale > 0.0) {
-            return Err(invalid(format!("depth_unit_scale_factor must be positive, found {scale}")));
+            return Err(invalid(format!(
+                "depth_unit_scale_factor must be positive, found {scale}"
+            )));
         }
         listing.depth_metres_per_unit = scale as f32;
     }
     let mut distortion_seen = false;
     for (index, frame) in frames.iter().enumerate() {
-        let frame_err = |reason: String| ScanError::Frame { frame: format!("{index} of transforms.json"), reason };
+        let frame_err = |reason: String| ScanError::Frame {
+            frame: format!("{index} of transforms.json"),
+            reason,
+        };
         let Some(file) = &frame.file_path else {
             return Err(frame_err("has no file_path".into()));
         };
         let rgb = resolve(&base, file, &RGB_EXTENSIONS).ok_or_else(|| frame_err(format!("image {file} not found")))?;
         let depth = match &frame.depth_file_path {
-            Some(d) => Some(resolve(&base, d, &["png"]).ok_or_else(|| frame_err(format!("depth image {d} not found")))?),
+            Some(d) => {
+                Some(resolve(&base, d, &["png"]).ok_or_else(|| frame_err(format!("depth image {d} not found")))?)
+            }
             None => None,
         };
         let Some(rows) = &frame.transform_matrix else {
@@ -135,7 +145,10 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
         });
     }
     if distortion_seen {
-        listing.warnings.push(format!("{}: lens distortion is ignored (pinhole model)", json_path.display()));
+        listing.warnings.push(format!(
+            "{}: lens distortion is ignored (pinhole model)",
+            json_path.display()
+        ));
     }
     name_frames(&mut listing.frames);
     Ok(listing)
@@ -162,7 +175,10 @@ fn name_frames(frames: &mut [FrameSpec]) {
 
 fn trailing_number(name: &str) -> Option<u64> {
     let digits = name.len() - name.trim_end_matches(|c: char| c.is_ascii_digit()).len();
-    name.get(name.len() - digits..).filter(|d| !d.is_empty() && d.len() <= 18)?.parse().ok()
+    name.get(name.len() - digits..)
+        .filter(|d| !d.is_empty() && d.len() <= 18)?
+        .parse()
+        .ok()
 }
 
 /// `base/file`, or with an image extension appended when the json omits it.
@@ -186,7 +202,12 @@ fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<DMat4, String> {
     if !shape_ok {
         return Err(format!("transform_matrix must be 4x4, found {} rows", rows.len()));
     }
-    let at = |r: usize, c: usize| rows.get(r).and_then(|row| row.get(c)).copied().unwrap_or(if r == c { 1.0 } else { 0.0 });
+    let at = |r: usize, c: usize| {
+        rows.get(r)
+            .and_then(|row| row.get(c))
+            .copied()
+            .unwrap_or(if r == c { 1.0 } else { 0.0 })
+    };
     Ok(DMat4::from_cols(
         DVec4::new(at(0, 0), at(1, 0), at(2, 0), at(3, 0)),
         DVec4::new(at(0, 1), at(1, 1), at(2, 1), at(3, 1)),
@@ -234,7 +255,12 @@ mod tests {
 
     #[test]
     fn field_of_view_gives_focal_length() {
-        let camera = Camera { camera_angle_x: Some(std::f64::consts::FRAC_PI_2), w: Some(100.0), h: Some(50.0), ..Camera::default() };
+        let camera = Camera {
+            camera_angle_x: Some(std::f64::consts::FRAC_PI_2),
+            w: Some(100.0),
+            h: Some(50.0),
+            ..Camera::default()
+        };
         let (k, size) = intrinsics(&camera, Path::new("unused")).unwrap();
         assert_eq!(size, (100, 50));
         assert!((k.fx - 50.0).abs() < 1e-9 && (k.fy - 50.0).abs() < 1e-9);
@@ -244,7 +270,12 @@ mod tests {
     #[test]
     fn matrices_need_four_columns() {
         assert!(matrix_from_rows(&[vec![1.0, 0.0, 0.0]]).is_err());
-        let m = matrix_from_rows(&[vec![1.0, 0.0, 0.0, 2.0], vec![0.0, 1.0, 0.0, 3.0], vec![0.0, 0.0, 1.0, 4.0]]).unwrap();
+        let m = matrix_from_rows(&[
+            vec![1.0, 0.0, 0.0, 2.0],
+            vec![0.0, 1.0, 0.0, 3.0],
+            vec![0.0, 0.0, 1.0, 4.0],
+        ])
+        .unwrap();
         assert_eq!(m.w_axis, DVec4::new(2.0, 3.0, 4.0, 1.0));
     }
 }

@@ -46,7 +46,8 @@ pub fn orthonormality_error(m: &DMat4) -> f64 {
 /// the block is singular or a reflection.
 pub fn orthonormalize(m: &DMat4) -> Option<DMat4> {
     let mut r = DMat3::from_mat4(*m);
-    if !(r.determinant() > 1e-9) {
+    let det = r.determinant();
+    if det.is_nan() || det <= 1e-9 {
         return None;
     }
     for _ in 0..50 {
@@ -88,7 +89,10 @@ mod tests {
 
     #[test]
     fn rigid_inverse_inverts() {
-        let m = DMat4::from_rotation_translation(DQuat::from_rotation_x(0.3) * DQuat::from_rotation_z(1.1), DVec3::new(1.0, -2.0, 0.5));
+        let m = DMat4::from_rotation_translation(
+            DQuat::from_rotation_x(0.3) * DQuat::from_rotation_z(1.1),
+            DVec3::new(1.0, -2.0, 0.5),
+        );
         assert!((rigid_inverse(&m) * m).abs_diff_eq(DMat4::IDENTITY, 1e-12));
     }
 

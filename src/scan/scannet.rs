@@ -6,7 +6,7 @@
 //! colour grid; `intrinsic_depth.txt` is only compared for a warning.
 
 use super::assemble::{FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, id_list, rel, stem};
+use super::files::{files_by_id, id_list, stem};
 use super::image_io::RGB_EXTENSIONS;
 use super::native::{pair_parts, require_dir, require_file};
 use super::text::{self, read_text};
@@ -31,11 +31,17 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let depth = if depth_dir.is_dir() {
         files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
     } else {
-        listing.warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        listing.warnings.push(format!(
+            "{}: no depth folder, frames have no depth supervision",
+            depth_dir.display()
+        ));
         BTreeMap::new()
     };
     if color.is_empty() && poses.is_empty() {
-        return Err(ScanError::NoFrames(root.to_path_buf(), "color/ and pose/ hold no frame files".into()));
+        return Err(ScanError::NoFrames(
+            root.to_path_buf(),
+            "color/ and pose/ hold no frame files".into(),
+        ));
     }
     super::assemble::check_frame_count(&color_dir, color.len())?;
     pair_parts(root, &color, &poses)?;
@@ -56,7 +62,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
             rgb: rgb.clone(),
             depth: depth.get(id).cloned(),
             pose,
-            pose_source: rel(root, pose_path),
+            pose_source: pose_path.display().to_string(),
             intrinsics,
             intrinsics_size,
         });

@@ -20,24 +20,39 @@ const STRAY_VIDEO_SIZE: (u32, u32) = (1920, 1440);
 
 /// List the frames of a Stray Scanner export.
 pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
-    let odometry_path = require_file(root, "odometry.csv", "camera poses 'timestamp, frame, x, y, z, qx, qy, qz, qw'")?;
+    let odometry_path = require_file(
+        root,
+        "odometry.csv",
+        "camera poses 'timestamp, frame, x, y, z, qx, qy, qz, qw'",
+    )?;
     let k_path = require_file(root, "camera_matrix.csv", "3x3 camera matrix of the 1920x1440 video")?;
-    let image_dir = ["rgb", "frames"].iter().map(|d| root.join(d)).find(|d| d.is_dir()).ok_or_else(|| {
-        ScanError::MissingFile { path: root.join("rgb"), what: "folder of extracted frames (rgb/ or frames/)".into() }
-    })?;
+    let image_dir = ["rgb", "frames"]
+        .iter()
+        .map(|d| root.join(d))
+        .find(|d| d.is_dir())
+        .ok_or_else(|| ScanError::MissingFile {
+            path: root.join("rgb"),
+            what: "folder of extracted frames (rgb/ or frames/)".into(),
+        })?;
     let intrinsics = text::intrinsics(&read_text(&k_path)?).map_err(|e| ScanError::parse(&k_path, e))?;
     let mut listing = Listing::new(root, Layout::Stray, PoseKind::CameraToWorld, k_path);
 
     let images = files_by_id(&image_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     if images.is_empty() {
-        return Err(ScanError::NoFrames(image_dir, "no extracted frame images (N.jpg / N.png)".into()));
+        return Err(ScanError::NoFrames(
+            image_dir,
+            "no extracted frame images (N.jpg / N.png)".into(),
+        ));
     }
     check_frame_count(&image_dir, images.len())?;
     let depth_dir = root.join("depth");
     let depth = if depth_dir.is_dir() {
         files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
     } else {
-        listing.warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        listing.warnings.push(format!(
+            "{}: no depth folder, frames have no depth supervision",
+            depth_dir.display()
+        ));
         BTreeMap::new()
     };
     let odometry = read_odometry(&odometry_path)?;
@@ -75,10 +90,14 @@ fn parse_odometry(table: &Table) -> Result<HashMap<u64, (DMat4, usize)>, TextErr
     // frame, or 7 without, one row per frame).
     let (frame_col, value_cols): (Option<usize>, Vec<usize>) = match &table.header {
         Some(_) => {
-            let cols = names.iter().map(|n| table.column(n)).collect::<Option<Vec<_>>>().ok_or_else(|| TextError {
-                line: 1,
-                reason: "header must name columns frame, x, y, z, qx, qy, qz, qw".into(),
-            })?;
+            let cols = names
+                .iter()
+                .map(|n| table.column(n))
+                .collect::<Option<Vec<_>>>()
+                .ok_or_else(|| TextError {
+                    line: 1,
+                    reason: "header must name columns frame, x, y, z, qx, qy, qz, qw".into(),
+                })?;
             (table.column("frame"), cols)
         }
         None => match table.rows.first().map(|(_, r)| r.len()) {
@@ -90,14 +109,20 @@ fn parse_odometry(table: &Table) -> Result<HashMap<u64, (DMat4, usize)>, TextErr
     for (index, (line, row)) in table.rows.iter().enumerate() {
         let line = *line;
         let field = |c: usize| -> Result<f64, TextError> {
-            let token = row.get(c).ok_or_else(|| TextError { line, reason: format!("expected at least {} fields", c + 1) })?;
+            let token = row.get(c).ok_or_else(|| TextError {
+                line,
+                reason: format!("expected at least {} fields", c + 1),
+            })?;
             text::number(token, line)
         };
         let frame = match frame_col {
             Some(c) => {
                 let v = field(c)?;
                 if !(v >= 0.0 && v.fract() == 0.0 && v < 1e15) {
-                    return Err(TextError { line, reason: format!("frame number {v} is not a whole number") });
+                    return Err(TextError {
+                        line,
+                        reason: format!("frame number {v} is not a whole number"),
+                    });
                 }
                 v as u64
             }
@@ -105,10 +130,15 @@ fn parse_odometry(table: &Table) -> Result<HashMap<u64, (DMat4, usize)>, TextErr
         };
         let v = value_cols.iter().map(|&c| field(c)).collect::<Result<Vec<f64>, _>>()?;
         let [x, y, z, qx, qy, qz, qw] = v[..] else {
-            return Err(TextError { line, reason: "expected x, y, z, qx, qy, qz, qw".into() });
+            return Err(TextError {
+                line,
+                reason: "expected x, y, z, qx, qy, qz, qw".into(),
+            });
         };
-        let pose = pose_from_translation_quaternion([x, y, z], [qx, qy, qz, qw])
-            .ok_or_else(|| TextError { line, reason: "pose has NaN/infinite values or a zero quaternion".into() })?;
+        let pose = pose_from_translation_quaternion([x, y, z], [qx, qy, qz, qw]).ok_or_else(|| TextError {
+            line,
+            reason: "pose has NaN/infinite values or a zero quaternion".into(),
+        })?;
         poses.insert(frame, (pose, line));
     }
     Ok(poses)

@@ -53,8 +53,17 @@ pub fn summarize(scan: &Scan) -> ScanSummary {
             *depth_sizes.entry(size).or_insert(0usize) += 1;
         }
     }
-    let total_pixels: usize = scan.frames.iter().map(|f| f.rgb.width() as usize * f.rgb.height() as usize).sum();
-    let depth_pixels: usize = scan.frames.iter().filter_map(|f| f.depth.as_ref()).map(|d| d.metres.len()).sum();
+    let total_pixels: usize = scan
+        .frames
+        .iter()
+        .map(|f| f.rgb.width() as usize * f.rgb.height() as usize)
+        .sum();
+    let depth_pixels: usize = scan
+        .frames
+        .iter()
+        .filter_map(|f| f.depth.as_ref())
+        .map(|d| d.metres.len())
+        .sum();
     // Sample every `stride`-th pixel for the median so memory stays bounded.
     let stride = depth_pixels.div_ceil(MEDIAN_SAMPLES).max(1);
     let stats: Vec<(usize, f32, f32, Vec<f32>)> = scan
@@ -98,7 +107,11 @@ pub fn summarize(scan: &Scan) -> ScanSummary {
         rgb_sizes: rgb_sizes.into_iter().collect(),
         depth_sizes: depth_sizes.into_iter().collect(),
         frames_with_depth: scan.frames.iter().filter(|f| f.depth.is_some()).count(),
-        depth_coverage: if total_pixels > 0 { valid as f64 / total_pixels as f64 } else { 0.0 },
+        depth_coverage: if total_pixels > 0 {
+            valid as f64 / total_pixels as f64
+        } else {
+            0.0
+        },
         depth_range,
         trajectory_length,
         warnings: scan.warnings.clone(),
@@ -108,7 +121,13 @@ pub fn summarize(scan: &Scan) -> ScanSummary {
 fn sizes(list: &[((u32, u32), usize)], frames: usize) -> String {
     let parts: Vec<String> = list
         .iter()
-        .map(|((w, h), n)| if *n == frames { format!("{w}x{h}") } else { format!("{w}x{h} ({n} frames)") })
+        .map(|((w, h), n)| {
+            if *n == frames {
+                format!("{w}x{h}")
+            } else {
+                format!("{w}x{h} ({n} frames)")
+            }
+        })
         .collect();
     parts.join(", ")
 }
@@ -121,13 +140,28 @@ impl fmt::Display for ScanSummary {
         if self.depth_sizes.is_empty() {
             writeln!(f, "depth       none")?;
         } else {
-            let resampled = self.depth_sizes.iter().any(|(s, _)| !self.rgb_sizes.iter().any(|(r, _)| r == s));
+            let resampled = self
+                .depth_sizes
+                .iter()
+                .any(|(s, _)| !self.rgb_sizes.iter().any(|(r, _)| r == s));
             let note = if resampled { ", resampled to the rgb grid" } else { "" };
-            writeln!(f, "depth       {} on disk{note}", sizes(&self.depth_sizes, self.frames_with_depth))?;
+            writeln!(
+                f,
+                "depth       {} on disk{note}",
+                sizes(&self.depth_sizes, self.frames_with_depth)
+            )?;
         }
-        write!(f, "coverage    {:.1}% of pixels have depth", self.depth_coverage * 100.0)?;
+        write!(
+            f,
+            "coverage    {:.1}% of pixels have depth",
+            self.depth_coverage * 100.0
+        )?;
         match self.depth_range {
-            Some(r) => writeln!(f, "; {:.2} / {:.2} / {:.2} m (min / median / max)", r.min, r.median, r.max)?,
+            Some(r) => writeln!(
+                f,
+                "; {:.2} / {:.2} / {:.2} m (min / median / max)",
+                r.min, r.median, r.max
+            )?,
             None => writeln!(f)?,
         }
         writeln!(f, "trajectory  {:.2} m", self.trajectory_length)?;
@@ -150,9 +184,25 @@ mod tests {
     use glam::{DMat4, DVec3};
 
     fn frame(id: u64, x: f64, depth: Option<Vec<f32>>) -> Frame {
-        let k = Intrinsics { fx: 2.0, fy: 2.0, cx: 1.0, cy: 0.5 };
-        let depth = depth.map(|metres| DepthMap { width: 2, height: 2, metres });
-        let mut f = Frame::new(id, format!("{id:06}"), RgbImage::new(2, 2), depth, DMat4::from_translation(DVec3::new(x, 0.0, 0.0)), k);
+        let k = Intrinsics {
+            fx: 2.0,
+            fy: 2.0,
+            cx: 1.0,
+            cy: 0.5,
+        };
+        let depth = depth.map(|metres| DepthMap {
+            width: 2,
+            height: 2,
+            metres,
+        });
+        let mut f = Frame::new(
+            id,
+            format!("{id:06}"),
+            RgbImage::new(2, 2),
+            depth,
+            DMat4::from_translation(DVec3::new(x, 0.0, 0.0)),
+            k,
+        );
         f.depth_size = f.depth_size.map(|_| (1, 1));
         f
     }
@@ -176,7 +226,14 @@ mod tests {
         assert_eq!(s.rgb_sizes, vec![((2, 2), 3)]);
         assert_eq!(s.depth_sizes, vec![((1, 1), 2)]);
         assert!((s.depth_coverage - 4.0 / 12.0).abs() < 1e-12);
-        assert_eq!(s.depth_range, Some(DepthRange { min: 1.0, median: 3.0, max: 5.0 }));
+        assert_eq!(
+            s.depth_range,
+            Some(DepthRange {
+                min: 1.0,
+                median: 3.0,
+                max: 5.0
+            })
+        );
         assert!((s.trajectory_length - 3.0).abs() < 1e-12);
         let text = s.to_string();
         assert!(text.contains("frames      3 (2 with depth)"), "{text}");

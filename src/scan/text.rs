@@ -18,7 +18,10 @@ pub struct TextError {
 
 impl TextError {
     fn new(line: usize, reason: impl Into<String>) -> TextError {
-        TextError { line, reason: reason.into() }
+        TextError {
+            line,
+            reason: reason.into(),
+        }
     }
 }
 
@@ -50,7 +53,8 @@ pub fn content_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
 
 /// Split a line on whitespace and commas.
 fn tokens(line: &str) -> impl Iterator<Item = &str> {
-    line.split(|c: char| c.is_whitespace() || c == ',').filter(|t| !t.is_empty())
+    line.split(|c: char| c.is_whitespace() || c == ',')
+        .filter(|t| !t.is_empty())
 }
 
 /// Parse one number token (accepts `inf`/`nan`, which validation rejects later).
@@ -115,7 +119,11 @@ pub fn matrix4(text: &str) -> Result<DMat4, TextError> {
         return Err(TextError::new(0, format!("expected a 4x4 matrix, found {rows}x{cols}")));
     }
     let at = |i: usize| v.get(i).copied().unwrap_or(0.0);
-    let bottom = if v.len() == 16 { [at(12), at(13), at(14), at(15)] } else { [0.0, 0.0, 0.0, 1.0] };
+    let bottom = if v.len() == 16 {
+        [at(12), at(13), at(14), at(15)]
+    } else {
+        [0.0, 0.0, 0.0, 1.0]
+    };
     // Rows in the file; glam takes columns.
     Ok(DMat4::from_cols(
         DVec4::new(at(0), at(4), at(8), bottom[0]),
@@ -133,11 +141,19 @@ pub fn intrinsics(text: &str) -> Result<Intrinsics, TextError> {
     let cols = m.first().map_or(0, |r| r.len());
     let get = |r: usize, c: usize| m.get(r).and_then(|row| row.get(c)).copied().unwrap_or(0.0);
     match (rows, cols) {
-        (1, 4) => Ok(Intrinsics { fx: get(0, 0), fy: get(0, 1), cx: get(0, 2), cy: get(0, 3) }),
+        (1, 4) => Ok(Intrinsics {
+            fx: get(0, 0),
+            fy: get(0, 1),
+            cx: get(0, 2),
+            cy: get(0, 3),
+        }),
         (3, 3) | (3, 4) | (4, 4) => {
             let (k20, k21, k22, k10) = (get(2, 0), get(2, 1), get(2, 2), get(1, 0));
             if k20 != 0.0 || k21 != 0.0 || k10 != 0.0 || !(k22.is_finite() && k22 != 0.0) {
-                return Err(TextError::new(0, "not a camera matrix: expected rows 'fx s cx', '0 fy cy', '0 0 1'"));
+                return Err(TextError::new(
+                    0,
+                    "not a camera matrix: expected rows 'fx s cx', '0 fy cy', '0 0 1'",
+                ));
             }
             Ok(Intrinsics {
                 fx: get(0, 0) / k22,
@@ -146,7 +162,10 @@ pub fn intrinsics(text: &str) -> Result<Intrinsics, TextError> {
                 cy: get(1, 2) / k22,
             })
         }
-        _ => Err(TextError::new(0, format!("expected a 3x3 or 4x4 camera matrix, found {rows}x{cols}"))),
+        _ => Err(TextError::new(
+            0,
+            format!("expected a 3x3 or 4x4 camera matrix, found {rows}x{cols}"),
+        )),
     }
 }
 
@@ -155,7 +174,10 @@ pub fn bounds(text: &str) -> Result<Bounds, TextError> {
     let rows = number_rows(text)?;
     let v: Vec<f64> = rows.into_iter().flat_map(|(_, r)| r).take(6).collect();
     let [x0, y0, z0, x1, y1, z1] = v[..] else {
-        return Err(TextError::new(0, format!("expected 6 numbers (min xyz, max xyz), found {}", v.len())));
+        return Err(TextError::new(
+            0,
+            format!("expected 6 numbers (min xyz, max xyz), found {}", v.len()),
+        ));
     };
     let (min, max) = (DVec3::new(x0, y0, z0), DVec3::new(x1, y1, z1));
     if !(min.is_finite() && max.is_finite()) || min.cmpge(max).any() {
@@ -193,8 +215,11 @@ pub fn csv(text: &str) -> Table {
     table
 }
 
-/// TUM list lines `timestamp token [token...]`: timestamp and the other tokens.
-pub fn timestamped(text: &str) -> Result<Vec<(usize, f64, Vec<&str>)>, TextError> {
+/// One TUM list line: line number, timestamp and the other tokens.
+pub type TimedLine<'a> = (usize, f64, Vec<&'a str>);
+
+/// TUM list lines `timestamp token [token...]`.
+pub fn timestamped(text: &str) -> Result<Vec<TimedLine<'_>>, TextError> {
     content_lines(text)
         .map(|(line, body)| {
             let mut parts = body.split_whitespace();
@@ -227,7 +252,10 @@ mod tests {
 
     #[test]
     fn matrix4_rejects_bad_shapes_and_tokens() {
-        assert_eq!(matrix4("1 2 3\n4 5 6\n").unwrap_err().reason, "expected a 4x4 matrix, found 2x3");
+        assert_eq!(
+            matrix4("1 2 3\n4 5 6\n").unwrap_err().reason,
+            "expected a 4x4 matrix, found 2x3"
+        );
         let e = matrix4("1 0 0 0\n0 1 x 0\n").unwrap_err();
         assert_eq!(e.line, 2);
         assert!(e.reason.contains("'x'"));
@@ -263,7 +291,10 @@ mod tests {
         let t = csv("timestamp, frame, x\n0.5, 0, 1.25\n0.6, 1, 2\n");
         assert_eq!(t.column("FRAME"), Some(1));
         assert_eq!(t.rows.len(), 2);
-        assert_eq!(t.rows[1], (3, vec!["0.6".to_string(), "1".to_string(), "2".to_string()]));
+        assert_eq!(
+            t.rows[1],
+            (3, vec!["0.6".to_string(), "1".to_string(), "2".to_string()])
+        );
         let plain = csv("1,2,3\n4,5,6\n");
         assert!(plain.header.is_none());
         assert_eq!(plain.rows.len(), 2);
@@ -285,7 +316,9 @@ mod tests {
         let alphabet = b"0123456789 .,-+eE#\n\r\tinfaNx\xff\x00";
         for _ in 0..3000 {
             let len = rng.below(120) as usize;
-            let bytes: Vec<u8> = (0..len).map(|_| alphabet[rng.below(alphabet.len() as u64) as usize]).collect();
+            let bytes: Vec<u8> = (0..len)
+                .map(|_| alphabet[rng.below(alphabet.len() as u64) as usize])
+                .collect();
             let text = String::from_utf8_lossy(&bytes);
             let _ = matrix4(&text);
             let _ = intrinsics(&text);

@@ -23,12 +23,32 @@ const TUM_SIZE: (u32, u32) = (640, 480);
 
 /// Freiburg colour-camera intrinsics (fx, fy, cx, cy) of sensor 1, 2, 3.
 pub const FREIBURG: [Intrinsics; 3] = [
-    Intrinsics { fx: 517.3, fy: 516.5, cx: 318.6, cy: 255.3 },
-    Intrinsics { fx: 520.9, fy: 521.0, cx: 325.1, cy: 249.7 },
-    Intrinsics { fx: 535.4, fy: 539.2, cx: 320.1, cy: 247.6 },
+    Intrinsics {
+        fx: 517.3,
+        fy: 516.5,
+        cx: 318.6,
+        cy: 255.3,
+    },
+    Intrinsics {
+        fx: 520.9,
+        fy: 521.0,
+        cx: 325.1,
+        cy: 249.7,
+    },
+    Intrinsics {
+        fx: 535.4,
+        fy: 539.2,
+        cx: 320.1,
+        cy: 247.6,
+    },
 ];
 /// ROS default used when the sensor is unknown.
-pub const TUM_DEFAULT: Intrinsics = Intrinsics { fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5 };
+pub const TUM_DEFAULT: Intrinsics = Intrinsics {
+    fx: 525.0,
+    fy: 525.0,
+    cx: 319.5,
+    cy: 239.5,
+};
 
 /// One groundtruth sample.
 #[derive(Clone, Copy, Debug)]
@@ -121,7 +141,13 @@ fn read_image_list(path: &Path) -> Result<Vec<(usize, f64, String)>, ScanError> 
         .enumerate()
         .map(|(index, (line, t, rest))| match rest.first() {
             Some(file) => Ok((index, t, file.to_string())),
-            None => Err(ScanError::parse(path, TextError { line, reason: "expected 'timestamp filename'".into() })),
+            None => Err(ScanError::parse(
+                path,
+                TextError {
+                    line,
+                    reason: "expected 'timestamp filename'".into(),
+                },
+            )),
         })
         .collect()
 }
@@ -182,7 +208,10 @@ fn read_groundtruth(path: &Path) -> Result<Vec<Sample>, ScanError> {
             .collect::<Result<Vec<f64>, _>>()
             .map_err(|e| ScanError::parse(path, e))?;
         let [tx, ty, tz, qx, qy, qz, qw] = v[..] else {
-            let reason = format!("expected 'timestamp tx ty tz qx qy qz qw', found {} values", v.len() + 1);
+            let reason = format!(
+                "expected 'timestamp tx ty tz qx qy qz qw', found {} values",
+                v.len() + 1
+            );
             return Err(ScanError::parse(path, TextError { line, reason }));
         };
         let Some(pose) = super::rigid::pose_from_translation_quaternion([tx, ty, tz], [qx, qy, qz, qw]) else {
@@ -190,7 +219,12 @@ fn read_groundtruth(path: &Path) -> Result<Vec<Sample>, ScanError> {
             return Err(ScanError::parse(path, TextError { line, reason }));
         };
         let (_, rotation, translation) = pose.to_scale_rotation_translation();
-        samples.push(Sample { t, line, translation, rotation });
+        samples.push(Sample {
+            t,
+            line,
+            translation,
+            rotation,
+        });
     }
     samples.sort_by(|a, b| a.t.total_cmp(&b.t));
     Ok(samples)
@@ -211,17 +245,22 @@ fn pose_at(samples: &[Sample], t: f64) -> Option<(DMat4, usize)> {
             let line = if alpha < 0.5 { a.line } else { b.line };
             Some((DMat4::from_rotation_translation(rotation, translation), line))
         }
-        (Some(a), Some(b)) => Some((DMat4::from_rotation_translation(b.rotation, b.translation), a.line.min(b.line))),
-        (Some(s), None) | (None, Some(s)) => Some((DMat4::from_rotation_translation(s.rotation, s.translation), s.line)),
+        (Some(a), Some(b)) => Some((
+            DMat4::from_rotation_translation(b.rotation, b.translation),
+            a.line.min(b.line),
+        )),
+        (Some(s), None) | (None, Some(s)) => {
+            Some((DMat4::from_rotation_translation(s.rotation, s.translation), s.line))
+        }
         (None, None) => None,
     }
 }
 
 /// Intrinsics, the resolution they are for (None = the images'), and their source.
-fn choose_intrinsics(
-    root: &Path,
-    warnings: &mut Vec<String>,
-) -> Result<(Intrinsics, Option<(u32, u32)>, PathBuf), ScanError> {
+type ChosenIntrinsics = (Intrinsics, Option<(u32, u32)>, PathBuf);
+
+/// Pick the intrinsics: `intrinsics.txt`, else the folder name, else the default.
+fn choose_intrinsics(root: &Path, warnings: &mut Vec<String>) -> Result<ChosenIntrinsics, ScanError> {
     let k_path = root.join("intrinsics.txt");
     if k_path.is_file() {
         let text = read_text(&k_path)?;
@@ -255,8 +294,14 @@ pub(crate) fn freiburg_hint(text: &str) -> Option<usize> {
         }
         let token = format!("fr{digit}");
         for (at, _) in lower.match_indices(&token) {
-            let before_ok = lower[..at].chars().next_back().is_none_or(|c| !c.is_ascii_alphanumeric());
-            let after_ok = lower[at + token.len()..].chars().next().is_none_or(|c| !c.is_ascii_digit());
+            let before_ok = lower[..at]
+                .chars()
+                .next_back()
+                .is_none_or(|c| !c.is_ascii_alphanumeric());
+            let after_ok = lower[at + token.len()..]
+                .chars()
+                .next()
+                .is_none_or(|c| !c.is_ascii_digit());
             if before_ok && after_ok {
                 return Some(sensor);
             }
@@ -280,7 +325,12 @@ mod tests {
     }
 
     fn sample(t: f64, x: f64, yaw: f64) -> Sample {
-        Sample { t, line: 1, translation: DVec3::new(x, 0.0, 0.0), rotation: DQuat::from_rotation_y(yaw) }
+        Sample {
+            t,
+            line: 1,
+            translation: DVec3::new(x, 0.0, 0.0),
+            rotation: DQuat::from_rotation_y(yaw),
+        }
     }
 
     #[test]

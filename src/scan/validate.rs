@@ -79,7 +79,12 @@ pub fn check_intrinsics(k: &Intrinsics, width: u32, height: u32) -> Result<(), S
 
 /// Accept a pose read from `source` (a file name or `file line N`), or with
 /// `fix` re-orthonormalise a bad rotation and record a warning.
-pub(crate) fn accept_pose(pose: DMat4, source: &str, fix: bool, warnings: &mut Vec<String>) -> Result<DMat4, ScanError> {
+pub(crate) fn accept_pose(
+    pose: DMat4,
+    source: &str,
+    fix: bool,
+    warnings: &mut Vec<String>,
+) -> Result<DMat4, ScanError> {
     let check = check_pose(&pose);
     let Some(problem) = check.problem() else {
         return Ok(pose);
@@ -92,7 +97,10 @@ pub(crate) fn accept_pose(pose: DMat4, source: &str, fix: bool, warnings: &mut V
             }
         }
     }
-    Err(ScanError::Pose { source_name: source.to_string(), reason: problem })
+    Err(ScanError::Pose {
+        source_name: source.to_string(),
+        reason: problem,
+    })
 }
 
 /// Whole-scan invariants every loader must produce.
@@ -101,14 +109,24 @@ pub(crate) fn check_scan(scan: &Scan) -> Result<(), ScanError> {
         return Err(ScanError::NoFrames(scan.root.clone(), "no frame could be read".into()));
     };
     if scan.frames.len() > MAX_FRAMES {
-        return Err(ScanError::TooManyFrames { path: scan.root.clone(), count: scan.frames.len(), max: MAX_FRAMES });
+        return Err(ScanError::TooManyFrames {
+            path: scan.root.clone(),
+            count: scan.frames.len(),
+            max: MAX_FRAMES,
+        });
     }
     let size = first.size();
     for frame in &scan.frames {
-        let frame_err = |reason: String| ScanError::Frame { frame: frame.name.clone(), reason };
+        let frame_err = |reason: String| ScanError::Frame {
+            frame: frame.name.clone(),
+            reason,
+        };
         let (w, h) = frame.size();
         if (w, h) != size {
-            return Err(frame_err(format!("image size {w}x{h} differs from frame {}'s {}x{}", first.name, size.0, size.1)));
+            return Err(frame_err(format!(
+                "image size {w}x{h} differs from frame {}'s {}x{}",
+                first.name, size.0, size.1
+            )));
         }
         check_intrinsics(&frame.intrinsics, w, h).map_err(frame_err)?;
         if let Some(problem) = check_pose(&frame.camera_to_world).problem() {
@@ -141,7 +159,10 @@ mod tests {
         let mut bottom = good;
         bottom.x_axis.w = 0.5;
         assert_eq!(check_pose(&bottom), PoseCheck::BadBottomRow);
-        assert_eq!(check_pose(&DMat4::from_scale(DVec3::new(1.0, -1.0, 1.0))), PoseCheck::Reflection);
+        assert_eq!(
+            check_pose(&DMat4::from_scale(DVec3::new(1.0, -1.0, 1.0))),
+            PoseCheck::Reflection
+        );
         let scaled = DMat4::from_scale(DVec3::splat(1.01));
         assert!(matches!(check_pose(&scaled), PoseCheck::NotOrthonormal { error } if error > 0.01));
         let mut tiny = good;
@@ -154,7 +175,9 @@ mod tests {
         let mut bad = DMat4::from_rotation_y(0.3);
         bad.x_axis.y += 0.01;
         let mut warnings = Vec::new();
-        let err = accept_pose(bad, "pose/000004.txt", false, &mut warnings).unwrap_err().to_string();
+        let err = accept_pose(bad, "pose/000004.txt", false, &mut warnings)
+            .unwrap_err()
+            .to_string();
         assert!(err.starts_with("pose/000004.txt: rotation not orthonormal"), "{err}");
         let fixed = accept_pose(bad, "pose/000004.txt", true, &mut warnings).unwrap();
         assert_eq!(check_pose(&fixed), PoseCheck::Ok);
@@ -167,11 +190,20 @@ mod tests {
 
     #[test]
     fn intrinsics_checks() {
-        let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 };
+        let k = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
         assert!(check_intrinsics(&k, 640, 480).is_ok());
-        assert!(check_intrinsics(&Intrinsics { fx: 0.0, ..k }, 640, 480).unwrap_err().contains("fx 0"));
+        assert!(check_intrinsics(&Intrinsics { fx: 0.0, ..k }, 640, 480)
+            .unwrap_err()
+            .contains("fx 0"));
         assert!(check_intrinsics(&Intrinsics { fy: -3.0, ..k }, 640, 480).is_err());
-        assert!(check_intrinsics(&Intrinsics { cx: 1000.0, ..k }, 640, 480).unwrap_err().contains("principal point"));
+        assert!(check_intrinsics(&Intrinsics { cx: 1000.0, ..k }, 640, 480)
+            .unwrap_err()
+            .contains("principal point"));
         assert!(check_intrinsics(&Intrinsics { cy: -250.0, ..k }, 640, 480).is_err());
         assert!(check_intrinsics(&Intrinsics { cx: f64::NAN, ..k }, 640, 480).is_err());
     }

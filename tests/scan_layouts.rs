@@ -467,6 +467,25 @@ fn nerfstudio_camera_angle_and_depth_unit_scale() {
     check_frame(&scan.frames[0], cam, &k, 0.0005);
 }
 
+/// Images downscaled after calibration (nerfstudio `images_2`): `w`, `h`
+/// describe the calibrated size, so intrinsics are scaled to the files.
+#[test]
+fn nerfstudio_intrinsics_follow_downscaled_images() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let cam = &cams()[2];
+    write_rgb(&root.join("images_2/0.png"), 0);
+    let big = K.scaled((W, H), (2 * W, 2 * H));
+    let json = serde_json::json!({
+        "fl_x": big.fx, "fl_y": big.fy, "cx": big.cx + 0.5, "cy": big.cy + 0.5, "w": 2 * W, "h": 2 * H,
+        "frames": [{ "file_path": "images_2/0.png", "transform_matrix": gl_rows(&cam.c2w()) }],
+    });
+    write(&root.join("transforms.json"), &json.to_string());
+    let scan = load(root, &LoadOptions::default()).unwrap();
+    assert!(scan.frames[0].depth.is_none());
+    check_frame(&scan.frames[0], cam, &K, 0.0);
+}
+
 #[test]
 fn scannet_layout_skips_lost_poses_and_upsamples_quarter_depth() {
     let dir = tempfile::tempdir().unwrap();

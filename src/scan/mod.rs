@@ -2,6 +2,10 @@
 //! colour frames, optional metric depth on the colour grid, camera-to-world
 //! poses (f64, OpenCV axes) and intrinsics for the colour resolution.
 //!
+//! Each layout (`native`, `tum`, `nerfstudio`, `scannet`, `stray`) only lists
+//! its frames; `assemble` checks poses and decodes every frame in parallel
+//! (`image_io`, `depth`), `validate` holds the checks, `summary` the report.
+//!
 //! Must never depend on `nerf`, `boxes` or `synth`: it only reads and checks
 //! outside data.
 
@@ -24,7 +28,7 @@ mod validate;
 pub use depth::{resample_depth_to, DepthMap};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
-pub use summary::{summarize, ScanSummary};
+pub use summary::{summarize, DepthRange, ScanSummary};
 pub use validate::{check_intrinsics, check_pose, PoseCheck, POSE_TOLERANCE};
 
 use glam::{DMat4, DVec3};

@@ -1,19 +1,132 @@
-//! Detect a scan's layout from the files present.
+//! Scan layouts, their names for `--format`, and detection from the files
+//! present in a scan folder.
 
 use super::ScanError;
+use std::fmt;
 use std::path::Path;
+use std::str::FromStr;
 
 /// Supported scan layouts (FORMATS.md section 1).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Layout {
+    /// nerflabel / autolabel: `rgb/`, `depth/`, `pose/` (world-to-camera), `intrinsics.txt`.
     Native,
+    /// TUM RGB-D: `rgb.txt`, `depth.txt`, `groundtruth.txt`.
     Tum,
+    /// nerfstudio / instant-ngp `transforms.json`.
     Nerfstudio,
+    /// ScanNet export: `color/`, `depth/`, `pose/`, `intrinsic/`.
     Scannet,
+    /// Stray Scanner with extracted frames: `rgb/` or `frames/`, `odometry.csv`, `camera_matrix.csv`.
     Stray,
 }
 
-/// Guess the layout of the scan in `root`.
+impl Layout {
+    /// Every layout, in detection order.
+    pub const ALL: [Layout; 5] = [
+        Layout::Native,
+        Layout::Nerfstudio,
+        Layout::Tum,
+        Layout::Scannet,
+        Layout::Stray,
+    ];
+
+    /// Name used by `--format` and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Layout::Native => "native",
+            Layout::Tum => "tum",
+            Layout::Nerfstudio => "nerfstudio",
+            Layout::Scannet => "scannet",
+            Layout::Stray => "stray",
+        }
+    }
+}
+
+impl fmt::Display for Layout {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A `--format` value that names no layout.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown scan format '{0}' (expected one of: native, tum, nerfstudio, scannet, stray)")]
+pub struct ParseLayoutError(pub String);
+
+impl FromStr for Layout {
+    type Err = ParseLayoutError;
+
+    /// Accepts the names of [`Layout::name`] (case-insensitive) and a few aliases.
+    fn from_str(s: &str) -> Result<Layout, ParseLayoutError> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "native" | "autolabel" => Ok(Layout::Native),
+            "tum" | "tum-rgbd" => Ok(Layout::Tum),
+            "nerfstudio" | "instant-ngp" | "ngp" | "transforms" => Ok(Layout::Nerfstudio),
+            "scannet" => Ok(Layout::Scannet),
+            "stray" | "strayscanner" => Ok(Layout::Stray),
+            _ => Err(ParseLayoutError(s.to_string())),
+        }
+    }
+}
+
+/// Guess the layout of the scan in `root` from the files present.
 pub fn detect_layout(root: &Path) -> Result<Layout, ScanError> {
-    Err(ScanError::Invalid(root.to_path_buf(), "layout detection not implemented".into()))
+    let has = |name: &str| root.join(name).exists();
+    let dir = |name: &str| root.join(name).is_dir();
+    if dir("rgb") && dir("pose") {
+        return Ok(Layout::Native);
+    }
+    if has("transforms.json") {
+        return Ok(Layout::Nerfstudio);
+    }
+    if has("rgb.txt") && (has("groundtruth.txt") || has("depth.txt")) {
+        return Ok(Layout::Tum);
+    }
+    if dir("color") && dir("pose") {
+        return Ok(Layout::Scannet);
+    }
+    if has("odometry.csv") {
+        return Ok(Layout::Stray);
+    }
+    Err(ScanError::UnknownLayout(
+        root.to_path_buf(),
+        "expected rgb/ + pose/ (native), transforms.json (nerfstudio), rgb.txt + groundtruth.txt (tum), \
+         color/ + pose/ (scannet) or odometry.csv (stray); force one with --format"
+            .into(),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip() {
+        for layout in Layout::ALL {
+            assert_eq!(layout.name().parse::<Layout>(), Ok(layout));
+            assert_eq!(layout.to_string(), layout.name());
+        }
+        assert_eq!("TUM".parse::<Layout>(), Ok(Layout::Tum));
+        assert!("colmap".parse::<Layout>().unwrap_err().to_string().contains("colmap"));
+    }
+
+    #[test]
+    fn detects_from_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        assert!(matches!(detect_layout(root), Err(ScanError::UnknownLayout(..))));
+        std::fs::write(root.join("odometry.csv"), "").unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Stray);
+        std::fs::create_dir(root.join("color")).unwrap();
+        std::fs::create_dir(root.join("pose")).unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Scannet);
+        std::fs::write(root.join("rgb.txt"), "").unwrap();
+        std::fs::write(root.join("groundtruth.txt"), "").unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Tum);
+        std::fs::write(root.join("transforms.json"), "{}").unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Nerfstudio);
+        std::fs::create_dir(root.join("rgb")).unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Native);
+    }
 }

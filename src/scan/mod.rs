@@ -2,15 +2,22 @@
 //! colour frames, optional metric depth on the colour grid, camera-to-world
 //! poses (f64, OpenCV axes) and intrinsics for the colour resolution.
 //!
+//! Each layout (`native`, `tum`, `nerfstudio`, `scannet`, `stray`) only lists
+//! its frames; `assemble` checks poses and decodes every frame in parallel
+//! (`image_io`, `depth`), `validate` holds the checks, `summary` the report.
+//!
 //! Must never depend on `nerf`, `boxes` or `synth`: it only reads and checks
 //! outside data.
 
+mod assemble;
 mod depth;
 mod detect;
 mod error;
+mod files;
 mod image_io;
 mod native;
 mod nerfstudio;
+mod rigid;
 mod scannet;
 mod stray;
 mod summary;
@@ -19,10 +26,10 @@ mod tum;
 mod validate;
 
 pub use depth::{resample_depth_to, DepthMap};
-pub use detect::{detect_layout, Layout};
+pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
-pub use summary::{summarize, ScanSummary};
-pub use validate::{check_intrinsics, check_pose, PoseCheck};
+pub use summary::{summarize, DepthRange, ScanSummary};
+pub use validate::{check_intrinsics, check_pose, PoseCheck, POSE_TOLERANCE};
 
 use glam::{DMat4, DVec3};
 use std::path::{Path, PathBuf};
@@ -88,6 +95,9 @@ pub struct Frame {
     /// Depth in metres on the colour grid; 0 = no measurement. `None` when
     /// the frame has no depth file.
     pub depth: Option<DepthMap>,
+    /// Resolution of the depth image as stored on disk, before resampling
+    /// to the colour grid; `None` when the frame has no depth file.
+    pub depth_size: Option<(u32, u32)>,
     /// Camera-to-world pose, OpenCV camera axes, scan world frame.
     pub camera_to_world: DMat4,
     /// Intrinsics for the colour resolution.
@@ -95,6 +105,27 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// A frame whose depth (if any) is already on the colour grid.
+    pub fn new(
+        id: u64,
+        name: impl Into<String>,
+        rgb: RgbImage,
+        depth: Option<DepthMap>,
+        camera_to_world: DMat4,
+        intrinsics: Intrinsics,
+    ) -> Frame {
+        let depth_size = depth.as_ref().map(|d| (d.width, d.height));
+        Frame {
+            id,
+            name: name.into(),
+            rgb,
+            depth,
+            depth_size,
+            camera_to_world,
+            intrinsics,
+        }
+    }
+
     /// Width and height of the colour image.
     pub fn size(&self) -> (u32, u32) {
         self.rgb.dimensions()
@@ -144,7 +175,8 @@ pub struct LoadOptions {
     pub fix_poses: bool,
 }
 
-/// Load and fully validate a scan (every image decoded, every pose checked).
+/// Load and fully validate a scan (every image decoded, every pose checked):
+/// detect or take the layout, list its frames, decode them in parallel.
 pub fn load(root: &Path, options: &LoadOptions) -> Result<Scan, ScanError> {
     if !root.exists() {
         return Err(ScanError::MissingFolder(root.to_path_buf()));
@@ -156,14 +188,15 @@ pub fn load(root: &Path, options: &LoadOptions) -> Result<Scan, ScanError> {
         Some(layout) => layout,
         None => detect_layout(root)?,
     };
-    let mut scan = match layout {
-        Layout::Native => native::load(root, options)?,
-        Layout::Tum => tum::load(root, options)?,
-        Layout::Nerfstudio => nerfstudio::load(root, options)?,
-        Layout::Scannet => scannet::load(root, options)?,
-        Layout::Stray => stray::load(root, options)?,
+    let listing = match layout {
+        Layout::Native => native::list(root)?,
+        Layout::Tum => tum::list(root)?,
+        Layout::Nerfstudio => nerfstudio::list(root)?,
+        Layout::Scannet => scannet::list(root)?,
+        Layout::Stray => stray::list(root)?,
     };
-    validate::check_scan(&scan)?;
+    let mut scan = assemble::assemble(listing, options)?;
     scan.frames.sort_by_key(|f| f.id);
+    validate::check_scan(&scan)?;
     Ok(scan)
 }

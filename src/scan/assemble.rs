@@ -1,0 +1,177 @@
+//! Turn a layout's frame listing into a [`Scan`]: check poses, decode every
+//! frame's images in parallel (one rayon task per frame), bring depth onto
+//! the colour grid and intrinsics to the colour resolution.
+
+use super::image_io::{decode_depth, decode_rgb};
+use super::rigid::rigid_inverse;
+use super::validate::{accept_pose, check_intrinsics};
+use super::{resample_depth_to, Bounds, Frame, Intrinsics, Layout, LoadOptions, Scan, ScanError, MAX_FRAMES};
+use glam::DMat4;
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Which way the poses of a listing map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum PoseKind {
+    /// Camera-to-world, OpenCV camera axes.
+    CameraToWorld,
+    /// World-to-camera, OpenCV camera axes (inverted on load).
+    WorldToCamera,
+}
+
+/// One frame as a layout lists it, before any image is decoded.
+#[derive(Clone, Debug)]
+pub(crate) struct FrameSpec {
+    pub id: u64,
+    pub name: String,
+    pub rgb: PathBuf,
+    pub depth: Option<PathBuf>,
+    /// Pose as read (direction given by [`Listing::pose_kind`]).
+    pub pose: DMat4,
+    /// Where the pose came from, for messages (`pose/000012.txt`, `groundtruth.txt line 40`).
+    pub pose_source: String,
+    pub intrinsics: Intrinsics,
+    /// Resolution `intrinsics` refer to; `None` = the colour image's own.
+    pub intrinsics_size: Option<(u32, u32)>,
+}
+
+/// Everything a layout reader found, ready to be decoded.
+#[derive(Clone, Debug)]
+pub(crate) struct Listing {
+    pub root: PathBuf,
+    pub layout: Layout,
+    pub frames: Vec<FrameSpec>,
+    pub pose_kind: PoseKind,
+    /// Metres per depth PNG unit (0.001 for millimetres).
+    pub depth_metres_per_unit: f32,
+    /// File the intrinsics came from, for messages.
+    pub intrinsics_source: PathBuf,
+    pub bounds: Option<Bounds>,
+    pub warnings: Vec<String>,
+}
+
+impl Listing {
+    /// An empty listing for `root`.
+    pub fn new(root: &Path, layout: Layout, pose_kind: PoseKind, intrinsics_source: PathBuf) -> Listing {
+        Listing {
+            root: root.to_path_buf(),
+            layout,
+            frames: Vec::new(),
+            pose_kind,
+            depth_metres_per_unit: 0.001,
+            intrinsics_source,
+            bounds: None,
+            warnings: Vec::new(),
+        }
+    }
+}
+
+/// Fail early when a listing is larger than [`MAX_FRAMES`].
+pub(crate) fn check_frame_count(path: &Path, count: usize) -> Result<(), ScanError> {
+    if count > MAX_FRAMES {
+        return Err(ScanError::TooManyFrames {
+            path: path.to_path_buf(),
+            count,
+            max: MAX_FRAMES,
+        });
+    }
+    Ok(())
+}
+
+/// Decode and check every frame of `listing`.
+pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Scan, ScanError> {
+    if listing.frames.is_empty() {
+        return Err(ScanError::NoFrames(
+            listing.root.clone(),
+            "the layout's file lists are empty".into(),
+        ));
+    }
+    check_frame_count(&listing.root, listing.frames.len())?;
+    listing.frames.sort_by_key(|f| f.id);
+    for pair in listing.frames.windows(2) {
+        if let [a, b] = pair {
+            if a.id == b.id {
+                return Err(ScanError::Frame {
+                    frame: b.name.clone(),
+                    reason: format!("listed twice ({} and {})", a.rgb.display(), b.rgb.display()),
+                });
+            }
+        }
+    }
+    let mut warnings = std::mem::take(&mut listing.warnings);
+    for spec in &mut listing.frames {
+        let pose = accept_pose(spec.pose, &spec.pose_source, options.fix_poses, &mut warnings)?;
+        spec.pose = match listing.pose_kind {
+            PoseKind::CameraToWorld => pose,
+            PoseKind::WorldToCamera => rigid_inverse(&pose),
+        };
+    }
+    let decoded: Vec<Result<Frame, ScanError>> = listing
+        .frames
+        .par_iter()
+        .map(|spec| decode_frame(spec, &listing))
+        .collect();
+    let mut frames = Vec::with_capacity(decoded.len());
+    for result in decoded {
+        frames.push(result?);
+    }
+    if let (Some(first), Some(first_spec)) = (frames.first(), listing.frames.first()) {
+        let want = first.size();
+        for (frame, spec) in frames.iter().zip(&listing.frames) {
+            let (w, h) = frame.size();
+            if (w, h) != want {
+                return Err(ScanError::SizeMismatch {
+                    path: spec.rgb.clone(),
+                    found_w: w,
+                    found_h: h,
+                    want_w: want.0,
+                    want_h: want.1,
+                    first: first_spec.rgb.display().to_string(),
+                });
+            }
+        }
+    }
+    Ok(Scan {
+        root: listing.root,
+        layout: listing.layout,
+        frames,
+        bounds: listing.bounds,
+        warnings,
+    })
+}
+
+/// Decode one frame's colour and depth (one rayon task).
+fn decode_frame(spec: &FrameSpec, listing: &Listing) -> Result<Frame, ScanError> {
+    let rgb = decode_rgb(&spec.rgb)?;
+    let (w, h) = rgb.dimensions();
+    let intrinsics = match spec.intrinsics_size {
+        Some(size) if size != (w, h) => spec.intrinsics.scaled(size, (w, h)),
+        _ => spec.intrinsics,
+    };
+    check_intrinsics(&intrinsics, w, h).map_err(|reason| ScanError::Intrinsics {
+        path: listing.intrinsics_source.clone(),
+        reason: format!("{reason} (frame {}, {})", spec.name, spec.rgb.display()),
+    })?;
+    let (depth, depth_size) = match &spec.depth {
+        Some(path) => {
+            let raw = decode_depth(path, listing.depth_metres_per_unit)?;
+            let size = (raw.width, raw.height);
+            let on_grid = if size == (w, h) {
+                raw
+            } else {
+                resample_depth_to(&raw, w, h)
+            };
+            (Some(on_grid), Some(size))
+        }
+        None => (None, None),
+    };
+    Ok(Frame {
+        id: spec.id,
+        name: spec.name.clone(),
+        rgb,
+        depth,
+        depth_size,
+        camera_to_world: spec.pose,
+        intrinsics,
+    })
+}

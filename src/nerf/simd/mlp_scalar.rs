@@ -7,6 +7,8 @@ use super::mlp_tile::{Epilogue, COL_BLOCK, LANES};
 
 /// Output rows per register block.
 const MR: usize = 4;
+/// Columns per register block: MR x HALF accumulators fit 16 SSE registers.
+const HALF: usize = 8;
 
 /// See `mlp_tile::gemm_tile`.
 #[allow(clippy::too_many_arguments)]
@@ -24,17 +26,18 @@ pub(super) fn gemm_tile(
     y: &mut [f32],
     ldy: usize,
 ) {
-    for c0 in (0..cols).step_by(COL_BLOCK) {
+    debug_assert!(cols % COL_BLOCK == 0);
+    for c0 in (0..cols).step_by(HALF) {
         for r0 in (0..rows).step_by(MR) {
             let mr = MR.min(rows - r0);
-            let mut acc = [[0.0f32; COL_BLOCK]; MR];
+            let mut acc = [[0.0f32; HALF]; MR];
             if let Some(b) = bias {
                 for (r, row) in acc.iter_mut().enumerate().take(mr) {
-                    *row = [b[r0 + r]; COL_BLOCK];
+                    *row = [b[r0 + r]; HALF];
                 }
             }
             for k in 0..k_len {
-                let xr = &x[k * ldx + c0..][..COL_BLOCK];
+                let xr = &x[k * ldx + c0..][..HALF];
                 for (r, row) in acc.iter_mut().enumerate().take(mr) {
                     let w = a[(r0 + r) * a_rs + k * a_ks];
                     for (s, xv) in row.iter_mut().zip(xr) {
@@ -43,7 +46,7 @@ pub(super) fn gemm_tile(
                 }
             }
             for (r, row) in acc.iter().enumerate().take(mr) {
-                let out = &mut y[(r0 + r) * ldy + c0..][..COL_BLOCK];
+                let out = &mut y[(r0 + r) * ldy + c0..][..HALF];
                 match epi {
                     Epilogue::Linear => out.copy_from_slice(row),
                     Epilogue::Relu => {
@@ -52,7 +55,7 @@ pub(super) fn gemm_tile(
                         }
                     }
                     Epilogue::MaskPositive { mask, ld } => {
-                        let m = &mask[(r0 + r) * ld + c0..][..COL_BLOCK];
+                        let m = &mask[(r0 + r) * ld + c0..][..HALF];
                         for ((o, s), mv) in out.iter_mut().zip(row).zip(m) {
                             *o = if *mv > 0.0 { *s } else { 0.0 };
                         }
@@ -63,7 +66,7 @@ pub(super) fn gemm_tile(
     }
 }
 
-/// See `mlp_tile::grad_tile`.
+/// See `mlp_tile::grad_tile`. Blocks of 2 x 2 neuron pairs share row loads.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn grad_tile(
     dz: &[f32],
@@ -75,19 +78,35 @@ pub(super) fn grad_tile(
     cols: usize,
     dwv: &mut [f32],
 ) {
-    for o in 0..out {
-        let drow = &dz[o * ldz..][..cols];
-        for i in 0..inp {
-            let xrow = &x[i * ldx..][..cols];
-            let part: &mut [f32] = &mut dwv[(o * inp + i) * LANES..][..LANES];
-            let mut acc = [0.0f32; LANES];
-            acc.copy_from_slice(part);
-            for (d, xv) in drow.chunks_exact(LANES).zip(xrow.chunks_exact(LANES)) {
-                for l in 0..LANES {
-                    acc[l] += d[l] * xv[l];
+    for o0 in (0..out).step_by(2) {
+        let mo = 2.min(out - o0);
+        for i0 in (0..inp).step_by(2) {
+            let mi = 2.min(inp - i0);
+            let mut acc = [[[0.0f32; LANES]; 2]; 2];
+            for r in 0..mo {
+                for c in 0..mi {
+                    acc[r][c].copy_from_slice(&dwv[((o0 + r) * inp + i0 + c) * LANES..][..LANES]);
                 }
             }
-            part.copy_from_slice(&acc);
+            for t in (0..cols).step_by(LANES) {
+                let d0 = &dz[o0 * ldz + t..][..LANES];
+                let d1 = &dz[(o0 + mo - 1) * ldz + t..][..LANES];
+                let x0 = &x[i0 * ldx + t..][..LANES];
+                let x1 = &x[(i0 + mi - 1) * ldx + t..][..LANES];
+                for l in 0..LANES {
+                    acc[0][0][l] += d0[l] * x0[l];
+                    acc[0][1][l] += d0[l] * x1[l];
+                    acc[1][0][l] += d1[l] * x0[l];
+                    acc[1][1][l] += d1[l] * x1[l];
+                }
+            }
+            // Blocks at an odd edge computed a duplicate row or column;
+            // only the real pairs are stored.
+            for r in 0..mo {
+                for c in 0..mi {
+                    dwv[((o0 + r) * inp + i0 + c) * LANES..][..LANES].copy_from_slice(&acc[r][c]);
+                }
+            }
         }
     }
 }

@@ -43,7 +43,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     let mut last_eval = String::new();
     let outcome = fit(&scan, &options, stop, &mut |event| match event {
         FitEvent::Prepared { train_views, holdout_views, param_count, occupied_fraction } => {
-            bar.println(format!(
+            bar.suspend(|| eprintln!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
                 occupied_fraction * 100.0
             ));

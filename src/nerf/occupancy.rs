@@ -44,7 +44,9 @@ impl OccupancyGrid {
         let threshold = 0.01 * res as f32;
         let mut grid = OccupancyGrid {
             res,
-            density: vec![threshold * 4.0; cells],
+            // Just above the threshold: the first model refresh keeps a cell
+            // only where the model confirms density.
+            density: vec![threshold * 1.01; cells],
             bits: vec![0; cells.div_ceil(64)],
             threshold,
             occupied: 0,

@@ -3,8 +3,8 @@
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 use nerflabel::fixture::{
-    generate, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions, Scene,
-    SceneKind,
+    generate, read_meta, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions,
+    Scene, SceneKind,
 };
 use nerflabel::scan::Intrinsics;
 use serde_json::Value;
@@ -241,6 +241,25 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
         assert_eq!(j["no_sensor_depth"].as_bool().unwrap(), o.no_sensor_depth);
     }
 
+    let parsed_meta = read_meta(&out).unwrap();
+    assert_eq!(
+        (parsed_meta.scene, parsed_meta.scale, parsed_meta.seed),
+        (SceneKind::Small, 1.0, 11)
+    );
+    assert_eq!(
+        (
+            parsed_meta.width,
+            parsed_meta.height,
+            parsed_meta.frames,
+            parsed_meta.holdout
+        ),
+        (80, 60, 6, 2)
+    );
+    assert_eq!(
+        (parsed_meta.intrinsics, parsed_meta.gt_depth_unit),
+        (k, gt_unit)
+    );
+    assert_eq!(parsed_meta.build_scene(), scene);
     let meta = read_json(&out.join("gt/meta.json"));
     assert_eq!(meta["scene"], "small");
     assert_eq!(meta["seed"].as_u64(), Some(11));
@@ -251,6 +270,28 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
             && cmd.contains("--frames 6")
             && cmd.contains("--seed 11")
     );
+}
+
+#[test]
+fn broken_meta_is_reported_with_its_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("fx");
+    generate(&out, &small_options(1, 0)).unwrap();
+    let meta_path = out.join("gt/meta.json");
+    let text = fs::read_to_string(&meta_path)
+        .unwrap()
+        .replace("\"small\"", "\"kitchen\"");
+    fs::write(&meta_path, text).unwrap();
+    let err = read_meta(&out).unwrap_err().to_string();
+    assert!(
+        err.contains("gt/meta.json") && err.contains("kitchen"),
+        "{err}"
+    );
+    fs::write(&meta_path, "{").unwrap();
+    assert!(read_meta(&out)
+        .unwrap_err()
+        .to_string()
+        .contains("not valid JSON"));
 }
 
 /// Every file under `root`, relative path -> bytes, sorted.
@@ -427,4 +468,31 @@ fn refuses_foreign_folder_and_replaces_own_fixture_only_when_asked() {
         generate(&dir.path().join("bad"), &bad),
         Err(FixtureError::Option(_))
     ));
+}
+
+/// Full-size run (120 frames, 640x480): prints the time taken.
+/// `cargo test --release --test fixture_gen -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn full_tabletop_fixture_prints_timing() {
+    let dir = tempfile::tempdir().unwrap();
+    let options = FixtureOptions::new(SceneKind::Tabletop);
+    let start = std::time::Instant::now();
+    let summary = generate(&dir.path().join("tabletop"), &options).unwrap();
+    eprintln!(
+        "tabletop {} + {} frames at {}x{} in {:.1} s ({} rayon threads), valid depth {:.3}",
+        summary.frames,
+        summary.holdout,
+        summary.size.0,
+        summary.size.1,
+        start.elapsed().as_secs_f64(),
+        rayon::current_num_threads(),
+        summary.valid_depth_fraction
+    );
+    assert_eq!(
+        (summary.frames, summary.holdout, summary.depth_size),
+        (120, 12, (256, 192))
+    );
+    assert!(summary.valid_depth_fraction > 0.6 && summary.valid_depth_fraction < 0.95);
+    assert!(summary.warnings.is_empty(), "{:?}", summary.warnings);
 }

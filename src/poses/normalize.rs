@@ -77,7 +77,8 @@ impl SceneTransform {
     pub const ARRAY_LEN: usize = 8;
 
     /// The identity mapping.
-    pub const IDENTITY: SceneTransform = SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
+    pub const IDENTITY: SceneTransform =
+        SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
 
     /// Map that rotates by `rotation` and places `rotated_box` (a box in
     /// rotated world coordinates, metres) centred in [0, 1]^3, its longest
@@ -238,7 +239,8 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
     let (rotation, rotated_box, rotated) = chosen;
     let transform = SceneTransform::fit(rotation, &rotated_box, options.margin)?;
     let s = transform.scale;
-    let local_aabb = DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
+    let local_aabb =
+        DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
     Ok(Normalization { transform, local_aabb, rotated })
 }
 
@@ -279,12 +281,16 @@ mod tests {
             let (a, b) = (random_transform(&mut rng), random_transform(&mut rng));
             let p = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0;
             let tol = 1e-9 * (1.0 + a.scale * b.scale * p.length());
-            assert!(((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol);
+            assert!(
+                ((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol
+            );
             assert!((b.then(&a).world_to_local_point(p) - (a * b).world_to_local_point(p)).length() < tol);
             assert!((a.to_matrix().transform_point3(p) - a.world_to_local_point(p)).length() < tol);
             let id = a * a.inverse();
             assert!((id.world_to_local_point(p) - p).length() < 1e-9 * (1.0 + p.length()));
-            assert!((a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length()));
+            assert!(
+                (a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length())
+            );
         }
     }
 
@@ -331,7 +337,10 @@ mod tests {
             let local = n.transform.world_to_local_direction(room.rotation * axis);
             assert!(local.dot(axis) > 0.999, "{axis} -> {local}");
         }
-        let straight = normalize(&scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(), &NormalizeOptions::default());
+        let straight = normalize(
+            &scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(),
+            &NormalizeOptions::default(),
+        );
         assert!(!straight.unwrap().rotated, "an axis-aligned room keeps the world axes");
     }
 }

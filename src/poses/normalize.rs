@@ -343,4 +343,41 @@ mod tests {
         );
         assert!(!straight.unwrap().rotated, "an axis-aligned room keeps the world axes");
     }
+
+    /// Bounds as `scene_bounds` would make them from these points and cameras.
+    fn bounds_from(samples: Vec<DVec3>, cameras: Vec<DVec3>) -> SceneBounds {
+        use crate::poses::{BoundsOptions, PointStats};
+        let options = BoundsOptions::default();
+        let point_box = robust_box(&samples, |p| p, options.low_percentile, options.high_percentile);
+        let b = cameras.iter().fold(point_box.unwrap(), |b, c| b.including(*c));
+        SceneBounds {
+            aabb: pad_relative(&b, options.padding),
+            source: BoundsSource::Depth,
+            stats: PointStats { point_box, ..PointStats::default() },
+            samples,
+            cameras,
+            options,
+        }
+    }
+
+    #[test]
+    fn planar_and_collinear_scenes_normalise_to_finite_thin_boxes() {
+        // A tilted plane, cameras in it too: no thickness at all.
+        let mut rng = Rng::new(8, 0);
+        let plane = |x: f64, y: f64| DVec3::new(x, y, 0.3 * x - 0.2 * y);
+        let samples: Vec<DVec3> = (0..20_000).map(|_| plane(rng.range(-2.0, 2.0), rng.range(-1.0, 1.0))).collect();
+        let cameras = vec![plane(-0.5, 0.0), plane(0.5, 0.2)];
+        let b = bounds_from(samples.clone(), cameras);
+        let n = normalize(&b, &NormalizeOptions::default()).unwrap();
+        assert!(n.rotated, "the plane's own frame is much thinner than the world box");
+        assert!(DAabb::UNIT.contains_box(&n.local_aabb));
+        let e = n.local_aabb.extent();
+        assert!(e.min_element() < 0.2 * e.max_element(), "{e}");
+        assert!(samples.iter().all(|p| n.local_aabb.padded(1e-9).contains(n.transform.world_to_local_point(*p))));
+        // A line of points: still a valid similarity.
+        let line: Vec<DVec3> = (0..1000).map(|i| DVec3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0)).collect();
+        let n = normalize(&bounds_from(line, vec![DVec3::ZERO]), &NormalizeOptions::default()).unwrap();
+        assert!(n.transform.scale.is_finite() && n.transform.scale > 0.0);
+        assert!(DAabb::UNIT.contains_box(&n.local_aabb));
+    }
 }

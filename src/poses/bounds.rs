@@ -54,7 +54,13 @@ pub struct BoundsOptions {
 
 impl Default for BoundsOptions {
     fn default() -> Self {
-        BoundsOptions { max_points: 2_000_000, low_percentile: 0.5, high_percentile: 99.5, padding: 0.05, far_factor: 2.0 }
+        BoundsOptions {
+            max_points: 2_000_000,
+            low_percentile: 0.5,
+            high_percentile: 99.5,
+            padding: 0.05,
+            far_factor: 2.0,
+        }
     }
 }
 

@@ -14,6 +14,7 @@ use crate::scan::{Frame, Scan};
 use glam::{DMat3, DVec3, Mat3, Vec3};
 use rayon::prelude::*;
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
 use std::path::Path;
 
@@ -37,7 +38,12 @@ pub struct CloudOptions {
 
 impl Default for CloudOptions {
     fn default() -> Self {
-        CloudOptions { voxel_size: None, voxels_per_extent: 512, bounds: None, bounds_options: BoundsOptions::default() }
+        CloudOptions {
+            voxel_size: None,
+            voxels_per_extent: 512,
+            bounds: None,
+            bounds_options: BoundsOptions::default(),
+        }
     }
 }
 
@@ -86,7 +92,31 @@ impl Acc {
     }
 }
 
-type VoxelMap = HashMap<u64, Acc>;
+/// Hash of a packed voxel index: the splitmix64 finaliser (the keys are
+/// ours, so no protection against crafted collisions is needed).
+#[derive(Default)]
+struct VoxelHasher(u64);
+
+impl Hasher for VoxelHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.write_u64(self.0 ^ u64::from(*b));
+        }
+    }
+
+    fn write_u64(&mut self, x: u64) {
+        let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        self.0 = z ^ (z >> 31);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+type VoxelMap = HashMap<u64, Acc, BuildHasherDefault<VoxelHasher>>;
 
 /// The voxel grid over the kept box.
 #[derive(Clone, Copy, Debug)]
@@ -113,8 +143,8 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
     let merged = scan
         .frames
         .par_iter()
-        .fold(VoxelMap::new, |acc, frame| merge(acc, frame_voxels(frame, &grid)))
-        .reduce(VoxelMap::new, merge);
+        .fold(VoxelMap::default, |acc, frame| merge(acc, frame_voxels(frame, &grid)))
+        .reduce(VoxelMap::default, merge);
     let mut voxels: Vec<(u64, Acc)> = merged.into_iter().collect();
     voxels.sort_unstable_by_key(|(k, _)| *k);
     let mut cloud = PointCloud { voxel_size: grid.voxel, bounds, ..PointCloud::default() };
@@ -123,7 +153,8 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
     for (key, acc) in voxels {
         let n = acc.count as f64;
         let index = DVec3::new((key >> 32) as f64, ((key >> 16) & 0xffff) as f64, (key & 0xffff) as f64);
-        let frac = DVec3::new(acc.offset[0] as f64, acc.offset[1] as f64, acc.offset[2] as f64) / (n * f64::from(FIXED_ONE));
+        let frac =
+            DVec3::new(acc.offset[0] as f64, acc.offset[1] as f64, acc.offset[2] as f64) / (n * f64::from(FIXED_ONE));
         let p = grid.min + (index + frac) * grid.voxel;
         cloud.positions.push(p.as_vec3().to_array());
         cloud.colors.push(acc.rgb.map(|c| ((c + acc.count / 2) / acc.count).min(255) as u8));
@@ -154,7 +185,10 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
     }
     let per_axis = (bounds.extent() / voxel).ceil().max(DVec3::ONE);
     if per_axis.max_element() > MAX_VOXELS_PER_AXIS as f64 {
-        return Err(bad(format!("it needs {} voxels along one axis, at most {MAX_VOXELS_PER_AXIS}", per_axis.max_element())));
+        return Err(bad(format!(
+            "it needs {} voxels along one axis, at most {MAX_VOXELS_PER_AXIS}",
+            per_axis.max_element()
+        )));
     }
     let dims = [per_axis.x as u64, per_axis.y as u64, per_axis.z as u64];
     Ok(Grid { min: bounds.min, voxel, dims })
@@ -162,7 +196,7 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
 
 /// Voxel sums of one frame's valid depth pixels inside the grid.
 fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
-    let mut map = VoxelMap::new();
+    let mut map = VoxelMap::default();
     let (Some(depth), Ok(Some(k))) = (&frame.depth, depth_intrinsics(frame)) else { return map };
     let (w, h) = (depth.width as usize, depth.height as usize);
     let (rw, rh) = frame.size();
@@ -174,8 +208,11 @@ fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
     let b: Vec3 = ((frame.camera_center() - grid.min) / grid.voxel).as_vec3();
     let dims = Vec3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
     // Nearest rgb pixel of each depth column / row (pixel centres aligned).
-    let rgb_col: Vec<u32> = (0..w).map(|u| (((u as f64 + 0.5) * f64::from(rw) / w as f64) as u32).min(rw - 1)).collect();
+    let rgb_col: Vec<u32> =
+        (0..w).map(|u| (((u as f64 + 0.5) * f64::from(rw) / w as f64) as u32).min(rw - 1)).collect();
     let xs: Vec<Vec3> = (0..w).map(|u| a.x_axis * ((u as f64 - k.cx) / k.fx) as f32).collect();
+    // Neighbouring pixels mostly share a voxel: sum runs locally first.
+    let mut run: Option<(u64, Acc)> = None;
     for (v, row) in depth.metres.chunks_exact(w).enumerate().take(h) {
         let rgb_row = (((v as f64 + 0.5) * f64::from(rh) / h as f64) as u32).min(rh - 1);
         let row_dir = a.y_axis * ((v as f64 - k.cy) / k.fy) as f32 + a.z_axis;
@@ -188,11 +225,20 @@ fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
             if !(g.cmpge(Vec3::ZERO).all() && g.cmplt(dims).all()) {
                 continue;
             }
-            let cell = g.floor();
-            let frac = ((g - cell) * FIXED_ONE).min(Vec3::splat(FIXED_ONE - 1.0));
-            let key = ((cell.x as u64) << 32) | ((cell.y as u64) << 16) | cell.z as u64;
+            // g >= 0, so truncation is floor (and avoids a libm call).
+            let cell = g.as_uvec3();
+            let frac = ((g - cell.as_vec3()) * FIXED_ONE).min(Vec3::splat(FIXED_ONE - 1.0));
+            let key = (u64::from(cell.x) << 32) | (u64::from(cell.y) << 16) | u64::from(cell.z);
             let px = frame.rgb.get_pixel(rgb_col[u], rgb_row).0;
-            let acc = map.entry(key).or_default();
+            let acc = match &mut run {
+                Some((k, acc)) if *k == key => acc,
+                _ => {
+                    if let Some((k, acc)) = run.take() {
+                        map.entry(k).or_default().merge(&acc);
+                    }
+                    &mut run.insert((key, Acc::default())).1
+                }
+            };
             acc.count += 1;
             acc.offset[0] += frac.x as u64;
             acc.offset[1] += frac.y as u64;
@@ -201,6 +247,9 @@ fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
                 *sum += u64::from(c);
             }
         }
+    }
+    if let Some((k, acc)) = run {
+        map.entry(k).or_default().merge(&acc);
     }
     map
 }

@@ -77,7 +77,8 @@ impl SceneTransform {
     pub const ARRAY_LEN: usize = 8;
 
     /// The identity mapping.
-    pub const IDENTITY: SceneTransform = SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
+    pub const IDENTITY: SceneTransform =
+        SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
 
     /// Map that rotates by `rotation` and places `rotated_box` (a box in
     /// rotated world coordinates, metres) centred in [0, 1]^3, its longest
@@ -238,7 +239,8 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
     let (rotation, rotated_box, rotated) = chosen;
     let transform = SceneTransform::fit(rotation, &rotated_box, options.margin)?;
     let s = transform.scale;
-    let local_aabb = DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
+    let local_aabb =
+        DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
     Ok(Normalization { transform, local_aabb, rotated })
 }
 
@@ -279,12 +281,16 @@ mod tests {
             let (a, b) = (random_transform(&mut rng), random_transform(&mut rng));
             let p = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0;
             let tol = 1e-9 * (1.0 + a.scale * b.scale * p.length());
-            assert!(((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol);
+            assert!(
+                ((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol
+            );
             assert!((b.then(&a).world_to_local_point(p) - (a * b).world_to_local_point(p)).length() < tol);
             assert!((a.to_matrix().transform_point3(p) - a.world_to_local_point(p)).length() < tol);
             let id = a * a.inverse();
             assert!((id.world_to_local_point(p) - p).length() < 1e-9 * (1.0 + p.length()));
-            assert!((a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length()));
+            assert!(
+                (a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length())
+            );
         }
     }
 
@@ -331,7 +337,47 @@ mod tests {
             let local = n.transform.world_to_local_direction(room.rotation * axis);
             assert!(local.dot(axis) > 0.999, "{axis} -> {local}");
         }
-        let straight = normalize(&scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(), &NormalizeOptions::default());
+        let straight = normalize(
+            &scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(),
+            &NormalizeOptions::default(),
+        );
         assert!(!straight.unwrap().rotated, "an axis-aligned room keeps the world axes");
+    }
+
+    /// Bounds as `scene_bounds` would make them from these points and cameras.
+    fn bounds_from(samples: Vec<DVec3>, cameras: Vec<DVec3>) -> SceneBounds {
+        use crate::poses::{BoundsOptions, PointStats};
+        let options = BoundsOptions::default();
+        let point_box = robust_box(&samples, |p| p, options.low_percentile, options.high_percentile);
+        let b = cameras.iter().fold(point_box.unwrap(), |b, c| b.including(*c));
+        SceneBounds {
+            aabb: pad_relative(&b, options.padding),
+            source: BoundsSource::Depth,
+            stats: PointStats { point_box, ..PointStats::default() },
+            samples,
+            cameras,
+            options,
+        }
+    }
+
+    #[test]
+    fn planar_and_collinear_scenes_normalise_to_finite_thin_boxes() {
+        // A tilted plane, cameras in it too: no thickness at all.
+        let mut rng = Rng::new(8, 0);
+        let plane = |x: f64, y: f64| DVec3::new(x, y, 0.3 * x - 0.2 * y);
+        let samples: Vec<DVec3> = (0..20_000).map(|_| plane(rng.range(-2.0, 2.0), rng.range(-1.0, 1.0))).collect();
+        let cameras = vec![plane(-0.5, 0.0), plane(0.5, 0.2)];
+        let b = bounds_from(samples.clone(), cameras);
+        let n = normalize(&b, &NormalizeOptions::default()).unwrap();
+        assert!(n.rotated, "the plane's own frame is much thinner than the world box");
+        assert!(DAabb::UNIT.contains_box(&n.local_aabb));
+        let e = n.local_aabb.extent();
+        assert!(e.min_element() < 0.2 * e.max_element(), "{e}");
+        assert!(samples.iter().all(|p| n.local_aabb.padded(1e-9).contains(n.transform.world_to_local_point(*p))));
+        // A line of points: still a valid similarity.
+        let line: Vec<DVec3> = (0..1000).map(|i| DVec3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0)).collect();
+        let n = normalize(&bounds_from(line, vec![DVec3::ZERO]), &NormalizeOptions::default()).unwrap();
+        assert!(n.transform.scale.is_finite() && n.transform.scale > 0.0);
+        assert!(DAabb::UNIT.contains_box(&n.local_aabb));
     }
 }

@@ -160,7 +160,8 @@ mod tests {
     fn jacobi_diagonalises_random_symmetric_matrices() {
         let mut rng = Rng::new(5, 0);
         for _ in 0..200 {
-            let r = DMat3::from_quat(DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize());
+            let r =
+                DMat3::from_quat(DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize());
             let l = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
             let m = r * DMat3::from_diagonal(l) * r.transpose();
             let (values, vectors) = symmetric_eigen(m);
@@ -178,8 +179,9 @@ mod tests {
     fn elongated_cloud_axes_follow_its_rotation_and_stay_near_identity() {
         let rot = DQuat::from_rotation_z(0.3) * DQuat::from_rotation_x(-0.1);
         let mut rng = Rng::new(1, 0);
-        let pts: Vec<DVec3> =
-            (0..5000).map(|_| rot * DVec3::new(rng.range(-4.0, 4.0), rng.range(-2.0, 2.0), rng.range(-1.0, 1.0))).collect();
+        let pts: Vec<DVec3> = (0..5000)
+            .map(|_| rot * DVec3::new(rng.range(-4.0, 4.0), rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)))
+            .collect();
         let axes = principal_axes(&pts).unwrap();
         let expected = DMat3::from_quat(rot);
         for i in 0..3 {

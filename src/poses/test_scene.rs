@@ -53,7 +53,8 @@ impl Room {
     /// Camera-to-world pose of frame `k` in the room frame (unscaled).
     fn room_pose(&self, k: usize) -> DMat4 {
         let yaw = TAU * k as f64 / self.frames as f64;
-        let eye = DVec3::new(0.35 * self.half.x * yaw.cos(), 0.35 * self.half.y * yaw.sin(), 0.1 * self.half.z * yaw.sin());
+        let eye =
+            DVec3::new(0.35 * self.half.x * yaw.cos(), 0.35 * self.half.y * yaw.sin(), 0.1 * self.half.z * yaw.sin());
         let forward = DVec3::new((yaw + 0.3).cos(), (yaw + 0.3).sin(), 0.4 * (3.0 * yaw).sin()).normalize();
         let right = forward.cross(DVec3::Z).normalize();
         let down = forward.cross(right);
@@ -63,7 +64,12 @@ impl Room {
     /// Build the scan.
     pub fn scan(&self) -> Scan {
         let (w, h) = (self.width, self.height);
-        let k = Intrinsics { fx: 0.6 * w as f64, fy: 0.6 * w as f64, cx: (w as f64 - 1.0) / 2.0, cy: (h as f64 - 1.0) / 2.0 };
+        let k = Intrinsics {
+            fx: 0.6 * w as f64,
+            fy: 0.6 * w as f64,
+            cx: (w as f64 - 1.0) / 2.0,
+            cy: (h as f64 - 1.0) / 2.0,
+        };
         let world_rot = DMat4::from_quat(self.rotation);
         let frames = (0..self.frames)
             .map(|i| {

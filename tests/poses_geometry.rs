@@ -82,6 +82,7 @@ impl Room {
                         self.to_world(eye).extend(1.0),
                     ),
                     intrinsics: k,
+                    depth_size: None,
                 }
             })
             .collect();

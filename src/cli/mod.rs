@@ -2,6 +2,8 @@
 
 mod cloud;
 mod common;
+mod demo;
+mod fixture;
 mod fit;
 mod info;
 mod report;
@@ -85,24 +87,57 @@ pub struct FixtureArgs {
     /// Scene: tabletop, small or cabinet.
     #[arg(long, default_value = "tabletop")]
     pub scene: String,
-    /// Number of frames (default depends on the scene).
+    /// Number of scan frames (default: tabletop 120, small 24, cabinet 60).
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Number of held-out ground-truth views (default: frames / 10).
+    #[arg(long)]
+    pub holdout: Option<usize>,
     /// Colour image width.
-    #[arg(long)]
-    pub width: Option<u32>,
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
     /// Colour image height.
-    #[arg(long)]
-    pub height: Option<u32>,
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
     /// Random seed (trajectory jitter, sensor noise).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Multiply all geometry by this factor.
     #[arg(long, default_value_t = 1.0)]
     pub scale: f64,
-    /// Layout to write: native or nerfstudio.
+    /// Layout to write: native or nerfstudio (use nerfstudio when millimetre PNG depth cannot hold the scale).
     #[arg(long, default_value = "native")]
     pub layout: String,
+    /// No depth noise.
+    #[arg(long)]
+    pub no_depth_noise: bool,
+    /// No random depth holes.
+    #[arg(long)]
+    pub no_holes: bool,
+    /// No depth dropout at depth edges.
+    #[arg(long)]
+    pub no_edge_dropout: bool,
+    /// Give the glass-like object sensor depth like every other object.
+    #[arg(long)]
+    pub no_glass: bool,
+    /// No black border in the depth images.
+    #[arg(long)]
+    pub no_border: bool,
+    /// No colour noise.
+    #[arg(long)]
+    pub no_colour_noise: bool,
+    /// Depth at the colour resolution (default: 1/2.5 of it).
+    #[arg(long)]
+    pub full_res_depth: bool,
+    /// No anti-aliasing of colour.
+    #[arg(long)]
+    pub no_supersample: bool,
+    /// No sensor corruption at all.
+    #[arg(long)]
+    pub clean: bool,
+    /// Replace an earlier fixture in OUT.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Args, Debug)]
@@ -222,7 +257,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Cloud(args) => cloud::run(&args),
         Command::Fit(args) => fit::run(&args),
         Command::Report(args) => report::run(&args),
-        Command::Fixture(_) | Command::Demo(_) => anyhow::bail!("this command is not available in this build yet"),
+        Command::Fixture(args) => fixture::run(&args),
+        Command::Demo(args) => demo::run(&args),
         Command::Label(_) => anyhow::bail!("`label` is not available in this build yet"),
         Command::Synth(_) => anyhow::bail!("`synth` is not available in this build yet"),
     }

@@ -20,3 +20,4 @@ pub mod config;
 pub mod dataset;
 pub mod evaluate;
 pub mod fit;
+pub mod view;

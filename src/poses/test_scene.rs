@@ -101,6 +101,7 @@ impl Room {
                     depth: self.with_depth.then_some(DepthMap { width: w, height: h, metres }),
                     camera_to_world: c2w,
                     intrinsics: k,
+                    depth_size: None,
                 }
             })
             .collect();

@@ -7,12 +7,13 @@
 //! feature for a level is the trilinear blend of its cell's 8 corners, so the
 //! encoding is linear in the parameters.
 //!
-//! Work is done in blocks of positions with the level loop inside, so a
-//! level's table region stays in cache while a block is processed. With
+//! The level loop is outermost, so one level's table (at most a few MiB) stays
+//! in cache while all positions visit it, in blocks of 256 SIMD-friendly columns. With
 //! AVX2+FMA, 2-feature levels use the gather kernels of
 //! [`crate::nerf::simd::grid`]; their results are bit-identical to the scalar
 //! path, so outputs do not depend on the CPU.
 
+mod backward;
 mod grad;
 mod sizing;
 #[cfg(test)]
@@ -195,10 +196,18 @@ impl GridLevel {
     /// repeat these exact operations.
     #[inline(always)]
     fn cell(&self, x: f32) -> (u32, f32) {
-        let p = x.max(0.0).min(1.0) * self.resolution as f32;
-        let i = (p.floor() as i32).clamp(0, self.resolution as i32 - 1);
+        // p >= 0 (NaN became 0), so truncation is floor.
+        let p = unit(x) * self.resolution as f32;
+        let i = (p as i32).clamp(0, self.resolution as i32 - 1);
         (i as u32, p - i as f32)
     }
+}
+
+/// `x` clamped to [0, 1], NaN -> 0 (`f32::clamp` would keep the NaN).
+#[inline(always)]
+#[allow(clippy::manual_clamp)]
+fn unit(x: f32) -> f32 {
+    x.max(0.0).min(1.0)
 }
 
 /// Multi-resolution hash encoding with all levels' tables in `params`.
@@ -228,9 +237,7 @@ impl Block {
     fn load(&mut self, positions: &[[f32; 3]]) {
         self.len = positions.len().min(BLOCK);
         for (i, p) in positions.iter().take(BLOCK).enumerate() {
-            self.x[i] = p[0].max(0.0).min(1.0);
-            self.y[i] = p[1].max(0.0).min(1.0);
-            self.z[i] = p[2].max(0.0).min(1.0);
+            (self.x[i], self.y[i], self.z[i]) = (unit(p[0]), unit(p[1]), unit(p[2]));
         }
         let padded = self.len.next_multiple_of(8).min(BLOCK);
         for i in self.len..padded {
@@ -293,18 +300,18 @@ impl HashGrid {
         self.encode_with(positions, out, true);
     }
 
-    /// `encode`, with the SIMD kernels allowed or not (tests compare both).
-    pub(crate) fn encode_with(&self, positions: &[[f32; 3]], out: &mut [f32], allow_simd: bool) {
+    /// `encode` with the SIMD kernels allowed or not (for tests and benchmarks).
+    pub fn encode_with(&self, positions: &[[f32; 3]], out: &mut [f32], allow_simd: bool) {
         let n = positions.len();
         assert_eq!(out.len(), n * self.output_dim(), "HashGrid::encode: out has the wrong length");
         let fpl = self.config.features_per_level;
         let use_simd = allow_simd && fpl == 2 && simd::available();
         let mut block = Block::new();
-        for start in (0..n).step_by(BLOCK) {
-            block.load(&positions[start..]);
-            let len = block.len;
-            for (l, level) in self.levels.iter().enumerate() {
-                let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
+        for (l, level) in self.levels.iter().enumerate() {
+            let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
+            for start in (0..n).step_by(BLOCK) {
+                block.load(&positions[start..]);
+                let len = block.len;
                 let first = l * fpl * n + start;
                 if use_simd {
                     let (head, tail) = out.split_at_mut(first + n);
@@ -331,32 +338,29 @@ impl HashGrid {
     }
 
     /// Accumulates d(loss)/d(params) into `grad.values` from feature-major
-    /// `d_out` (shaped like `encode`'s `out`) and records touched entries.
-    /// Samples whose level gradient is all zero touch nothing on that level.
+    /// `d_out` (shaped like `encode`'s `out`) and records as touched the 8
+    /// corner entries of every sample whose gradient on that level is not all
+    /// zero (so touched can include a zero-weight corner, e.g. on a cube face).
     /// Panics if `d_out` or `grad` have the wrong length.
     pub fn backward(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad) {
         self.backward_with(positions, d_out, grad, true);
     }
 
-    /// `backward`, with the SIMD kernels allowed or not (tests compare both).
-    pub(crate) fn backward_with(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad, allow_simd: bool) {
+    /// `backward` with the SIMD kernels allowed or not (for tests and benchmarks).
+    pub fn backward_with(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad, allow_simd: bool) {
         let n = positions.len();
         assert_eq!(d_out.len(), n * self.output_dim(), "HashGrid::backward: d_out has the wrong length");
         assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
         let fpl = self.config.features_per_level;
         let use_simd = allow_simd && simd::available();
         let mut block = Block::new();
-        for start in (0..n).step_by(BLOCK) {
-            block.load(&positions[start..]);
-            for (l, level) in self.levels.iter().enumerate() {
-                let first = l * fpl * n + start;
-                let args = (level, &block, d_out, first, n, use_simd);
-                match fpl {
-                    1 => backward_level::<1>(args, grad),
-                    2 => backward_level::<2>(args, grad),
-                    4 => backward_level::<4>(args, grad),
-                    _ => backward_level::<8>(args, grad),
-                }
+        for (l, level) in self.levels.iter().enumerate() {
+            let rows = &d_out[l * fpl * n..(l + 1) * fpl * n];
+            match fpl {
+                1 => backward::level::<1>(level, positions, rows, &mut block, use_simd, grad),
+                2 => backward::level::<2>(level, positions, rows, &mut block, use_simd, grad),
+                4 => backward::level::<4>(level, positions, rows, &mut block, use_simd, grad),
+                _ => backward::level::<8>(level, positions, rows, &mut block, use_simd, grad),
             }
         }
     }
@@ -376,46 +380,6 @@ fn encode_level_scalar<const F: usize>(level: &GridLevel, table: &[f32], block: 
         }
         for f in 0..F {
             out[first + f * n + i] = acc[f];
-        }
-    }
-}
-
-/// Backward of one block on one level: corner indices and weights (SIMD when
-/// available, 8 samples at a time), then an in-order scalar scatter-add.
-fn backward_level<const F: usize>(
-    (level, block, d_out, first, n, use_simd): (&GridLevel, &Block, &[f32], usize, usize, bool),
-    grad: &mut GridGrad,
-) {
-    let base_entry = level.param_offset / F;
-    let mut idx = [[0u32; 8]; 8];
-    let mut w = [[0f32; 8]; 8];
-    for lane0 in (0..block.len).step_by(8) {
-        let lanes = (block.len - lane0).min(8);
-        let span = lane0..lane0 + 8;
-        let simd_done = use_simd
-            && simd::corners8(level, [&block.x[span.clone()], &block.y[span.clone()], &block.z[span]], &mut idx, &mut w);
-        if !simd_done {
-            for s in 0..lanes {
-                let i = lane0 + s;
-                let (ci, cw) = level.corners([block.x[i], block.y[i], block.z[i]]);
-                for c in 0..8 {
-                    idx[c][s] = ci[c];
-                    w[c][s] = cw[c];
-                }
-            }
-        }
-        for s in 0..lanes {
-            let mut d = [0f32; F];
-            for (f, d) in d.iter_mut().enumerate() {
-                *d = d_out[first + f * n + lane0 + s];
-            }
-            if d.iter().all(|&v| v == 0.0) {
-                continue;
-            }
-            for c in 0..8 {
-                let e = base_entry + idx[c][s] as usize;
-                grad.add_entry::<F>(e, w[c][s], &d);
-            }
         }
     }
 }

@@ -90,6 +90,27 @@ pub fn corners8(level: &GridLevel, xyz: [&[f32]; 3], idx: &mut [[u32; 8]; 8], w:
     }
 }
 
+/// Corner entries `idx[s][c]` and weighted gradients `g[16 s + 2 c + f] =
+/// w[s][c] * d[f][s]` of 8 samples on a 2-feature level, sample-major for the
+/// scatter. `xyz` and `d` are columns of 8, `g` has 128 elements. Returns
+/// the lowest and highest entry, or None (writing nothing) when AVX2 is
+/// missing or a length is wrong.
+pub fn group_grad_f2(level: &GridLevel, xyz: [&[f32]; 3], d: [&[f32]; 2], idx: &mut [[u32; 8]; 8], g: &mut [f32]) -> Option<(u32, u32)> {
+    if xyz.iter().chain(&d).any(|c| c.len() != 8) || g.len() != 128 || level.resolution == 0 || !available() {
+        return None;
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        // SAFETY: AVX2 and FMA were detected above; all columns are 8 long,
+        // `idx` is 8 x 8 u32 and `g` holds 128 f32.
+        Some(unsafe { avx2::group_grad_f2(level, xyz, d, idx, g) })
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        None
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::*;
@@ -101,7 +122,8 @@ mod avx2 {
     fn axis(v: __m256, res_f: __m256, res_max: __m256i) -> (__m256i, __m256) {
         let v = _mm256_min_ps(_mm256_max_ps(v, _mm256_setzero_ps()), _mm256_set1_ps(1.0));
         let p = _mm256_mul_ps(v, res_f);
-        let i = _mm256_cvttps_epi32(_mm256_floor_ps(p));
+        // p >= 0 (NaN became 0), so truncation is floor, as in the scalar path.
+        let i = _mm256_cvttps_epi32(p);
         // Integer clamp keeps indices in range whatever the float did.
         let i = _mm256_min_epi32(_mm256_max_epi32(i, _mm256_setzero_si256()), res_max);
         (i, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i)))
@@ -164,6 +186,91 @@ mod avx2 {
                 _mm256_storeu_ps(w[c].as_mut_ptr(), cw[c]);
             }
         }
+    }
+
+    /// Transposes 8 rows of 8 lanes (`rows[r]` lane `l` -> `out[l]` lane `r`).
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn transpose8(r: [__m256; 8]) -> [__m256; 8] {
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let u5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let u7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        [
+            _mm256_permute2f128_ps::<0x20>(u0, u4),
+            _mm256_permute2f128_ps::<0x20>(u1, u5),
+            _mm256_permute2f128_ps::<0x20>(u2, u6),
+            _mm256_permute2f128_ps::<0x20>(u3, u7),
+            _mm256_permute2f128_ps::<0x31>(u0, u4),
+            _mm256_permute2f128_ps::<0x31>(u1, u5),
+            _mm256_permute2f128_ps::<0x31>(u2, u6),
+            _mm256_permute2f128_ps::<0x31>(u3, u7),
+        ]
+    }
+
+    /// See [`super::group_grad_f2`].
+    ///
+    /// # Safety
+    /// AVX2 and FMA must be available; every column must be 8 long and `g`
+    /// must hold 128 f32.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn group_grad_f2(level: &GridLevel, xyz: [&[f32]; 3], d: [&[f32]; 2], idx: &mut [[u32; 8]; 8], g: &mut [f32]) -> (u32, u32) {
+        // SAFETY: the caller guarantees 8 readable f32 per column.
+        let (x, y, z, d0, d1) = unsafe {
+            (
+                _mm256_loadu_ps(xyz[0].as_ptr()),
+                _mm256_loadu_ps(xyz[1].as_ptr()),
+                _mm256_loadu_ps(xyz[2].as_ptr()),
+                _mm256_loadu_ps(d[0].as_ptr()),
+                _mm256_loadu_ps(d[1].as_ptr()),
+            )
+        };
+        let (ci, cw) = corners(level, x, y, z);
+        let (mut fi, mut f0, mut f1) = ([_mm256_setzero_ps(); 8], [_mm256_setzero_ps(); 8], [_mm256_setzero_ps(); 8]);
+        for c in 0..8 {
+            fi[c] = _mm256_castsi256_ps(ci[c]);
+            f0[c] = _mm256_mul_ps(cw[c], d0);
+            f1[c] = _mm256_mul_ps(cw[c], d1);
+        }
+        let (ti, g0, g1) = (transpose8(fi), transpose8(f0), transpose8(f1));
+        let (mut lo, mut hi) = (ci[0], ci[0]);
+        for v in &ci[1..] {
+            lo = _mm256_min_epu32(lo, *v);
+            hi = _mm256_max_epu32(hi, *v);
+        }
+        let (mut lo8, mut hi8) = ([0u32; 8], [0u32; 8]);
+        for s in 0..8 {
+            // Interleave the two features: corners 0,1 | 4,5 and 2,3 | 6,7, then reorder halves.
+            let lo = _mm256_unpacklo_ps(g0[s], g1[s]);
+            let hi = _mm256_unpackhi_ps(g0[s], g1[s]);
+            let first = _mm256_permute2f128_ps::<0x20>(lo, hi);
+            let second = _mm256_permute2f128_ps::<0x31>(lo, hi);
+            // SAFETY: idx[s] is 8 u32; g[16 s..16 s + 16] is in bounds (g holds 128).
+            unsafe {
+                _mm256_storeu_ps(idx[s].as_mut_ptr().cast(), ti[s]);
+                let gs = g.as_mut_ptr().add(16 * s);
+                _mm256_storeu_ps(gs, first);
+                _mm256_storeu_ps(gs.add(8), second);
+            }
+        }
+        // SAFETY: lo8 and hi8 are 8 u32 each.
+        unsafe {
+            _mm256_storeu_si256(lo8.as_mut_ptr().cast(), lo);
+            _mm256_storeu_si256(hi8.as_mut_ptr().cast(), hi);
+        }
+        (lo8.into_iter().fold(u32::MAX, u32::min), hi8.into_iter().fold(0, u32::max))
     }
 
     /// See [`super::encode_level_f2`].

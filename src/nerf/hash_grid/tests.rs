@@ -315,7 +315,7 @@ fn for_scene_sizes_tabletop_room_and_tiny() {
     let tiny_grid = HashGrid::new(tiny, &mut Rng::new(0, 0));
     assert!(tiny_grid.levels().iter().all(|l| l.dense));
     let p = |c: HashGridConfig| c.param_count();
-    assert!(p(tiny) * 10 < p(table), "tiny {} vs tabletop {}", p(tiny), p(table));
+    assert!(p(tiny) * 5 < p(table), "tiny {} vs tabletop {}", p(tiny), p(table));
     assert!(p(table) < p(room), "tabletop {} vs room {}", p(table), p(room));
     // A huge scene hits the caps.
     let huge = HashGridConfig::for_scene(1000.0, 0.01);

@@ -20,6 +20,17 @@ pub fn available() -> bool {
     }
 }
 
+/// Hints the CPU to bring `data[i]` into L1 (nothing when `i` is out of bounds).
+#[inline(always)]
+pub fn prefetch(data: &[f32], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if i < data.len() {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: prefetching is a hint that never faults, and the address is inside `data`.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(i).cast()) }
+    }
+}
+
 /// Table entries a level's indices can reach, if its geometry is consistent
 /// and small enough for 32-bit gather offsets.
 fn entries_reachable(level: &GridLevel) -> Option<usize> {

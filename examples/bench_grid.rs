@@ -71,10 +71,14 @@ fn main() {
     let mut out = vec![0.0f32; CHUNK * dim];
     let mut grad = GridGrad::new(grid.param_count());
     println!("\n1 thread, {CHUNK} samples per call, Msamples/s as fastest chunk (median chunk):");
-    println!("{:<10} {:<7} {:>16} {:>18}  touched params/chunk", "positions", "path", "encode", "encode+backward");
+    println!("{:<10} {:<7} {:>16} {:>16} {:>18}  touched params/chunk", "positions", "path", "encode", "backward", "encode+backward");
     for (name, pos) in [("random", random_positions(&mut rng)), ("rays", ray_positions(&mut rng))] {
         for simd in [true, false] {
             let enc = rates(&pos, |chunk| grid.encode_with(chunk, &mut out, simd));
+            let bwd = rates(&pos, |chunk| {
+                grid.backward_with(chunk, &d_out, &mut grad, simd);
+                grad.clear();
+            });
             let both = rates(&pos, |chunk| {
                 grid.encode_with(chunk, &mut out, simd);
                 grid.backward_with(chunk, &d_out, &mut grad, simd);
@@ -85,7 +89,7 @@ fn main() {
             grad.clear();
             let path = if simd { "avx2" } else { "scalar" };
             let fmt = |(best, median): (f64, f64)| format!("{:.2} ({:.2})", best / 1e6, median / 1e6);
-            println!("{name:<10} {path:<7} {:>16} {:>18}  {touched}", fmt(enc), fmt(both));
+            println!("{name:<10} {path:<7} {:>16} {:>16} {:>18}  {touched}", fmt(enc), fmt(bwd), fmt(both));
         }
     }
 }

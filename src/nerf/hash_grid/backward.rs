@@ -12,19 +12,30 @@
 use super::{Block, GridGrad, GridLevel, BLOCK};
 use crate::nerf::simd::grid as simd;
 
-/// Adds one run's gradients to its 8 entries (offset by `base`).
-#[inline(always)]
-fn flush<const F: usize>(idx: &[u32; 8], acc: &[[f32; F]; 8], base: usize, grad: &mut GridGrad) {
-    for c in 0..8 {
-        grad.add_entry::<F>(base + idx[c] as usize, &acc[c]);
+/// What one level's backward reads: its geometry and its F rows of d_out.
+struct LevelInput<'a> {
+    level: &'a GridLevel,
+    /// Feature-major `rows[f * n + b]`.
+    rows: &'a [f32],
+    n: usize,
+    use_simd: bool,
+}
+
+impl LevelInput<'_> {
+    /// Gradient of sample `b` for the level's features.
+    #[inline(always)]
+    fn d<const F: usize>(&self, b: usize) -> [f32; F] {
+        std::array::from_fn(|f| self.rows[f * self.n + b])
     }
 }
 
 /// Corner entries and weighted gradients of up to 8 consecutive samples.
 struct Group<const F: usize> {
+    /// `idx[s][c]`: entry of corner c of sample s, within the level.
     idx: [[u32; 8]; 8],
+    /// `g[s][c][f]`: weight of corner c times sample s's gradient of feature f.
     g: [[[f32; F]; 8]; 8],
-    /// Index of the first sample and number of samples.
+    /// First sample and number of samples.
     b0: usize,
     lanes: usize,
 }
@@ -37,28 +48,78 @@ impl<const F: usize> Group<F> {
     /// Fills the group from block lanes `lane0..` (samples `b0..`); returns
     /// the lowest and highest entry.
     #[inline(always)]
-    fn fill(&mut self, level: &GridLevel, block: &Block, lane0: usize, b0: usize, rows: &[f32], n: usize, use_simd: bool) -> (u32, u32) {
+    #[allow(clippy::needless_range_loop)] // s indexes five parallel arrays
+    fn fill(&mut self, input: &LevelInput, block: &Block, lane0: usize, b0: usize) -> (u32, u32) {
         self.b0 = b0;
         self.lanes = (block.len - lane0).min(8);
         let cols = [&block.x[lane0..lane0 + 8], &block.y[lane0..lane0 + 8], &block.z[lane0..lane0 + 8]];
-        if use_simd && self.lanes == 8 {
-            if let Some(span) = group_simd(level, cols, rows, n, b0, &mut self.idx, &mut self.g) {
+        if input.use_simd && self.lanes == 8 && F == 2 {
+            let (rows, n) = (input.rows, input.n);
+            let d = [&rows[b0..b0 + 8], &rows[n + b0..n + b0 + 8]];
+            let g = self.g.as_flattened_mut().as_flattened_mut();
+            if let Some(span) = simd::group_grad_f2(input.level, cols, d, &mut self.idx, g) {
                 return span;
             }
         }
         let (mut lo, mut hi) = (u32::MAX, 0);
         for s in 0..self.lanes {
-            let (ci, cw) = level.corners([cols[0][s], cols[1][s], cols[2][s]]);
+            let (ci, cw) = input.level.corners([cols[0][s], cols[1][s], cols[2][s]]);
+            let d = input.d::<F>(b0 + s);
             self.idx[s] = ci;
             lo = ci.into_iter().fold(lo, u32::min);
             hi = ci.into_iter().fold(hi, u32::max);
-            for c in 0..8 {
-                for f in 0..F {
-                    self.g[s][c][f] = cw[c] * rows[f * n + b0 + s];
-                }
+            for (gc, w) in self.g[s].iter_mut().zip(cw) {
+                *gc = d.map(|d| w * d);
             }
         }
         (lo, hi)
+    }
+
+    /// Hints the CPU to fetch the gradient lines this group will write.
+    #[inline(always)]
+    fn prefetch(&self, base: usize, grad: &GridGrad) {
+        for idx in &self.idx[..self.lanes] {
+            // Corners 2k and 2k+1 are x-neighbours, nearly always on one cache line.
+            for c in (0..8).step_by(2) {
+                simd::prefetch(&grad.values, (base + idx[c] as usize) * F);
+            }
+        }
+    }
+}
+
+/// The samples summed so far whose corners are the same 8 entries.
+struct Run<const F: usize> {
+    idx: [u32; 8],
+    acc: [[f32; F]; 8],
+    live: bool,
+}
+
+impl<const F: usize> Run<F> {
+    /// Adds sample `s` of `group` to the run, first writing the run out when
+    /// the sample's entries differ.
+    #[inline(always)]
+    fn push(&mut self, group: &Group<F>, s: usize, base: usize, grad: &mut GridGrad) {
+        if self.live && group.idx[s] == self.idx {
+            for (acc, g) in self.acc.iter_mut().zip(&group.g[s]) {
+                for (a, g) in acc.iter_mut().zip(g) {
+                    *a += *g;
+                }
+            }
+        } else {
+            self.flush(base, grad);
+            (self.idx, self.acc, self.live) = (group.idx[s], group.g[s], true);
+        }
+    }
+
+    /// Adds the run's gradients to its 8 entries (offset by `base`).
+    #[inline(always)]
+    fn flush(&mut self, base: usize, grad: &mut GridGrad) {
+        if self.live {
+            for (idx, acc) in self.idx.iter().zip(&self.acc) {
+                grad.add_entry::<F>(base + *idx as usize, acc);
+            }
+            self.live = false;
+        }
     }
 }
 
@@ -72,74 +133,37 @@ pub(super) fn level<const F: usize>(
     grad: &mut GridGrad,
 ) {
     let n = positions.len();
+    let input = LevelInput { level, rows, n, use_simd };
     let base = level.param_offset / F;
-    // The current run: its entries, summed gradient, and whether it exists.
-    let (mut run_idx, mut run_acc, mut live) = ([0u32; 8], [[0f32; F]; 8], false);
+    let mut run = Run::<F> { idx: [0; 8], acc: [[0.0; F]; 8], live: false };
     // Range of entries the level's samples reach (for the summary bitset).
     let (mut lo, mut hi) = (u32::MAX, 0u32);
     let mut groups = [Group::<F>::new(), Group::<F>::new()];
     for start in (0..n).step_by(BLOCK) {
         block.load(&positions[start..]);
         let count = block.len.div_ceil(8);
-        // Software pipeline: fill group k + 1 and prefetch its gradient lines
+        // Software pipeline: group k + 1 is filled and its lines prefetched
         // while group k is scattered.
-        let span = groups[0].fill(level, block, 0, start, rows, n, use_simd);
+        let span = groups[0].fill(&input, block, 0, start);
         (lo, hi) = (lo.min(span.0), hi.max(span.1));
         for k in 0..count {
-            let (cur, next) = groups.split_at_mut(1);
-            let (cur, next) = if k % 2 == 0 { (&mut cur[0], &mut next[0]) } else { (&mut next[0], &mut cur[0]) };
+            let [even, odd] = &mut groups;
+            let (cur, next) = if k % 2 == 0 { (even, odd) } else { (odd, even) };
             if k + 1 < count {
-                let span = next.fill(level, block, 8 * (k + 1), start + 8 * (k + 1), rows, n, use_simd);
+                let span = next.fill(&input, block, 8 * (k + 1), start + 8 * (k + 1));
                 (lo, hi) = (lo.min(span.0), hi.max(span.1));
-                // Corners 2k and 2k+1 are x-neighbours, nearly always on one cache line.
-                for s in 0..next.lanes {
-                    for c in (0..8).step_by(2) {
-                        simd::prefetch(&grad.values, (base + next.idx[s][c] as usize) * F);
-                    }
-                }
+                next.prefetch(base, grad);
             }
             for s in 0..cur.lanes {
-                let b = cur.b0 + s;
-                if (0..F).all(|f| rows[f * n + b] == 0.0) {
-                    continue;
-                }
-                if live && cur.idx[s] == run_idx {
-                    for c in 0..8 {
-                        for f in 0..F {
-                            run_acc[c][f] += cur.g[s][c][f];
-                        }
-                    }
-                } else {
-                    if live {
-                        flush(&run_idx, &run_acc, base, grad);
-                    }
-                    (run_idx, run_acc, live) = (cur.idx[s], cur.g[s], true);
+                // A sample with no gradient on this level touches nothing.
+                if input.d::<F>(cur.b0 + s).iter().any(|&d| d != 0.0) {
+                    run.push(cur, s, base, grad);
                 }
             }
         }
     }
-    if live {
-        flush(&run_idx, &run_acc, base, grad);
-    }
+    run.flush(base, grad);
     if lo <= hi {
         grad.mark_summary((base + lo as usize) * F / 64, (base + hi as usize) * F / 64);
     }
-}
-
-/// The AVX2 group kernel, for 2-feature levels only.
-#[inline(always)]
-fn group_simd<const F: usize>(
-    level: &GridLevel,
-    cols: [&[f32]; 3],
-    rows: &[f32],
-    n: usize,
-    b0: usize,
-    idx: &mut [[u32; 8]; 8],
-    g: &mut [[[f32; F]; 8]; 8],
-) -> Option<(u32, u32)> {
-    if F != 2 {
-        return None;
-    }
-    let d = [&rows[b0..b0 + 8], &rows[n + b0..n + b0 + 8]];
-    simd::group_grad_f2(level, cols, d, idx, g.as_flattened_mut().as_flattened_mut())
 }

@@ -60,10 +60,7 @@ fn reference_encode(config: &HashGridConfig, params: &[f32], pos: &[[f32; 3]]) -
             }
             for c in 0..8u64 {
                 let v = [cell[0] + (c & 1), cell[1] + ((c >> 1) & 1), cell[2] + (c >> 2)];
-                let mut w = 1.0;
-                for a in 0..3 {
-                    w *= if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] };
-                }
+                let w: f64 = (0..3).map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] }).product();
                 let entry = if dense {
                     v[0] + side * (v[1] + side * v[2])
                 } else {
@@ -106,10 +103,7 @@ fn reference_backward(config: &HashGridConfig, pos: &[[f32; 3]], d_out: &[f32]) 
             }
             for c in 0..8u64 {
                 let v = [cell[0] + (c & 1), cell[1] + ((c >> 1) & 1), cell[2] + (c >> 2)];
-                let mut w = 1.0;
-                for a in 0..3 {
-                    w *= if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] };
-                }
+                let w: f64 = (0..3).map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] }).product();
                 let entry = if dense {
                     v[0] + side * (v[1] + side * v[2])
                 } else {

@@ -1,6 +1,7 @@
-//! Hash grid throughput on one thread: encode and encode+backward samples/s
-//! for a tabletop-sized grid, on uniformly random positions and on points
-//! along rays (the access pattern of training), SIMD and scalar.
+//! Hash grid throughput: encode and encode+backward samples/s for a
+//! tabletop-sized grid, on uniformly random positions and on points along
+//! rays (the access pattern of training): one thread, SIMD and scalar, then
+//! two threads splitting the levels (`encode_levels` / `backward_levels`).
 //!
 //! Run: `cargo run --release --example bench_grid`
 
@@ -13,6 +14,8 @@ use std::time::Instant;
 const CHUNK: usize = 16_384;
 /// Samples per pass.
 const TOTAL: usize = 32 * CHUNK;
+/// Levels given to the first of two threads (coarse levels are cheaper).
+const SPLIT: usize = 4;
 /// Samples per ray for the coherent pattern.
 const PER_RAY: usize = 64;
 
@@ -91,5 +94,38 @@ fn main() {
             let fmt = |(best, median): (f64, f64)| format!("{:.2} ({:.2})", best / 1e6, median / 1e6);
             println!("{name:<10} {path:<7} {:>16} {:>16} {:>18}  {touched}", fmt(enc), fmt(bwd), fmt(both));
         }
+    }
+
+    // Two threads, each owning a contiguous range of levels and its own gradient buffer.
+    let split = SPLIT.min(grid.levels().len());
+    let rows = split * config.features_per_level * CHUNK;
+    let levels = grid.levels().len();
+    let mut other = GridGrad::new(grid.param_count());
+    println!("\n2 threads (levels 0..{split} | {split}..{levels}), AVX2, Msamples/s as fastest chunk (median chunk):");
+    println!("{:<10} {:>16} {:>18}", "positions", "encode", "encode+backward");
+    for (name, pos) in [("random", random_positions(&mut rng)), ("rays", ray_positions(&mut rng))] {
+        let fmt = |(best, median): (f64, f64)| format!("{:.2} ({:.2})", best / 1e6, median / 1e6);
+        let (d_a, d_b) = d_out.split_at(rows);
+        let enc = rates(&pos, |chunk| {
+            let (a, b) = out.split_at_mut(rows);
+            rayon::join(|| grid.encode_levels(chunk, 0..split, a), || grid.encode_levels(chunk, split..levels, b));
+        });
+        let both = rates(&pos, |chunk| {
+            let (a, b) = out.split_at_mut(rows);
+            let (ga, gb) = (&mut grad, &mut other);
+            rayon::join(
+                || {
+                    grid.encode_levels(chunk, 0..split, a);
+                    grid.backward_levels(chunk, 0..split, d_a, ga);
+                    ga.clear();
+                },
+                || {
+                    grid.encode_levels(chunk, split..levels, b);
+                    grid.backward_levels(chunk, split..levels, d_b, gb);
+                    gb.clear();
+                },
+            );
+        });
+        println!("{name:<10} {:>16} {:>18}", fmt(enc), fmt(both));
     }
 }

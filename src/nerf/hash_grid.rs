@@ -24,6 +24,7 @@ pub use grad::GridGrad;
 use crate::nerf::simd::grid as simd;
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 
 /// Instant-NGP hash primes for x, y, z.
 pub const PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
@@ -297,22 +298,35 @@ impl HashGrid {
     /// Encodes `positions` (clamped to [0,1]^3, NaN -> 0) into feature-major
     /// `out[f * n + b]`. Panics if `out.len() != n * output_dim()`.
     pub fn encode(&self, positions: &[[f32; 3]], out: &mut [f32]) {
-        self.encode_with(positions, out, true);
+        self.encode_levels(positions, 0..self.levels.len(), out);
+    }
+
+    /// Encodes only `levels` into their rows of the output: `out` is the
+    /// contiguous slice `[levels.start * F * n .. levels.end * F * n]` of
+    /// `encode`'s `out`. Threads that take disjoint level ranges get exactly
+    /// `encode`'s result. Panics on a bad range or length.
+    pub fn encode_levels(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32]) {
+        self.encode_impl(positions, levels, out, true);
     }
 
     /// `encode` with the SIMD kernels allowed or not (for tests and benchmarks).
     pub fn encode_with(&self, positions: &[[f32; 3]], out: &mut [f32], allow_simd: bool) {
+        self.encode_impl(positions, 0..self.levels.len(), out, allow_simd);
+    }
+
+    fn encode_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32], allow_simd: bool) {
         let n = positions.len();
-        assert_eq!(out.len(), n * self.output_dim(), "HashGrid::encode: out has the wrong length");
         let fpl = self.config.features_per_level;
+        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::encode: bad level range {levels:?}");
+        assert_eq!(out.len(), n * levels.len() * fpl, "HashGrid::encode: out has the wrong length");
         let use_simd = allow_simd && fpl == 2 && simd::available();
         let mut block = Block::new();
-        for (l, level) in self.levels.iter().enumerate() {
+        for (row, level) in self.levels[levels].iter().enumerate() {
             let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
             for start in (0..n).step_by(BLOCK) {
                 block.load(&positions[start..]);
                 let len = block.len;
-                let first = l * fpl * n + start;
+                let first = row * fpl * n + start;
                 if use_simd {
                     let (head, tail) = out.split_at_mut(first + n);
                     let pad = block.padded_len();
@@ -343,19 +357,32 @@ impl HashGrid {
     /// zero (so touched can include a zero-weight corner, e.g. on a cube face).
     /// Panics if `d_out` or `grad` have the wrong length.
     pub fn backward(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad) {
-        self.backward_with(positions, d_out, grad, true);
+        self.backward_levels(positions, 0..self.levels.len(), d_out, grad);
+    }
+
+    /// `backward` for `levels` only; `d_rows` is their slice of `d_out`, as in
+    /// [`HashGrid::encode_levels`]. Levels own disjoint parameters, so
+    /// threads on disjoint level ranges, each with its own [`GridGrad`],
+    /// merge into exactly the single-threaded gradient whatever the split.
+    pub fn backward_levels(&self, positions: &[[f32; 3]], levels: Range<usize>, d_rows: &[f32], grad: &mut GridGrad) {
+        self.backward_impl(positions, levels, d_rows, grad, true);
     }
 
     /// `backward` with the SIMD kernels allowed or not (for tests and benchmarks).
     pub fn backward_with(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad, allow_simd: bool) {
+        self.backward_impl(positions, 0..self.levels.len(), d_out, grad, allow_simd);
+    }
+
+    fn backward_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, d_rows: &[f32], grad: &mut GridGrad, allow_simd: bool) {
         let n = positions.len();
-        assert_eq!(d_out.len(), n * self.output_dim(), "HashGrid::backward: d_out has the wrong length");
-        assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
         let fpl = self.config.features_per_level;
+        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::backward: bad level range {levels:?}");
+        assert_eq!(d_rows.len(), n * levels.len() * fpl, "HashGrid::backward: d_out has the wrong length");
+        assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
         let use_simd = allow_simd && simd::available();
         let mut block = Block::new();
-        for (l, level) in self.levels.iter().enumerate() {
-            let rows = &d_out[l * fpl * n..(l + 1) * fpl * n];
+        for (row, level) in self.levels[levels].iter().enumerate() {
+            let rows = &d_rows[row * fpl * n..(row + 1) * fpl * n];
             match fpl {
                 1 => backward::level::<1>(level, positions, rows, &mut block, use_simd, grad),
                 2 => backward::level::<2>(level, positions, rows, &mut block, use_simd, grad),

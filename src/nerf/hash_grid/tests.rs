@@ -453,3 +453,37 @@ fn from_params_rejects_bad_input() {
     assert!(bad.validate().is_err());
     assert!(HashGrid::from_params(config, vec![0.0; n]).is_ok());
 }
+
+#[test]
+fn level_split_across_threads_matches_one_thread_exactly() {
+    let g = grid(HashGridConfig::for_scene(2.0, 0.015), 50);
+    let pos = ray_positions(3001, 51);
+    let (n, rows) = (pos.len(), 2 * pos.len());
+    let mut rng = Rng::new(52, 0);
+    let d_out: Vec<f32> = (0..n * g.output_dim()).map(|_| rng.f32() - 0.5).collect();
+    let whole_out = encode(&g, &pos);
+    let mut whole = GridGrad::new(g.param_count());
+    g.backward(&pos, &d_out, &mut whole);
+    let levels = g.levels().len();
+    for split in [1, 3, levels - 1] {
+        let mut out = vec![0.0; n * g.output_dim()];
+        let (a, b) = out.split_at_mut(split * rows);
+        let (mut ga, mut gb) = (GridGrad::new(g.param_count()), GridGrad::new(g.param_count()));
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                g.encode_levels(&pos, 0..split, a);
+                g.backward_levels(&pos, 0..split, &d_out[..split * rows], &mut ga);
+            });
+            g.encode_levels(&pos, split..levels, b);
+            g.backward_levels(&pos, split..levels, &d_out[split * rows..], &mut gb);
+        });
+        assert_eq!(out, whole_out, "split {split}: encode differs");
+        // Disjoint parameters: merging in either order is exact.
+        let mut merged = GridGrad::new(g.param_count());
+        merged.merge_from(&gb);
+        merged.merge_from(&ga);
+        assert!(merged.values.iter().zip(&whole.values).all(|(x, y)| x.to_bits() == y.to_bits()), "split {split}");
+        assert!(merged.touched().eq(whole.touched()));
+        assert!(ga.touched().all(|i| i < g.levels()[split].param_offset));
+    }
+}

@@ -54,11 +54,17 @@ impl GridGrad {
     /// Records in the summary the non-zero words of `bits` in `lo..=hi`
     /// (kept out of `add_entry`, where its read-modify-writes cost 25%).
     pub(crate) fn mark_summary(&mut self, lo: usize, hi: usize) {
-        let hi = hi.min(self.bits.len().saturating_sub(1));
-        for w in lo..=hi {
-            if self.bits[w] != 0 {
-                self.summary[w >> 6] |= 1u64 << (w & 63);
+        if self.bits.is_empty() || lo > hi {
+            return;
+        }
+        let hi = hi.min(self.bits.len() - 1);
+        for s in lo >> 6..=hi >> 6 {
+            // Branch-free: whether a word is touched is unpredictable.
+            let mut mask = 0u64;
+            for w in lo.max(s * 64)..=hi.min(s * 64 + 63) {
+                mask |= ((self.bits[w] != 0) as u64) << (w & 63);
             }
+            self.summary[s] |= mask;
         }
     }
 

@@ -487,3 +487,29 @@ fn level_split_across_threads_matches_one_thread_exactly() {
         assert!(ga.touched().all(|i| i < g.levels()[split].param_offset));
     }
 }
+
+#[test]
+fn buffers_shorter_than_a_word_work() {
+    let empty = GridGrad::new(0);
+    let mut other = GridGrad::new(0);
+    other.merge_from(&empty);
+    other.clear();
+    assert_eq!(other.touched().count(), 0);
+
+    // 27 parameters (one dense 3x3x3-vertex level, 1 feature): the last word is partial.
+    let config = HashGridConfig { levels: 1, features_per_level: 1, log2_table_size: 5, base_resolution: 2, finest_resolution: 2 };
+    let g = grid(config, 60);
+    assert_eq!(g.param_count(), 27);
+    let pos = [[1.0, 1.0, 1.0], [0.9, 0.2, 0.6]];
+    let mut grad = GridGrad::new(27);
+    g.backward(&pos, &[1.0, 2.0], &mut grad);
+    let touched: Vec<usize> = grad.touched().collect();
+    // Cells (1,1,1) and (1,0,1) of the 3x3x3 vertices (index x + 3y + 9z) share 4 corners.
+    assert_eq!(touched, [10, 11, 13, 14, 16, 17, 19, 20, 22, 23, 25, 26]);
+    let mut sum = GridGrad::new(27);
+    sum.merge_from(&grad);
+    sum.merge_from(&grad);
+    assert!(touched.iter().all(|&i| sum.values[i] == 2.0 * grad.values[i]));
+    sum.clear();
+    assert!(sum.values.iter().all(|v| *v == 0.0) && sum.touched_count() == 0);
+}

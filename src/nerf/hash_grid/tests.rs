@@ -200,30 +200,6 @@ fn backward_along_rays_matches_reference_gradient() {
     }
 }
 
-#[test]
-fn simd_corners_match_scalar_corners() {
-    if !simd::available() {
-        eprintln!("skipping: no AVX2+FMA on this CPU");
-        return;
-    }
-    let g = grid(small_mixed(2), 6);
-    let pos = positions(64, 7);
-    for level in g.levels() {
-        for chunk in pos.chunks(8) {
-            let cols: [Vec<f32>; 3] = std::array::from_fn(|a| chunk.iter().map(|p| p[a]).collect());
-            let (mut idx, mut w) = ([[0u32; 8]; 8], [[0f32; 8]; 8]);
-            assert!(simd::corners8(level, [&cols[0], &cols[1], &cols[2]], &mut idx, &mut w));
-            for (s, p) in chunk.iter().enumerate() {
-                let (ci, cw) = level.corners(*p);
-                for c in 0..8 {
-                    assert_eq!(idx[c][s], ci[c]);
-                    assert_eq!(w[c][s].to_bits(), cw[c].to_bits());
-                }
-            }
-        }
-    }
-}
-
 /// Loss = sum(c * out); returns (loss in f64, gradient from backward).
 fn loss_and_grad(g: &HashGrid, pos: &[[f32; 3]], c: &[f32]) -> (f64, GridGrad) {
     let out = encode(g, pos);

@@ -1,10 +1,11 @@
-//! AVX2 kernels for the hash grid: corner indices and trilinear weights of 8
-//! positions at once, and a forward kernel for 2-feature levels that gathers
-//! each corner's feature pair as one 64-bit element.
+//! AVX2 kernels for the hash grid, 8 positions at a time: the forward pass of
+//! a 2-feature level (each corner's feature pair gathered as one 64-bit
+//! element), and the backward's corner entries and weighted gradients,
+//! transposed sample-major for the scalar scatter. Plus a prefetch hint.
 //!
 //! The kernels repeat the scalar path's operations in the same order (no FMA
-//! contraction), so their results are bit-identical to
-//! `GridLevel::corners` and the scalar encode.
+//! contraction), so their results are bit-identical to `GridLevel::corners`
+//! and the scalar encode.
 
 use crate::nerf::hash_grid::{GridLevel, PRIMES};
 
@@ -29,6 +30,8 @@ pub fn prefetch(data: &[f32], i: usize) {
         // SAFETY: prefetching is a hint that never faults, and the address is inside `data`.
         unsafe { _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(i).cast()) }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (data, i);
 }
 
 /// Table entries a level's indices can reach, if its geometry is consistent
@@ -73,26 +76,6 @@ pub fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0:
         // forms is below `entries_reachable(level)`, and `table` holds 2 f32
         // for each of those entries; slices are only read/written in bounds.
         unsafe { avx2::encode_level_f2(level, table, xyz, out0, out1) };
-        true
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
-/// Corner table entries (`idx[corner][lane]`) and trilinear weights of 8
-/// positions given as coordinate columns of length 8. Returns false (writing
-/// nothing) when AVX2 is missing or a column is not 8 long.
-pub fn corners8(level: &GridLevel, xyz: [&[f32]; 3], idx: &mut [[u32; 8]; 8], w: &mut [[f32; 8]; 8]) -> bool {
-    if xyz.iter().any(|c| c.len() != 8) || level.resolution == 0 || !available() {
-        return false;
-    }
-    #[cfg(target_arch = "x86_64")]
-    {
-        // SAFETY: AVX2 and FMA were detected above; the columns are 8 long and
-        // the outputs are arrays of 8 x 8 elements.
-        unsafe { avx2::corners8(level, xyz, idx, w) };
         true
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -177,26 +160,6 @@ mod avx2 {
             w[c] = _mm256_mul_ps(_mm256_mul_ps(wx[i], wy[j]), wz[k]);
         }
         (idx, w)
-    }
-
-    /// See [`super::corners8`].
-    ///
-    /// # Safety
-    /// AVX2 and FMA must be available; each column must be 8 long.
-    #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn corners8(level: &GridLevel, xyz: [&[f32]; 3], idx: &mut [[u32; 8]; 8], w: &mut [[f32; 8]; 8]) {
-        // SAFETY: the caller guarantees 8 readable f32 per column.
-        let (x, y, z) = unsafe {
-            (_mm256_loadu_ps(xyz[0].as_ptr()), _mm256_loadu_ps(xyz[1].as_ptr()), _mm256_loadu_ps(xyz[2].as_ptr()))
-        };
-        let (ci, cw) = corners(level, x, y, z);
-        for c in 0..8 {
-            // SAFETY: idx[c] and w[c] are arrays of 8 elements (32 bytes).
-            unsafe {
-                _mm256_storeu_si256(idx[c].as_mut_ptr().cast(), ci[c]);
-                _mm256_storeu_ps(w[c].as_mut_ptr(), cw[c]);
-            }
-        }
     }
 
     /// Transposes 8 rows of 8 lanes (`rows[r]` lane `l` -> `out[l]` lane `r`).
@@ -380,8 +343,8 @@ mod tests {
             assert!(!encode_level_f2(&level, &full, [&cols[..15], &cols[..15], &cols[..15]], &mut o0[..15], &mut o1[..15]));
             assert!(!encode_level_f2(&level, &full, xyz, &mut o0[..9], &mut o1[..8]));
             assert!(o0.iter().chain(&o1).all(|v| *v == 7.0));
-            let (mut idx, mut w, mut g) = ([[0u32; 8]; 8], [[0f32; 8]; 8], [0f32; 128]);
-            assert!(!corners8(&level, [&cols[..7], &cols[..8], &cols[..8]], &mut idx, &mut w));
+            let (mut idx, mut g) = ([[0u32; 8]; 8], [0f32; 128]);
+            assert!(group_grad_f2(&level, [&cols[..7], &cols[..8], &cols[..8]], [&cols[..8]; 2], &mut idx, &mut g).is_none());
             assert!(group_grad_f2(&level, [&cols[..8]; 3], [&cols[..8]; 2], &mut idx, &mut g[..127]).is_none());
             if available() {
                 // Empty output: accepted, nothing read.

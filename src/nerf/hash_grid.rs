@@ -7,12 +7,13 @@
 //! feature for a level is the trilinear blend of its cell's 8 corners, so the
 //! encoding is linear in the parameters.
 //!
-//! Work is done in blocks of positions with the level loop inside, so a
-//! level's table region stays in cache while a block is processed. With
+//! The level loop is outermost, so one level's table (at most a few MiB) stays
+//! in cache while all positions visit it, in blocks of 256 SIMD-friendly columns. With
 //! AVX2+FMA, 2-feature levels use the gather kernels of
 //! [`crate::nerf::simd::grid`]; their results are bit-identical to the scalar
 //! path, so outputs do not depend on the CPU.
 
+mod backward;
 mod grad;
 mod sizing;
 #[cfg(test)]
@@ -23,6 +24,7 @@ pub use grad::GridGrad;
 use crate::nerf::simd::grid as simd;
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 
 /// Instant-NGP hash primes for x, y, z.
 pub const PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
@@ -195,10 +197,18 @@ impl GridLevel {
     /// repeat these exact operations.
     #[inline(always)]
     fn cell(&self, x: f32) -> (u32, f32) {
-        let p = x.max(0.0).min(1.0) * self.resolution as f32;
-        let i = (p.floor() as i32).clamp(0, self.resolution as i32 - 1);
+        // p >= 0 (NaN became 0), so truncation is floor.
+        let p = unit(x) * self.resolution as f32;
+        let i = (p as i32).clamp(0, self.resolution as i32 - 1);
         (i as u32, p - i as f32)
     }
+}
+
+/// `x` clamped to [0, 1], NaN -> 0 (`f32::clamp` would keep the NaN).
+#[inline(always)]
+#[allow(clippy::manual_clamp)]
+fn unit(x: f32) -> f32 {
+    x.max(0.0).min(1.0)
 }
 
 /// Multi-resolution hash encoding with all levels' tables in `params`.
@@ -228,9 +238,7 @@ impl Block {
     fn load(&mut self, positions: &[[f32; 3]]) {
         self.len = positions.len().min(BLOCK);
         for (i, p) in positions.iter().take(BLOCK).enumerate() {
-            self.x[i] = p[0].max(0.0).min(1.0);
-            self.y[i] = p[1].max(0.0).min(1.0);
-            self.z[i] = p[2].max(0.0).min(1.0);
+            (self.x[i], self.y[i], self.z[i]) = (unit(p[0]), unit(p[1]), unit(p[2]));
         }
         let padded = self.len.next_multiple_of(8).min(BLOCK);
         for i in self.len..padded {
@@ -290,22 +298,35 @@ impl HashGrid {
     /// Encodes `positions` (clamped to [0,1]^3, NaN -> 0) into feature-major
     /// `out[f * n + b]`. Panics if `out.len() != n * output_dim()`.
     pub fn encode(&self, positions: &[[f32; 3]], out: &mut [f32]) {
-        self.encode_with(positions, out, true);
+        self.encode_levels(positions, 0..self.levels.len(), out);
     }
 
-    /// `encode`, with the SIMD kernels allowed or not (tests compare both).
-    pub(crate) fn encode_with(&self, positions: &[[f32; 3]], out: &mut [f32], allow_simd: bool) {
+    /// Encodes only `levels` into their rows of the output: `out` is the
+    /// contiguous slice `[levels.start * F * n .. levels.end * F * n]` of
+    /// `encode`'s `out`. Threads that take disjoint level ranges get exactly
+    /// `encode`'s result. Panics on a bad range or length.
+    pub fn encode_levels(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32]) {
+        self.encode_impl(positions, levels, out, true);
+    }
+
+    /// `encode` with the SIMD kernels allowed or not (for tests and benchmarks).
+    pub fn encode_with(&self, positions: &[[f32; 3]], out: &mut [f32], allow_simd: bool) {
+        self.encode_impl(positions, 0..self.levels.len(), out, allow_simd);
+    }
+
+    fn encode_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32], allow_simd: bool) {
         let n = positions.len();
-        assert_eq!(out.len(), n * self.output_dim(), "HashGrid::encode: out has the wrong length");
         let fpl = self.config.features_per_level;
+        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::encode: bad level range {levels:?}");
+        assert_eq!(out.len(), n * levels.len() * fpl, "HashGrid::encode: out has the wrong length");
         let use_simd = allow_simd && fpl == 2 && simd::available();
         let mut block = Block::new();
-        for start in (0..n).step_by(BLOCK) {
-            block.load(&positions[start..]);
-            let len = block.len;
-            for (l, level) in self.levels.iter().enumerate() {
-                let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
-                let first = l * fpl * n + start;
+        for (row, level) in self.levels[levels].iter().enumerate() {
+            let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
+            for start in (0..n).step_by(BLOCK) {
+                block.load(&positions[start..]);
+                let len = block.len;
+                let first = row * fpl * n + start;
                 if use_simd {
                     let (head, tail) = out.split_at_mut(first + n);
                     let pad = block.padded_len();
@@ -331,32 +352,42 @@ impl HashGrid {
     }
 
     /// Accumulates d(loss)/d(params) into `grad.values` from feature-major
-    /// `d_out` (shaped like `encode`'s `out`) and records touched entries.
-    /// Samples whose level gradient is all zero touch nothing on that level.
+    /// `d_out` (shaped like `encode`'s `out`) and records as touched the 8
+    /// corner entries of every sample whose gradient on that level is not all
+    /// zero (so touched can include a zero-weight corner, e.g. on a cube face).
     /// Panics if `d_out` or `grad` have the wrong length.
     pub fn backward(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad) {
-        self.backward_with(positions, d_out, grad, true);
+        self.backward_levels(positions, 0..self.levels.len(), d_out, grad);
     }
 
-    /// `backward`, with the SIMD kernels allowed or not (tests compare both).
-    pub(crate) fn backward_with(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad, allow_simd: bool) {
+    /// `backward` for `levels` only; `d_rows` is their slice of `d_out`, as in
+    /// [`HashGrid::encode_levels`]. Levels own disjoint parameters, so
+    /// threads on disjoint level ranges, each with its own [`GridGrad`],
+    /// merge into exactly the single-threaded gradient whatever the split.
+    pub fn backward_levels(&self, positions: &[[f32; 3]], levels: Range<usize>, d_rows: &[f32], grad: &mut GridGrad) {
+        self.backward_impl(positions, levels, d_rows, grad, true);
+    }
+
+    /// `backward` with the SIMD kernels allowed or not (for tests and benchmarks).
+    pub fn backward_with(&self, positions: &[[f32; 3]], d_out: &[f32], grad: &mut GridGrad, allow_simd: bool) {
+        self.backward_impl(positions, 0..self.levels.len(), d_out, grad, allow_simd);
+    }
+
+    fn backward_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, d_rows: &[f32], grad: &mut GridGrad, allow_simd: bool) {
         let n = positions.len();
-        assert_eq!(d_out.len(), n * self.output_dim(), "HashGrid::backward: d_out has the wrong length");
-        assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
         let fpl = self.config.features_per_level;
+        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::backward: bad level range {levels:?}");
+        assert_eq!(d_rows.len(), n * levels.len() * fpl, "HashGrid::backward: d_out has the wrong length");
+        assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
         let use_simd = allow_simd && simd::available();
         let mut block = Block::new();
-        for start in (0..n).step_by(BLOCK) {
-            block.load(&positions[start..]);
-            for (l, level) in self.levels.iter().enumerate() {
-                let first = l * fpl * n + start;
-                let args = (level, &block, d_out, first, n, use_simd);
-                match fpl {
-                    1 => backward_level::<1>(args, grad),
-                    2 => backward_level::<2>(args, grad),
-                    4 => backward_level::<4>(args, grad),
-                    _ => backward_level::<8>(args, grad),
-                }
+        for (row, level) in self.levels[levels].iter().enumerate() {
+            let rows = &d_rows[row * fpl * n..(row + 1) * fpl * n];
+            match fpl {
+                1 => backward::level::<1>(level, positions, rows, &mut block, use_simd, grad),
+                2 => backward::level::<2>(level, positions, rows, &mut block, use_simd, grad),
+                4 => backward::level::<4>(level, positions, rows, &mut block, use_simd, grad),
+                _ => backward::level::<8>(level, positions, rows, &mut block, use_simd, grad),
             }
         }
     }
@@ -376,46 +407,6 @@ fn encode_level_scalar<const F: usize>(level: &GridLevel, table: &[f32], block: 
         }
         for f in 0..F {
             out[first + f * n + i] = acc[f];
-        }
-    }
-}
-
-/// Backward of one block on one level: corner indices and weights (SIMD when
-/// available, 8 samples at a time), then an in-order scalar scatter-add.
-fn backward_level<const F: usize>(
-    (level, block, d_out, first, n, use_simd): (&GridLevel, &Block, &[f32], usize, usize, bool),
-    grad: &mut GridGrad,
-) {
-    let base_entry = level.param_offset / F;
-    let mut idx = [[0u32; 8]; 8];
-    let mut w = [[0f32; 8]; 8];
-    for lane0 in (0..block.len).step_by(8) {
-        let lanes = (block.len - lane0).min(8);
-        let span = lane0..lane0 + 8;
-        let simd_done = use_simd
-            && simd::corners8(level, [&block.x[span.clone()], &block.y[span.clone()], &block.z[span]], &mut idx, &mut w);
-        if !simd_done {
-            for s in 0..lanes {
-                let i = lane0 + s;
-                let (ci, cw) = level.corners([block.x[i], block.y[i], block.z[i]]);
-                for c in 0..8 {
-                    idx[c][s] = ci[c];
-                    w[c][s] = cw[c];
-                }
-            }
-        }
-        for s in 0..lanes {
-            let mut d = [0f32; F];
-            for (f, d) in d.iter_mut().enumerate() {
-                *d = d_out[first + f * n + lane0 + s];
-            }
-            if d.iter().all(|&v| v == 0.0) {
-                continue;
-            }
-            for c in 0..8 {
-                let e = base_entry + idx[c][s] as usize;
-                grad.add_entry::<F>(e, w[c][s], &d);
-            }
         }
     }
 }

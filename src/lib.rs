@@ -10,6 +10,7 @@
 pub mod evaluate;
 pub mod fixture;
 pub mod nerf;
+pub mod plot;
 pub mod poses;
 pub mod scan;
 pub mod atomic;

@@ -32,12 +32,12 @@ impl FromStr for Preset {
 }
 
 impl Preset {
-    /// Finest grid cells across the unit cube.
-    fn finest_cells(self) -> f64 {
+    /// Finest grid cell as a multiple of the typical pixel footprint.
+    fn pixels_per_cell(self) -> f64 {
         match self {
-            Preset::Fast => 128.0,
-            Preset::Default => 256.0,
-            Preset::Quality => 512.0,
+            Preset::Fast => 12.0,
+            Preset::Default => 6.0,
+            Preset::Quality => 4.0,
         }
     }
 
@@ -59,9 +59,23 @@ pub struct NerfSettings {
     pub render_step: StepSpec,
 }
 
-/// Settings for a scene whose unit cube spans `metres_per_unit` metres.
-pub fn settings_for_scene(metres_per_unit: f64, preset: Preset, seed: u64, lambda_depth: Option<f32>) -> NerfSettings {
-    let cells = preset.finest_cells();
+/// Coarsest and finest finest-level resolution across the unit cube.
+const FINEST_CELLS: (f64, f64) = (64.0, 2048.0);
+
+/// Settings for a scene whose unit cube spans `metres_per_unit` metres and
+/// whose cameras see `pixel_footprint_m` metres per pixel at their typical
+/// viewing distance: the finest cell is a few pixel footprints, so detail
+/// follows what the sensor resolves, at any scene scale.
+pub fn settings_for_scene(
+    metres_per_unit: f64,
+    pixel_footprint_m: f64,
+    preset: Preset,
+    seed: u64,
+    lambda_depth: Option<f32>,
+) -> NerfSettings {
+    let wanted = pixel_footprint_m * preset.pixels_per_cell();
+    let cells = if wanted.is_finite() && wanted > 0.0 { metres_per_unit / wanted } else { 256.0 };
+    let cells = cells.clamp(FINEST_CELLS.0, FINEST_CELLS.1);
     let grid = HashGridConfig::for_scene(metres_per_unit, metres_per_unit / cells);
     let finest = grid.finest_resolution.max(16) as f32;
     // About one finest cell per step; far steps grow slowly for big scenes.
@@ -73,7 +87,7 @@ pub fn settings_for_scene(metres_per_unit: f64, preset: Preset, seed: u64, lambd
         warmup_steps: 128,
         lambda_depth: lambda_depth.unwrap_or(0.1),
         lambda_line_of_sight: 0.1,
-        surface_window: 2.0 / finest,
+        surface_window: 1.5 / finest,
         step,
         occupancy_every: 16,
         occupancy_decay: 0.95,

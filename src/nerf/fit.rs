@@ -144,6 +144,22 @@ pub fn model_transform(model: &Model) -> Result<SceneTransform, GeometryError> {
     SceneTransform::from_array(&values)
 }
 
+/// Metres covered by one pixel at the typical viewing distance: the median
+/// sensor depth, or without depth the median camera distance to the scene
+/// centre, over the mean focal length.
+pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
+    let focal = scan.frames.iter().map(|f| 0.5 * (f.intrinsics.fx + f.intrinsics.fy)).sum::<f64>() / scan.frames.len().max(1) as f64;
+    let distance = if bounds.stats.depth_median > 0.0 {
+        bounds.stats.depth_median
+    } else {
+        let centre = bounds.aabb.center();
+        let mut d: Vec<f64> = bounds.cameras.iter().map(|c| c.distance(centre)).collect();
+        d.sort_by(|a, b| a.total_cmp(b));
+        d.get(d.len() / 2).copied().unwrap_or(1.0)
+    };
+    distance / focal.max(1e-9)
+}
+
 /// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable model.
 pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
     let mut timings = Timings::default();
@@ -161,7 +177,8 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
     }
     timings.views_s = t.elapsed().as_secs_f64();
 
-    let settings = settings_for_scene(metres_per_unit, opts.preset, opts.seed, opts.lambda_depth);
+    let footprint = pixel_footprint(scan, &bounds);
+    let settings = settings_for_scene(metres_per_unit, footprint, opts.preset, opts.seed, opts.lambda_depth);
     let t = Instant::now();
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     let rays = dataset::depth_rays(&data.train, 4);

@@ -314,7 +314,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     chunk.ray_dirs.clear();
     let cfg = ctx.config;
     let window = cfg.surface_window;
-    let fine_step = 0.5 * ctx.rule.min_step;
+    let fine_step = 0.75 * ctx.rule.min_step;
     let mut attempts = 0usize;
     // Bounded attempts: views that see nothing must not hang the step.
     while chunk.segments.len() < budget && attempts < 4 * budget {

@@ -1,0 +1,67 @@
+//! Error against run time of `fit` on the generated tabletop fixture
+//! (640x480, 120 frames, 4 objects): the held-out curve measured during
+//! training, then the final model scored against the exact ground truth.
+//!
+//! cargo run --release --example bench_fit -- [FIXTURE_DIR] [--time SECS] [--preset P] [--seed N]
+
+use nerflabel::evaluate::score_holdout;
+use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
+use nerflabel::nerf::config::Preset;
+use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
+use nerflabel::scan::{load, LoadOptions};
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+fn main() -> anyhow::Result<()> {
+    let mut args = std::env::args().skip(1);
+    let mut dir = PathBuf::from("target/bench/tabletop");
+    let (mut time, mut preset, mut seed) = (120.0, Preset::Default, 0u64);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--time" => time = args.next().unwrap_or_default().parse()?,
+            "--preset" => preset = args.next().unwrap_or_default().parse().map_err(anyhow::Error::msg)?,
+            "--seed" => seed = args.next().unwrap_or_default().parse()?,
+            other => dir = PathBuf::from(other),
+        }
+    }
+    if !dir.join("gt").join("meta.json").exists() {
+        let options = FixtureOptions::new(SceneKind::Tabletop);
+        generate(&dir, &options)?;
+        println!("generated the tabletop fixture in {}", dir.display());
+    }
+    let scan = load(&dir, &LoadOptions::default())?;
+    let options = FitOptions { time: Some(time), seed, preset, ..FitOptions::default() };
+    let stop = AtomicBool::new(false);
+    let outcome = fit(&scan, &options, &stop, &mut |e| {
+        if let FitEvent::Eval(p) = e {
+            eprintln!("  {:6.1} s  step {:5}  PSNR {:5.2}  depth MAE {:?}", p.seconds, p.step, p.psnr, p.depth_mae_m);
+        }
+    })?;
+    let r = &outcome.report;
+    println!("threads {}  params {}  steps {}  skipped {}", r.threads, r.param_count, r.counters.steps, r.counters.skipped_batches);
+    println!("| seconds | step | PSNR (dB) | SSIM | depth MAE (mm) | samples/s |");
+    println!("|---|---|---|---|---|---|");
+    for p in &r.curve {
+        println!(
+            "| {:.0} | {} | {:.2} | {:.3} | {} | {:.0} k |",
+            p.seconds,
+            p.step,
+            p.psnr,
+            p.ssim,
+            p.depth_mae_m.map(|d| format!("{:.1}", d * 1e3)).unwrap_or_else(|| "n/a".into()),
+            p.samples_per_s / 1e3
+        );
+    }
+    outcome.model.save(&dir.join("nerflabel").join("model.nlf"))?;
+    let score = score_holdout(&outcome.model, &dir)?;
+    println!(
+        "exact ground truth, {} held-out views: PSNR {:.2} dB, SSIM {:.3}, depth MAE {:.1} mm, missing surface {:.2} %",
+        score.views,
+        score.psnr,
+        score.ssim,
+        score.depth_mae_m * 1e3,
+        score.depth_missing * 100.0
+    );
+    println!("timings: {:?}", r.timings);
+    Ok(())
+}

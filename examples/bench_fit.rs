@@ -38,7 +38,16 @@ fn main() -> anyhow::Result<()> {
         }
     })?;
     let r = &outcome.report;
-    println!("threads {}  params {}  steps {}  skipped {}", r.threads, r.param_count, r.counters.steps, r.counters.skipped_batches);
+    println!(
+        "threads {}  params {}  steps {}  skipped {}  samples/ray {:.1}  rays/step {:.0}  finest res {}",
+        r.threads,
+        r.param_count,
+        r.counters.steps,
+        r.counters.skipped_batches,
+        r.counters.samples as f64 / r.counters.rays.max(1) as f64,
+        r.counters.rays as f64 / r.counters.steps.max(1) as f64,
+        r.field.grid.finest_resolution
+    );
     println!("| seconds | step | PSNR (dB) | SSIM | depth MAE (mm) | samples/s |");
     println!("|---|---|---|---|---|---|");
     for p in &r.curve {

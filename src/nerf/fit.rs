@@ -282,7 +282,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         steps: trainer.counters.steps,
         seed: opts.seed,
         scan: scan.root.display().to_string(),
-        sections: [0; 4],
+        sections: [0; 5],
     };
     let report = FitReport {
         nerflabel_version: header.nerflabel_version.clone(),

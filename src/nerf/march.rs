@@ -74,15 +74,35 @@ pub fn march(
     max_samples: usize,
     out: &mut Vec<Segment>,
 ) -> f32 {
+    march_until(ray, t0, t1, grid, rule, jitter, max_samples, f32::INFINITY, out)
+}
+
+/// Like [`march`], but also stops once the optical depth estimated from the
+/// grid's density exceeds `max_optical_depth` (the ray is surely absorbed):
+/// training rays without measured depth stop behind the first surface.
+#[allow(clippy::too_many_arguments)]
+pub fn march_until(
+    ray: &LocalRay,
+    t0: f32,
+    t1: f32,
+    grid: &OccupancyGrid,
+    rule: &StepRule,
+    jitter: f32,
+    max_samples: usize,
+    max_optical_depth: f32,
+    out: &mut Vec<Segment>,
+) -> f32 {
     let mut t = t0 + jitter * rule.at(t0);
     let mut taken = 0;
-    while t < t1 && taken < max_samples {
+    let mut optical_depth = 0.0f32;
+    while t < t1 && taken < max_samples && optical_depth < max_optical_depth {
         let dt = rule.at(t);
         let p = ray.at(t + 0.5 * dt);
         match grid.cell_of(p) {
             Some(cell) if grid.is_occupied_cell(cell) => {
                 out.push(Segment { t, dt: dt.min(t1 - t) });
                 taken += 1;
+                optical_depth += grid.cell_density(cell) * dt;
                 t += dt;
             }
             Some(_) => {
@@ -122,9 +142,9 @@ mod tests {
     fn empty_space_is_skipped_but_the_surface_is_sampled() {
         let mut grid = OccupancyGrid::full(32);
         let mut rays = Vec::new();
-        for i in 0..30 {
-            for j in 0..30 {
-                let (x, y) = (0.02 + 0.032 * i as f32, 0.02 + 0.032 * j as f32);
+        for i in 0..32 {
+            for j in 0..32 {
+                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
                 for _ in 0..3 {
                     rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.6 });
                 }

@@ -34,8 +34,9 @@ pub struct ModelHeader {
     pub steps: u64,
     pub seed: u64,
     pub scan: String,
-    /// Lengths of the f32 sections: grid, density MLP, colour MLP, occupancy.
-    pub sections: [usize; 4],
+    /// Lengths of the sections: grid, density MLP, colour MLP, occupancy
+    /// densities (f32 each), then carved-cell mask (u64 words).
+    pub sections: [usize; 5],
 }
 
 /// A trained model: field, occupancy grid and header.
@@ -71,10 +72,12 @@ impl Model {
         header.occupancy_resolution = self.occupancy.resolution();
         let sections: [&[f32]; 4] =
             [&self.field.grid.params, &self.field.density.params, &self.field.color.params, self.occupancy.densities()];
-        header.sections = sections.map(|s| s.len());
+        let carved = self.occupancy.carved_words();
+        let [g, d, c, o] = sections.map(|s| s.len());
+        header.sections = [g, d, c, o, carved.len()];
         let json = serde_json::to_vec(&header).unwrap_or_default();
         let floats: usize = sections.iter().map(|s| s.len()).sum();
-        let mut bytes = Vec::with_capacity(20 + json.len() + 4 * floats + 4);
+        let mut bytes = Vec::with_capacity(20 + json.len() + 4 * floats + 8 * carved.len() + 4);
         bytes.extend_from_slice(MAGIC);
         bytes.extend_from_slice(&VERSION.to_le_bytes());
         bytes.extend_from_slice(&(json.len() as u32).to_le_bytes());
@@ -83,6 +86,9 @@ impl Model {
             for v in section {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
+        }
+        for w in carved {
+            bytes.extend_from_slice(&w.to_le_bytes());
         }
         let crc = crc32fast::hash(&bytes);
         bytes.extend_from_slice(&crc.to_le_bytes());
@@ -128,22 +134,25 @@ impl Model {
         }
         let header: ModelHeader = serde_json::from_slice(&body[16..16 + header_len])
             .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
-        let floats: usize = header
-            .sections
-            .iter()
-            .try_fold(0usize, |acc, &n| acc.checked_add(n))
+        let [g, d, c, o, words] = header.sections;
+        let floats = [g, d, c, o].iter().try_fold(0usize, |acc, &n| acc.checked_add(n));
+        let bytes_needed = floats
+            .and_then(|f| f.checked_mul(4))
+            .and_then(|f| words.checked_mul(8).and_then(|w| w.checked_add(f)))
             .ok_or_else(|| damaged(path, "section sizes overflow".into()))?;
         let data = &body[16 + header_len..];
-        if floats.checked_mul(4) != Some(data.len()) {
-            return Err(damaged(path, format!("expected {floats} parameters, found {} bytes", data.len())));
+        if bytes_needed != data.len() {
+            return Err(damaged(path, format!("expected {bytes_needed} bytes of parameters, found {}", data.len())));
         }
-        let mut values = data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
+        let (float_bytes, word_bytes) = data.split_at(bytes_needed - 8 * words);
+        let mut values = float_bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
         let mut take = |n: usize| -> Vec<f32> { values.by_ref().take(n).collect() };
-        let [g, d, c, o] = header.sections;
         let (grid, density, color, occupancy) = (take(g), take(d), take(c), take(o));
+        let carved: Vec<u64> =
+            word_bytes.chunks_exact(8).map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect();
         let field = Field::from_params(header.field.clone(), grid, density, color)
             .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration".into()))?;
-        let occupancy = OccupancyGrid::from_densities(header.occupancy_resolution, occupancy)
+        let occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy, carved)
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
         Ok(Model { header, field, occupancy })
     }

@@ -24,7 +24,11 @@ pub struct OccupancyGrid {
     res: usize,
     density: Vec<f32>,
     bits: Vec<u64>,
+    /// Cells the sensor saw as free space; they need strong evidence
+    /// (`carved_threshold`) from the model to count as occupied again.
+    carved: Vec<u64>,
     threshold: f32,
+    carved_threshold: f32,
     occupied: usize,
     /// Which 1/REFRESH_PARTS of the cells the next refresh evaluates.
     refresh_phase: usize,
@@ -40,14 +44,19 @@ impl OccupancyGrid {
     pub fn full(res: usize) -> Self {
         let res = res.clamp(4, 512);
         let cells = res * res * res;
-        // Opacity below 1 % across one cell is treated as empty.
-        let threshold = 0.01 * res as f32;
+        // Opacity below 0.1 % across one cell is treated as empty. An
+        // untrained field (sigma ~ 1) stays above it, so only space the
+        // training made empty is skipped (objects without depth survive).
+        let threshold = 0.001 * res as f32;
+        let words = cells.div_ceil(64);
         let mut grid = OccupancyGrid {
             res,
+            carved: vec![0; words],
+            carved_threshold: 0.01 * res as f32,
             // Just above the threshold: the first model refresh keeps a cell
             // only where the model confirms density.
             density: vec![threshold * 1.01; cells],
-            bits: vec![0; cells.div_ceil(64)],
+            bits: vec![0; words],
             threshold,
             occupied: 0,
             refresh_phase: 0,
@@ -93,6 +102,12 @@ impl OccupancyGrid {
         (self.bits[cell >> 6] >> (cell & 63)) & 1 == 1
     }
 
+    /// The density estimate of a cell (local units).
+    #[inline]
+    pub fn cell_density(&self, cell: usize) -> f32 {
+        self.density[cell]
+    }
+
     /// Whether the point may hold density (false outside the cube).
     #[inline]
     pub fn is_occupied(&self, p: [f32; 3]) -> bool {
@@ -108,7 +123,7 @@ impl OccupancyGrid {
         let mut free_votes = vec![0u16; cells];
         let mut surface_votes = vec![0u16; cells];
         let cell = 1.0 / res as f32;
-        let step = 0.5 * cell;
+        let step = 0.25 * cell;
         let margin = 2.0 * cell;
         for ray in rays {
             if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
@@ -134,8 +149,11 @@ impl OccupancyGrid {
             let mut t = t0;
             let mut last = usize::MAX;
             while t < t_end {
-                if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
-                    if c != last {
+                let p = along(ray.origin, ray.dir, t);
+                // Only a pass through the core of a cell counts as seeing it
+                // free: a ray grazing a thin object in a corner must not carve it.
+                if let Some(c) = self.cell_of(p) {
+                    if c != last && near_cell_centre(p, res, CORE_RADIUS) {
                         free_votes[c] = free_votes[c].saturating_add(1);
                         last = c;
                     }
@@ -149,6 +167,7 @@ impl OccupancyGrid {
             // A stray flying pixel cannot carve an object: need a clear majority.
             if surface == 0 && free >= 2 || free > 3 * surface + 2 {
                 self.density[i] = 0.0;
+                self.carved[i >> 6] |= 1 << (i & 63);
             }
         }
         self.rebuild_bits();
@@ -184,29 +203,42 @@ impl OccupancyGrid {
         self.rebuild_bits();
     }
 
-    /// Recompute the bit mask from the density estimates; keeps a minimum
-    /// fraction of the densest cells so the grid never empties.
+    /// Whether the sensor saw this cell as free space.
+    #[inline]
+    fn is_carved(&self, cell: usize) -> bool {
+        (self.carved[cell >> 6] >> (cell & 63)) & 1 == 1
+    }
+
+    /// Recompute the bit mask from the density estimates (carved cells need
+    /// the higher threshold); keeps a minimum fraction of the densest cells
+    /// so the grid never empties.
     fn rebuild_bits(&mut self) {
         let cells = self.density.len();
         let min_occupied = ((cells as f64 * MIN_OCCUPIED_FRACTION) as usize).max(1);
-        let mut threshold = self.threshold;
-        let mut count = self.density.iter().filter(|&&d| d > threshold).count();
-        if count < min_occupied {
-            let mut sorted: Vec<f32> = self.density.clone();
-            let k = cells - min_occupied;
-            sorted.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-            // Cells at or above the k-th largest estimate stay occupied.
-            threshold = sorted[k].min(threshold);
-            count = self.density.iter().filter(|&&d| d >= threshold).count();
-        }
         self.bits.iter_mut().for_each(|w| *w = 0);
-        let strict = count >= min_occupied && threshold == self.threshold;
-        for (i, &d) in self.density.iter().enumerate() {
-            if (strict && d > threshold) || (!strict && d >= threshold) {
+        let mut count = 0;
+        for i in 0..cells {
+            // Space the sensor never saw free stays occupied: objects without
+            // depth (glass) must keep their samples until the model learns them.
+            if !self.is_carved(i) || self.density[i] > self.carved_threshold {
+                self.bits[i >> 6] |= 1 << (i & 63);
+                count += 1;
+            }
+        }
+        if count < min_occupied {
+            // Keep the densest cells (ties by index) rather than an empty grid.
+            let mut order: Vec<(f32, usize)> = self.density.iter().copied().zip(0..).collect();
+            order.select_nth_unstable_by(min_occupied - 1, |a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            for &(_, i) in &order[..min_occupied] {
                 self.bits[i >> 6] |= 1 << (i & 63);
             }
         }
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+    }
+
+    /// Carved-cell mask (for the model file).
+    pub fn carved_words(&self) -> &[u64] {
+        &self.carved
     }
 
     /// Distance along a ray from `p` to where it leaves the cell holding `p`.
@@ -239,16 +271,29 @@ impl OccupancyGrid {
         &self.density
     }
 
-    /// Rebuild a grid from saved density estimates.
-    pub fn from_densities(res: usize, density: Vec<f32>) -> Option<Self> {
+    /// Rebuild a grid from saved density estimates and carved mask.
+    pub fn from_saved(res: usize, density: Vec<f32>, carved: Vec<u64>) -> Option<Self> {
         let mut grid = OccupancyGrid::full(res);
-        if density.len() != grid.density.len() {
+        if density.len() != grid.density.len() || carved.len() != grid.carved.len() {
             return None;
         }
+        grid.carved = carved;
         grid.density = density.into_iter().map(|d| if d.is_finite() { d.max(0.0) } else { 0.0 }).collect();
         grid.rebuild_bits();
         Some(grid)
     }
+}
+
+/// Half-width (in cells, per axis) of the core a free-space ray must cross.
+const CORE_RADIUS: f32 = 0.3;
+
+/// Whether `p` lies within `radius` cells of its cell's centre on every axis.
+#[inline]
+fn near_cell_centre(p: [f32; 3], res: usize, radius: f32) -> bool {
+    p.iter().all(|&c| {
+        let x = c * res as f32;
+        (x - x.floor() - 0.5).abs() <= radius
+    })
 }
 
 #[inline]
@@ -290,12 +335,14 @@ mod tests {
     #[test]
     fn carving_empties_seen_free_space_and_keeps_surfaces_and_unseen_cells() {
         let mut grid = OccupancyGrid::full(32);
-        // Many rays along +z from z=0 hitting a wall at z = 0.5.
+        // Rays along +z through cell centres of the middle, hitting a wall at z = 0.5.
         let mut rays = Vec::new();
-        for i in 0..20 {
-            for j in 0..20 {
-                let (x, y) = (0.3 + 0.02 * i as f32, 0.3 + 0.02 * j as f32);
-                rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
+        for i in 8..24 {
+            for j in 8..24 {
+                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                for _ in 0..3 {
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
+                }
             }
         }
         grid.seed_from_depth(&rays);
@@ -304,6 +351,17 @@ mod tests {
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
         assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
         assert!(grid.occupied_fraction() > 0.5 && grid.occupied_fraction() < 1.0);
+    }
+
+    #[test]
+    fn rays_grazing_a_cell_corner_do_not_carve_it() {
+        let mut grid = OccupancyGrid::full(32);
+        // Through cell corners only (x, y on cell boundaries).
+        let rays: Vec<DepthRay> = (0..10)
+            .map(|_| DepthRay { origin: [16.0 / 32.0, 16.0 / 32.0, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 })
+            .collect();
+        grid.seed_from_depth(&rays);
+        assert!(grid.is_occupied([16.2 / 32.0, 16.2 / 32.0, 0.3]));
     }
 
     #[test]
@@ -317,8 +375,17 @@ mod tests {
     }
 
     #[test]
-    fn refresh_follows_the_model_and_never_empties() {
+    fn refresh_reoccupies_carved_cells_only_on_strong_density_and_never_empties() {
         let mut grid = OccupancyGrid::full(16);
+        // Carve the whole cube: rays through every cell centre column, surface far outside.
+        let rays: Vec<DepthRay> = (0..16 * 16)
+            .flat_map(|k| {
+                let (x, y) = (((k % 16) as f32 + 0.5) / 16.0, ((k / 16) as f32 + 0.5) / 16.0);
+                (0..3).map(move |_| DepthRay { origin: [x, y, -0.5], dir: [0.0, 0.0, 1.0], t_hit: 5.0 })
+            })
+            .collect();
+        grid.seed_from_depth(&rays);
+        assert!(grid.occupied_fraction() < 0.01);
         let mut rng = Rng::new(1, 0);
         let (mut pos, mut sig) = (Vec::new(), Vec::new());
         // A model with density only in the lower half of x.
@@ -332,6 +399,11 @@ mod tests {
         assert!(grid.is_occupied([0.25, 0.5, 0.5]));
         assert!(!grid.is_occupied([0.75, 0.5, 0.5]));
         assert!((grid.occupied_fraction() - 0.5).abs() < 0.01);
+        // Weak density does not bring carved space back.
+        for _ in 0..200 {
+            grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = 0.1));
+        }
+        assert!(!grid.is_occupied([0.25, 0.5, 0.5]));
         // A model that collapsed to zero density everywhere: keep the densest cells.
         for _ in 0..200 {
             grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = 0.0));

@@ -8,7 +8,7 @@ use super::adam::Adam;
 use super::camera::View;
 use super::composite::{optical_depth_backward, weights_from_optical_depth};
 use super::field::{Field, FieldGrad, FieldWorkspace};
-use super::march::{march, ray_interval, Segment, StepRule};
+use super::march::{march, march_until, ray_interval, Segment, StepRule};
 use super::occupancy::OccupancyGrid;
 use crate::rng::Rng;
 use rayon::prelude::*;
@@ -17,6 +17,9 @@ use serde::{Deserialize, Serialize};
 /// Loss gradients are scaled by this (Adam is scale invariant; it keeps
 /// magnitudes moderate).
 const GRAD_SCALE: f32 = 1.0 / 1024.0;
+/// Estimated optical depth after which a training ray without measured
+/// depth stops (transmittance e^-20: several surface cells deep).
+const ABSORBED_OPTICAL_DEPTH: f32 = 20.0;
 /// Samples of whole rays processed together by the field.
 const SUB_BATCH: usize = 4096;
 
@@ -315,6 +318,8 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     let cfg = ctx.config;
     let window = cfg.surface_window;
     let fine_step = 0.75 * ctx.rule.min_step;
+    let coarse = StepRule { min_step: 2.0 * ctx.rule.min_step, max_step: ctx.rule.max_step.max(2.0 * ctx.rule.min_step), cone: ctx.rule.cone };
+    let sparse = StepRule { min_step: 4.0 * ctx.rule.min_step, max_step: ctx.rule.max_step.max(4.0 * ctx.rule.min_step), cone: ctx.rule.cone };
     let mut attempts = 0usize;
     // Bounded attempts: views that see nothing must not hang the step.
     while chunk.segments.len() < budget && attempts < 4 * budget {
@@ -336,7 +341,9 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 // Occupancy-skipped up to the surface window, dense inside it
                 // whatever the grid says, and nothing behind it.
                 let (w0, w1) = ((td - window).max(t0), (td + window).min(t1));
-                march(&ray, t0, w0, ctx.occupancy, &ctx.rule, jitter, max, &mut chunk.segments);
+                // In front of the window only sparse samples: enough to push
+                // free space empty and to find occluders the sensor missed.
+                march(&ray, t0, w0, ctx.occupancy, &sparse, jitter, max, &mut chunk.segments);
                 let mut t = w0 + jitter * fine_step;
                 while t < w1 && chunk.segments.len() - first < max {
                     chunk.segments.push(Segment { t, dt: fine_step.min(w1 - t) });
@@ -344,7 +351,10 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 }
                 w1
             }
-            _ => march(&ray, t0, t1, ctx.occupancy, &ctx.rule, jitter, max, &mut chunk.segments).min(t1),
+            // Without depth: stop where the grid says the ray is surely absorbed.
+            // Coarser steps and fewer samples: these rays only see colour.
+            _ => march_until(&ray, t0, t1, ctx.occupancy, &coarse, jitter, max / 4, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
+                .min(t1),
         };
         let count = chunk.segments.len() - first;
         if count == 0 {

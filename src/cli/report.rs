@@ -2,8 +2,9 @@
 
 use super::common::work_dir;
 use super::ReportArgs;
-use anyhow::{bail, Context};
-use nerflabel::nerf::fit::FitReport;
+use anyhow::Context;
+use nerflabel::nerf::fit::{CurvePoint, FitReport};
+use nerflabel::plot::{render_panels, write_png, Panel, Series};
 
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
     let path = work_dir(&args.scan).join("fit_report.json");
@@ -16,7 +17,21 @@ pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
         println!("{:>9.1} {:>7} {:>9.2} {:>7.3} {:>14} {:>12.0}", p.seconds, p.step, p.psnr, p.ssim, depth, p.samples_per_s / 1e3);
     }
     if let Some(plot) = &args.plot {
-        bail!("--plot {}: plotting is not available in this build yet", plot.display());
+        let points = |f: fn(&CurvePoint) -> Option<f64>| -> Vec<(f64, f64)> {
+            report.curve.iter().filter_map(|p| f(p).map(|v| (p.seconds, v))).collect()
+        };
+        let panel = |title: &str, y: &str, points: Vec<(f64, f64)>, color: [u8; 3]| Panel {
+            title: title.into(),
+            x_label: "training time (s)".into(),
+            y_label: y.into(),
+            series: vec![Series { name: "held-out".into(), points, color }],
+        };
+        let panels = [
+            panel("Held-out PSNR", "PSNR (dB)", points(|p| Some(p.psnr)), [31, 119, 180]),
+            panel("Held-out depth error", "depth MAE (mm)", points(|p| p.depth_mae_m.map(|d| d * 1e3)), [44, 160, 44]),
+        ];
+        write_png(plot, &render_panels(&panels, 1000, 800))?;
+        println!("plot: {}", plot.display());
     }
     Ok(())
 }

@@ -161,3 +161,81 @@ impl Model {
 fn damaged(path: &Path, what: String) -> ModelError {
     ModelError::Damaged { path: path.to_path_buf(), what }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::train::tests::small_config;
+
+    fn sample_model() -> Model {
+        let (field_cfg, train) = small_config(3);
+        let mut rng = crate::rng::Rng::new(3, 0);
+        let field = Field::new(field_cfg.clone(), &mut rng);
+        let mut occupancy = OccupancyGrid::full(16);
+        occupancy.seed_from_depth(&[crate::nerf::occupancy::DepthRay { origin: [0.53, 0.53, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 }; 3]);
+        let header = ModelHeader {
+            nerflabel_version: "test".into(),
+            field: field_cfg,
+            train: train.clone(),
+            scene_transform: vec![0.0, 0.0, 0.0, 1.0, 0.1, 0.2, 0.3, 0.5],
+            units_per_metre: 0.5,
+            occupancy_resolution: 16,
+            background: [0.1, 0.2, 0.3],
+            render_step: train.step,
+            steps: 7,
+            seed: 3,
+            scan: "scan".into(),
+            sections: [0; 5],
+        };
+        Model { header, field, occupancy }
+    }
+
+    #[test]
+    fn round_trip_preserves_every_parameter_and_the_occupancy() {
+        let model = sample_model();
+        let bytes = model.to_bytes();
+        let back = Model::from_bytes(&bytes, Path::new("m.nlf")).unwrap();
+        assert_eq!(back.field.grid.params, model.field.grid.params);
+        assert_eq!(back.field.density.params, model.field.density.params);
+        assert_eq!(back.field.color.params, model.field.color.params);
+        assert_eq!(back.occupancy.bits(), model.occupancy.bits());
+        assert_eq!(back.occupancy.carved_words(), model.occupancy.carved_words());
+        assert_eq!(back.header.scene_transform, model.header.scene_transform);
+        assert_eq!(back.to_bytes(), bytes, "saving again gives identical bytes");
+    }
+
+    #[test]
+    fn corruption_truncation_and_wrong_magic_or_version_are_clear_errors() {
+        let bytes = sample_model().to_bytes();
+        let path = Path::new("dir/model.nlf");
+        let msg = |b: &[u8]| Model::from_bytes(b, path).err().map(|e| e.to_string()).unwrap_or_default();
+        // Every single-byte flip in the body is caught.
+        for pos in [20usize, bytes.len() / 2, bytes.len() - 5] {
+            let mut bad = bytes.clone();
+            bad[pos] ^= 0x40;
+            assert!(msg(&bad).contains("corrupted"), "flip at {pos}: {}", msg(&bad));
+        }
+        for cut in [0usize, 7, 15, 19, 100, bytes.len() - 1] {
+            let m = msg(&bytes[..cut]);
+            assert!(m.starts_with("dir/model.nlf"), "truncated to {cut}: {m}");
+        }
+        let mut magic = bytes.clone();
+        magic[0] = b'X';
+        assert!(msg(&magic).contains("not a nerflabel model"));
+        let mut version = bytes.clone();
+        version[8] = 99;
+        assert!(msg(&version).contains("version 99"));
+        assert!(msg(b"").contains("not a nerflabel model"));
+    }
+
+    #[test]
+    fn save_is_atomic_and_load_names_missing_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("model.nlf");
+        sample_model().save(&path).unwrap();
+        assert!(Model::load(&path).is_ok());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temp file left");
+        let err = Model::load(&dir.path().join("missing.nlf")).err().unwrap().to_string();
+        assert!(err.contains("missing.nlf"));
+    }
+}

@@ -126,3 +126,31 @@ fn committed_fixture_matches_its_regeneration_and_reprojects_within_millimetres(
     // Sensor noise (1.5 mm at 1 m, growing with z^2) plus nearest-pixel lookup at 160x120.
     assert!(median < 0.006, "median reprojection disagreement {median} m");
 }
+
+#[test]
+fn cloud_writes_a_binary_ply_of_the_fixture_inside_its_bounds() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("cloud.ply");
+    let out = nerflabel(&["cloud", fixture.to_str().unwrap(), "-o", ply.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bytes = std::fs::read(&ply).unwrap();
+    let header_end = bytes.windows(11).position(|w| w == b"end_header\n").expect("PLY header") + 11;
+    let header = String::from_utf8_lossy(&bytes[..header_end]);
+    assert!(header.starts_with("ply\nformat binary_little_endian 1.0\n"), "{header}");
+    let count: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .and_then(|n| n.trim().parse().ok())
+        .expect("vertex count");
+    assert!(count > 1000, "only {count} points");
+    // x y z float + r g b uchar per vertex.
+    assert_eq!(bytes.len() - header_end, count * 15);
+    // Every point lies inside the small scene (a few metres around the origin).
+    for rec in bytes[header_end..].chunks_exact(15) {
+        for a in 0..3 {
+            let v = f32::from_le_bytes([rec[4 * a], rec[4 * a + 1], rec[4 * a + 2], rec[4 * a + 3]]);
+            assert!(v.is_finite() && v.abs() < 10.0, "coordinate {v}");
+        }
+    }
+}

@@ -12,5 +12,6 @@ pub mod fixture;
 pub mod nerf;
 pub mod poses;
 pub mod scan;
+pub mod synth;
 pub mod atomic;
 pub mod rng;

@@ -7,6 +7,8 @@
 
 pub mod classify;
 pub mod parse;
+pub mod project;
+pub mod rle;
 
 pub use classify::BoxClassifier;
 pub use parse::{parse_boxes, read_boxes, Box3, BoxError, BoxSet};

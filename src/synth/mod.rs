@@ -16,3 +16,8 @@ pub use parquet::{synth_schema, SynthWriter};
 pub use poses_file::{parse_poses, read_poses, ViewSpec};
 pub use render::{Box2d, Instances, SynthView};
 pub use sampling::{Candidate, Cloud, PoseSampler, Target};
+pub mod synthesize;
+pub mod viewpoints;
+
+pub use synthesize::{synthesize, synthesize_objects, view_size, Objects, SynthOptions, SynthProgress, SynthSummary};
+pub use viewpoints::{probe, Verdict, ViewStream};

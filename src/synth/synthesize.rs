@@ -37,7 +37,7 @@ pub struct SynthOptions {
     pub height: Option<u32>,
     pub seed: u64,
     /// Minimum distance from a sampled camera to the scanned points, metres;
-    /// `None` = half the median distance of the scan's cameras to their nearest point.
+    /// `None` = a fifth of the median distance from the scan's cameras to their nearest point.
     pub clearance: Option<f64>,
     /// Render these views instead of sampling.
     pub poses: Option<Vec<ViewSpec>>,
@@ -91,6 +91,36 @@ pub struct Objects<'a> {
     /// Object centres and frames (empty: look at the scene centre).
     pub targets: Vec<Target>,
     pub instances: Instances<'a>,
+}
+
+/// What sampling needs from the scan.
+struct Sampling {
+    cloud: Cloud,
+    cameras: Vec<DVec3>,
+    clearance: f64,
+    targets: Vec<Target>,
+    /// Points in the cloud.
+    points: usize,
+}
+
+impl Sampling {
+    /// Fuse the scan's depth into the clearance cloud and pick the targets.
+    fn prepare(scan: &Scan, objects: &Objects, clearance: Option<f64>) -> Result<Sampling, SynthError> {
+        let fused = fuse_cloud(scan, &CloudOptions::default())?;
+        let cloud = Cloud::new(&fused.positions)?;
+        let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
+        let clearance = match clearance {
+            Some(c) if c > 0.0 && cloud.is_empty() => return Err(SynthError::NoCloud { clearance: c }),
+            Some(c) => c,
+            None => cloud.default_clearance(&cameras).unwrap_or(0.0),
+        };
+        let targets = if objects.targets.is_empty() {
+            vec![Target { center: fused.bounds.center(), rotation: glam::DMat3::IDENTITY }]
+        } else {
+            objects.targets.clone()
+        };
+        Ok(Sampling { cloud, cameras, clearance, targets, points: fused.len() })
+    }
 }
 
 /// Where the views come from.
@@ -160,32 +190,17 @@ pub fn synthesize_objects(
     }
 
     // Sampling needs the scanned cloud (clearance, scene centre); a poses file does not.
-    let cloud_and_targets = match &options.poses {
+    let sampling = match &options.poses {
         Some(_) => None,
-        None => {
-            let fused = fuse_cloud(scan, &CloudOptions::default())?;
-            let cloud = Cloud::new(&fused.positions)?;
-            let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
-            let clearance = match options.clearance {
-                Some(c) if c > 0.0 && cloud.is_empty() => return Err(SynthError::NoCloud { clearance: c }),
-                Some(c) => c,
-                None => cloud.default_clearance(&cameras).unwrap_or(0.0),
-            };
-            let targets = if objects.targets.is_empty() {
-                vec![Target { center: fused.bounds.center(), rotation: glam::DMat3::IDENTITY }]
-            } else {
-                objects.targets.clone()
-            };
-            Some((cloud, cameras, clearance, targets, fused.len()))
-        }
+        None => Some(Sampling::prepare(scan, objects, options.clearance)?),
     };
-    let mut source = match (&options.poses, &cloud_and_targets) {
+    let mut source = match (&options.poses, &sampling) {
         (Some(p), _) => Source::Given(p),
-        (None, Some((cloud, cameras, clearance, targets, _))) => {
+        (None, Some(s)) => {
             let size = view_size(scan.size(), options.width, options.height)?;
             let k = first.intrinsics.scaled(scan.size(), size);
-            let sampler = PoseSampler::new(cameras, targets, cloud, *clearance)?;
-            Source::Sampled(Box::new(ViewStream::new(
+            let sampler = PoseSampler::new(&s.cameras, &s.targets, &s.cloud, s.clearance)?;
+            let stream = ViewStream::new(
                 sampler,
                 &renderer,
                 &objects.instances,
@@ -194,16 +209,13 @@ pub fn synthesize_objects(
                 options.seed,
                 options.min_observed,
                 total,
-            )))
+            );
+            Source::Sampled(Box::new(stream))
         }
         (None, None) => return Err(SynthError::Options("internal: sampling without a cloud".into())),
     };
-    let clearance_m = cloud_and_targets.as_ref().map(|c| c.2);
-    progress(SynthProgress::Prepared {
-        views: total,
-        clearance_m,
-        cloud_points: cloud_and_targets.as_ref().map_or(0, |c| c.4),
-    });
+    let clearance_m = sampling.as_ref().map(|s| s.clearance);
+    progress(SynthProgress::Prepared { views: total, clearance_m, cloud_points: sampling.as_ref().map_or(0, |s| s.points) });
 
     let metadata = [
         ("nerflabel_version", env!("CARGO_PKG_VERSION").to_string()),

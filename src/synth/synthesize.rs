@@ -234,8 +234,14 @@ pub fn synthesize_objects(
         let done = writer.rows();
         let specs: Vec<ViewSpec> = match &mut source {
             Source::Given(p) => p.iter().skip(done).take(group).copied().collect(),
-            Source::Sampled(stream) => stream.next_views(group)?,
+            Source::Sampled(stream) => match stream.next_views(group, stop)? {
+                Some(specs) => specs,
+                None => return Err(interrupted(done)),
+            },
         };
+        if specs.is_empty() {
+            return Err(SynthError::Options(format!("internal: no view left after {done} of {total}")));
+        }
         let views = specs
             .par_iter()
             .enumerate()

@@ -15,6 +15,7 @@ use crate::scan::Intrinsics;
 use glam::DMat4;
 use rayon::prelude::*;
 use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Width of the probe render (its height follows the view's aspect ratio).
 pub const PROBE_WIDTH: u32 = 32;
@@ -148,8 +149,9 @@ impl<'a> ViewStream<'a> {
         self.next += CHUNK;
     }
 
-    /// The next `count` accepted views (fewer at the end of the `wanted`).
-    pub fn next_views(&mut self, count: usize) -> Result<Vec<ViewSpec>, SynthError> {
+    /// The next `count` accepted views (fewer at the end of the `wanted`);
+    /// `None` when `stop` was raised.
+    pub fn next_views(&mut self, count: usize, stop: &AtomicBool) -> Result<Option<Vec<ViewSpec>>, SynthError> {
         let count = count.min(self.wanted - self.accepted.min(self.wanted));
         let mut out = Vec::with_capacity(count);
         while out.len() < count {
@@ -162,6 +164,9 @@ impl<'a> ViewStream<'a> {
                 });
             }
             let Some(verdict) = self.queue.pop_front() else {
+                if stop.load(Ordering::Relaxed) {
+                    return Ok(None);
+                }
                 self.evaluate_chunk();
                 continue;
             };
@@ -176,6 +181,6 @@ impl<'a> ViewStream<'a> {
                 Verdict::NoObject => self.rejections.no_object += 1,
             }
         }
-        Ok(out)
+        Ok(Some(out))
     }
 }

@@ -7,11 +7,13 @@
 //! project's own procedural scene generator with exact ground truth.
 //! The library never prints; the CLI in `main.rs` owns all output.
 
+pub mod boxes;
 pub mod evaluate;
 pub mod fixture;
 pub mod nerf;
 pub mod plot;
 pub mod poses;
 pub mod scan;
+pub mod synth;
 pub mod atomic;
 pub mod rng;

@@ -1,0 +1,264 @@
+//! Point-in-box classification and ray/box intervals with the world-to-box
+//! transforms precomputed. A point inside several boxes belongs to the
+//! smallest (ties: the lower instance id).
+
+use super::parse::BoxSet;
+use glam::{DMat3, DVec3};
+
+/// One box prepared for fast tests.
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    /// World-to-box rotation (transpose of box-to-world).
+    world_to_box: DMat3,
+    center: DVec3,
+    half: DVec3,
+    /// World-axis bounds of the box, for a cheap first rejection.
+    lo: DVec3,
+    hi: DVec3,
+    instance_id: u32,
+}
+
+impl Prepared {
+    #[inline]
+    fn contains(&self, p: DVec3) -> bool {
+        if p.cmplt(self.lo).any() || p.cmpgt(self.hi).any() {
+            return false;
+        }
+        let q = (self.world_to_box * (p - self.center)).abs();
+        q.x <= self.half.x && q.y <= self.half.y && q.z <= self.half.z
+    }
+
+    /// Parameter interval [t0, t1] of `origin + t * dir` inside the box (t unbounded).
+    #[inline]
+    fn ray(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
+        let o = self.world_to_box * (origin - self.center);
+        let d = self.world_to_box * dir;
+        let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+        for a in 0..3 {
+            let h = self.half[a];
+            if d[a] == 0.0 {
+                if o[a].abs() > h {
+                    return None;
+                }
+                continue;
+            }
+            let inv = 1.0 / d[a];
+            let (ta, tb) = ((-h - o[a]) * inv, (h - o[a]) * inv);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+        (t0 <= t1).then_some((t0, t1))
+    }
+}
+
+/// Classifies world points into the boxes of a [`BoxSet`].
+#[derive(Clone, Debug)]
+pub struct BoxClassifier {
+    /// Sorted by volume, then instance id: the first hit is the answer.
+    boxes: Vec<Prepared>,
+}
+
+impl BoxClassifier {
+    /// Prepare every box of `set`.
+    pub fn new(set: &BoxSet) -> Self {
+        let mut order: Vec<&super::parse::Box3> = set.boxes.iter().collect();
+        order.sort_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)));
+        let boxes = order
+            .into_iter()
+            .map(|b| {
+                let half = b.size * 0.5;
+                // World extent of the box: |R| * half.
+                let r = b.rotation;
+                let extent = DMat3::from_cols(r.x_axis.abs(), r.y_axis.abs(), r.z_axis.abs()) * half;
+                // A hair of slack so the coarse test never rejects a face point.
+                let slack = DVec3::splat(1e-12 * (1.0 + b.center.abs().max_element() + extent.max_element()));
+                Prepared {
+                    world_to_box: r.transpose(),
+                    center: b.center,
+                    half,
+                    lo: b.center - extent - slack,
+                    hi: b.center + extent + slack,
+                    instance_id: b.instance_id,
+                }
+            })
+            .collect();
+        BoxClassifier { boxes }
+    }
+
+    /// Number of boxes.
+    pub fn len(&self) -> usize {
+        self.boxes.len()
+    }
+
+    /// Whether there are no boxes.
+    pub fn is_empty(&self) -> bool {
+        self.boxes.is_empty()
+    }
+
+    /// Instance id of the smallest box holding `p`, 0 = none.
+    #[inline]
+    pub fn classify(&self, p: DVec3) -> u32 {
+        self.boxes.iter().find(|b| b.contains(p)).map_or(0, |b| b.instance_id)
+    }
+
+    /// Hull [t0, t1] (t0 >= 0) of the intervals of `origin + t * dir` through
+    /// all boxes; `None` when the ray meets no box in front of the origin.
+    pub fn ray_interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
+        let mut hull: Option<(f64, f64)> = None;
+        for b in &self.boxes {
+            if let Some((t0, t1)) = b.ray(origin, dir) {
+                if t1 < 0.0 {
+                    continue;
+                }
+                let t0 = t0.max(0.0);
+                hull = Some(match hull {
+                    None => (t0, t1),
+                    Some((a, c)) => (a.min(t0), c.max(t1)),
+                });
+            }
+        }
+        hull
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::parse::Box3;
+    use super::*;
+    use crate::rng::Rng;
+    use glam::DQuat;
+
+    fn random_rotation(rng: &mut Rng) -> DMat3 {
+        let q = DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize();
+        DMat3::from_quat(q)
+    }
+
+    /// Random oriented boxes with nested and overlapping pairs.
+    pub(crate) fn random_set(rng: &mut Rng, n: usize) -> BoxSet {
+        let mut boxes: Vec<Box3> = Vec::new();
+        for i in 0..n {
+            let id = i as u32 + 1;
+            let b = if i % 3 == 2 {
+                // Nested in (or overlapping) the previous box: same centre region, smaller.
+                let prev = &boxes[i - 1];
+                Box3 {
+                    label: format!("n{i}"),
+                    instance_id: id,
+                    center: prev.center + DVec3::new(rng.range(-0.1, 0.1), rng.range(-0.1, 0.1), rng.range(-0.1, 0.1)),
+                    size: prev.size * rng.range(0.3, 0.9),
+                    rotation: random_rotation(rng),
+                }
+            } else {
+                Box3 {
+                    label: format!("b{}", i % 4),
+                    instance_id: id,
+                    center: DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)),
+                    size: DVec3::new(rng.range(0.1, 1.0), rng.range(0.1, 1.0), rng.range(0.1, 1.0)),
+                    rotation: random_rotation(rng),
+                }
+            };
+            boxes.push(b);
+        }
+        // An exact duplicate of box 1: equal volume, the lower id must win.
+        let mut dup = boxes[0].clone();
+        dup.instance_id = n as u32 + 1;
+        boxes.push(dup);
+        BoxSet::from_boxes(boxes)
+    }
+
+    /// The definition: among boxes containing p, the smallest, then lowest id.
+    fn brute_force(set: &BoxSet, p: DVec3) -> u32 {
+        set.boxes
+            .iter()
+            .filter(|b| b.contains(p))
+            .min_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)))
+            .map_or(0, |b| b.instance_id)
+    }
+
+    #[test]
+    fn classification_matches_brute_force_on_random_boxes() {
+        let mut rng = Rng::new(11, 0);
+        let mut inside_several = 0;
+        let mut hits = 0;
+        for round in 0..20 {
+            let set = random_set(&mut rng, 9 + round % 4);
+            let classifier = BoxClassifier::new(&set);
+            assert_eq!(classifier.len(), set.boxes.len());
+            for _ in 0..5000 {
+                let p = DVec3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
+                let want = brute_force(&set, p);
+                assert_eq!(classifier.classify(p), want, "round {round} point {p}");
+                hits += (want != 0) as usize;
+                inside_several += (set.boxes.iter().filter(|b| b.contains(p)).count() > 1) as usize;
+            }
+            // Points near every box's centre exercise the nested cases densely.
+            for b in &set.boxes {
+                for _ in 0..200 {
+                    let p = b.center + b.rotation * (b.size * DVec3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.6, 0.6)));
+                    assert_eq!(classifier.classify(p), brute_force(&set, p));
+                }
+            }
+        }
+        assert!(hits > 5_000, "test points must hit boxes often: {hits}");
+        assert!(inside_several > 500, "overlaps must be exercised: {inside_several}");
+    }
+
+    #[test]
+    fn duplicate_box_goes_to_the_lower_instance_id() {
+        let mut rng = Rng::new(3, 0);
+        let set = random_set(&mut rng, 4);
+        let dup = set.boxes.last().unwrap();
+        let c = BoxClassifier::new(&set);
+        // The duplicate's centre lies in box 1 and the duplicate (and maybe smaller ones).
+        let id = c.classify(dup.center);
+        assert_ne!(id, dup.instance_id);
+        assert_eq!(id, brute_force(&set, dup.center));
+    }
+
+    #[test]
+    fn ray_interval_is_the_hull_of_the_contained_samples() {
+        let mut rng = Rng::new(5, 0);
+        let mut met = 0;
+        for _ in 0..20 {
+            let set = random_set(&mut rng, 6);
+            let c = BoxClassifier::new(&set);
+            for _ in 0..200 {
+                let origin = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
+                let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+                // Unnormalised direction: t is in units of dir.
+                let dir = (target - origin) * rng.range(0.5, 2.0);
+                let step = 1e-3;
+                let inside: Vec<f64> = (0..6000)
+                    .map(|k| k as f64 * step)
+                    .filter(|&t| set.boxes.iter().any(|b| b.contains(origin + dir * t)))
+                    .collect();
+                match c.ray_interval(origin, dir) {
+                    None => assert!(inside.is_empty(), "missed samples at {:?}", inside.first()),
+                    // A grazing hit shorter than the sampling step may have no sample inside.
+                    Some((t0, t1)) if inside.is_empty() => assert!(t1 - t0 <= step, "[{t0}, {t1}] without samples"),
+                    Some((t0, t1)) => {
+                        met += 1;
+                        assert!(t0 >= 0.0 && t0 <= t1);
+                        let (first, last) = (inside[0], inside[inside.len() - 1]);
+                        assert!(t0 <= first + 1e-9 && first - t0 <= step + 1e-9, "t0 {t0} first {first}");
+                        assert!(t1 >= last - 1e-9 && t1 - last <= step + 1e-9, "t1 {t1} last {last}");
+                    }
+                }
+            }
+        }
+        assert!(met > 1000, "most rays aim at boxes: {met}");
+        // A ray starting inside a box starts its interval at 0; one pointing away misses.
+        let set = BoxSet::from_boxes(vec![Box3 {
+            label: "a".into(),
+            instance_id: 1,
+            center: DVec3::ZERO,
+            size: DVec3::ONE,
+            rotation: DMat3::IDENTITY,
+        }]);
+        let c = BoxClassifier::new(&set);
+        assert_eq!(c.ray_interval(DVec3::ZERO, DVec3::X), Some((0.0, 0.5)));
+        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.0, 0.0), DVec3::X), None);
+        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.7, 0.0), -DVec3::X), None);
+        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.0, 0.0), -DVec3::X * 2.0), Some((0.75, 1.25)));
+    }
+}

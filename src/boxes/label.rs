@@ -1,0 +1,279 @@
+//! The per-frame labelling driver: find the pixels whose rays can meet a
+//! box, get the surface depth behind each (rendered first crossing, sensor,
+//! or both fused), classify the surface point into the boxes, and derive
+//! tight 2D boxes and object poses from the resulting instance mask.
+//!
+//! NeRF rays march from the near end of the unit cube (so occluders in front
+//! of a box are found) only to the far end of the ray's interval through the
+//! boxes, and stop at termination.
+
+use super::classify::BoxClassifier;
+use super::options::{DepthSource, LabelError, LabelOptions};
+use super::parse::BoxSet;
+use super::project::{project_box, PixelRect};
+use crate::nerf::camera::LocalCamera;
+use crate::nerf::fit::render_options;
+use crate::nerf::march::ray_interval;
+use crate::nerf::model_file::Model;
+use crate::nerf::render::{render_rays, RayOutput, RenderOptions, RenderRay, RenderWorkspace};
+use crate::nerf::view::ViewRenderer;
+use crate::scan::Frame;
+use glam::{DMat3, DMat4};
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Rays rendered per call of the renderer.
+const PACKET: usize = 4096;
+
+/// One visible instance in one frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InstanceLabel {
+    pub instance_id: u32,
+    /// Tight pixel bounds of the instance's mask pixels.
+    pub bbox: PixelRect,
+    /// Mask pixels.
+    pub area: u64,
+    /// Rigid box pose in the camera frame (OpenCV axes): world-to-camera x object-to-world.
+    pub object_to_camera: DMat4,
+}
+
+/// Labels of one frame.
+#[derive(Clone, Debug)]
+pub struct FrameLabel {
+    pub frame_id: u64,
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    /// Instance id per pixel, row-major, 0 = background.
+    pub mask: Vec<u16>,
+    /// Z-depth in metres per pixel (0 = no surface), with full depth only.
+    pub depth_m: Option<Vec<f32>>,
+    /// Visible instances in instance-id order.
+    pub instances: Vec<InstanceLabel>,
+    /// Instance ids whose box projects into the image (visible or occluded).
+    pub in_view: Vec<u32>,
+    /// Pixels whose ray meets a box.
+    pub box_pixels: usize,
+    /// Rays handed to the renderer.
+    pub rendered_rays: usize,
+}
+
+/// A pixel whose depth is needed.
+#[derive(Clone, Copy)]
+struct Job {
+    x: u32,
+    y: u32,
+    /// Far end of the ray's interval through the boxes, metres along the unit ray.
+    box_far: Option<f64>,
+}
+
+/// Labels frames of one scan with one box set and depth source.
+pub struct Labeler<'a> {
+    boxes: &'a BoxSet,
+    classifier: BoxClassifier,
+    options: LabelOptions,
+    renderer: Option<ViewRenderer<'a>>,
+    render: Option<RenderOptions>,
+    /// Fused source: largest sensor/rendered disagreement that keeps the sensor depth, metres.
+    fused_tolerance_m: f64,
+}
+
+impl<'a> Labeler<'a> {
+    /// Prepare labelling; `model` is required by the nerf and fused sources.
+    pub fn new(boxes: &'a BoxSet, model: Option<&'a Model>, options: LabelOptions) -> Result<Self, LabelError> {
+        let (renderer, render, fused_tolerance_m) = match (options.source.needs_model(), model) {
+            (true, None) => return Err(LabelError::MissingModel(options.source)),
+            (false, _) => (None, None, 0.0),
+            (true, Some(m)) => {
+                let r = ViewRenderer::new(m)?;
+                let cell_local = 1.0 / m.header.field.grid.finest_resolution.max(1) as f64;
+                let tol = options.fused_tolerance_cells * r.transform.local_to_world_distance(cell_local);
+                (Some(r), Some(render_options(m, false)), tol)
+            }
+        };
+        Ok(Labeler { boxes, classifier: BoxClassifier::new(boxes), options, renderer, render, fused_tolerance_m })
+    }
+
+    /// The options in use.
+    pub fn options(&self) -> &LabelOptions {
+        &self.options
+    }
+
+    /// Sensor/rendered agreement tolerance of the fused source, metres.
+    pub fn fused_tolerance_m(&self) -> f64 {
+        self.fused_tolerance_m
+    }
+
+    /// Label frames in parallel (one frame per task); `progress` hears the
+    /// number of frames finished so far.
+    pub fn label_frames(&self, frames: &[&Frame], progress: &(dyn Fn(usize) + Sync)) -> Vec<FrameLabel> {
+        let done = AtomicUsize::new(0);
+        frames
+            .par_iter()
+            .map_init(RenderWorkspace::default, |ws, frame| {
+                let label = self.label_frame(frame, ws);
+                progress(done.fetch_add(1, Ordering::Relaxed) + 1);
+                label
+            })
+            .collect()
+    }
+
+    /// Label one frame on the calling thread.
+    pub fn label_frame(&self, frame: &Frame, ws: &mut RenderWorkspace) -> FrameLabel {
+        let (w, h) = frame.size();
+        let c2w = frame.camera_to_world;
+        let k = frame.intrinsics;
+        let origin = c2w.w_axis.truncate();
+        let rot = DMat3::from_mat4(c2w);
+        let full = self.options.full_depth;
+
+        // Pixels whose ray can meet a box: inside a projected rectangle and
+        // with a non-empty interval through the boxes.
+        let mut in_view = Vec::new();
+        let mut candidate = vec![false; if full { 0 } else { w as usize * h as usize }];
+        for b in &self.boxes.boxes {
+            if let Some(r) = project_box(b, &c2w, &k, (w, h)) {
+                in_view.push(b.instance_id);
+                if !full {
+                    for y in r.y0..r.y1 {
+                        let row = y as usize * w as usize;
+                        candidate[row + r.x0 as usize..row + r.x1 as usize].fill(true);
+                    }
+                }
+            }
+        }
+        let mut jobs = Vec::new();
+        let mut box_pixels = 0;
+        for y in 0..h {
+            for x in 0..w {
+                if !full && !candidate[y as usize * w as usize + x as usize] {
+                    continue;
+                }
+                let dir = (rot * k.unproject(x as f64, y as f64)).normalize();
+                let box_far = self.classifier.ray_interval(origin, dir).map(|(_, t1)| t1);
+                box_pixels += box_far.is_some() as usize;
+                if full || box_far.is_some() {
+                    jobs.push(Job { x, y, box_far });
+                }
+            }
+        }
+
+        let rendered = match self.options.source {
+            DepthSource::Sensor => None,
+            DepthSource::Nerf | DepthSource::Fused => Some(self.render_jobs(frame, &jobs, ws)),
+        };
+        let sensor = |j: &Job| frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64);
+        let mut mask = vec![0u16; w as usize * h as usize];
+        let mut depth_m = full.then(|| vec![0.0f32; w as usize * h as usize]);
+        for (i, j) in jobs.iter().enumerate() {
+            let z = match (self.options.source, &rendered) {
+                (DepthSource::Nerf, Some(r)) => r[i],
+                (DepthSource::Fused, Some(r)) => self.fuse(sensor(j), r[i]),
+                _ => sensor(j),
+            };
+            let index = j.y as usize * w as usize + j.x as usize;
+            if let Some(d) = depth_m.as_mut() {
+                d[index] = z as f32;
+            }
+            if z > 0.0 && j.box_far.is_some() {
+                let p = origin + rot * (k.unproject(j.x as f64, j.y as f64) * z);
+                // Ids fit in 16 bits: parsing caps the box count at 65535.
+                mask[index] = self.classifier.classify(p) as u16;
+            }
+        }
+        let instances = instances_of(&mask, w, h, self.boxes, &c2w.inverse());
+        FrameLabel {
+            frame_id: frame.id,
+            name: frame.name.clone(),
+            width: w,
+            height: h,
+            mask,
+            depth_m,
+            instances,
+            in_view,
+            box_pixels,
+            rendered_rays: if rendered.is_some() { jobs.len() } else { 0 },
+        }
+    }
+
+    /// Fused rule: the sensor depth where it exists and agrees with the
+    /// rendered depth within the tolerance, else the rendered depth.
+    fn fuse(&self, sensor: f64, rendered: f64) -> f64 {
+        if sensor > 0.0 && rendered > 0.0 && (sensor - rendered).abs() <= self.fused_tolerance_m {
+            sensor
+        } else {
+            rendered
+        }
+    }
+
+    /// Rendered z-depth in metres (0 = no surface) for every job.
+    fn render_jobs(&self, frame: &Frame, jobs: &[Job], ws: &mut RenderWorkspace) -> Vec<f64> {
+        let mut depth = vec![0.0; jobs.len()];
+        let (Some(renderer), Some(opts)) = (&self.renderer, &self.render) else {
+            return depth;
+        };
+        let (w, h) = frame.size();
+        let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
+        let scale = renderer.transform.scale;
+        let near = opts.rule.min_step;
+        let mut rays = Vec::with_capacity(PACKET);
+        let mut index = Vec::with_capacity(PACKET);
+        let mut t_per_z = Vec::with_capacity(PACKET);
+        let mut out = Vec::with_capacity(PACKET);
+        for (chunk_no, chunk) in jobs.chunks(PACKET).enumerate() {
+            rays.clear();
+            index.clear();
+            t_per_z.clear();
+            for (i, j) in chunk.iter().enumerate() {
+                let (ray, norm) = camera.ray(j.x as f32, j.y as f32);
+                let Some((t0, t1)) = ray_interval(&ray, near) else { continue };
+                // World metres along the unit ray -> local units along the unit local ray.
+                let t_max = match (self.options.full_depth, j.box_far) {
+                    (false, Some(far)) => t1.min((far * scale) as f32),
+                    _ => t1,
+                };
+                if t_max > t0 {
+                    rays.push(RenderRay { ray, t_min: t0, t_max });
+                    index.push(chunk_no * PACKET + i);
+                    t_per_z.push(norm);
+                }
+            }
+            out.clear();
+            out.resize(rays.len(), RayOutput::default());
+            render_rays(&renderer.model.field, &renderer.model.occupancy, &rays, opts, ws, &mut out);
+            for ((o, &i), &norm) in out.iter().zip(&index).zip(&t_per_z) {
+                if let Some(t) = o.depth_median {
+                    let z = t as f64 / norm as f64 / scale;
+                    if z.is_finite() && z > 0.0 {
+                        depth[i] = z;
+                    }
+                }
+            }
+        }
+        depth
+    }
+}
+
+/// Tight boxes, areas and camera-frame poses of the instances in a mask.
+pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world_to_camera: &DMat4) -> Vec<InstanceLabel> {
+    let mut found: std::collections::BTreeMap<u16, (PixelRect, u64)> = std::collections::BTreeMap::new();
+    for y in 0..height {
+        let row = &mask[y as usize * width as usize..(y as usize + 1) * width as usize];
+        for (x, &id) in row.iter().enumerate() {
+            if id == 0 {
+                continue;
+            }
+            let x = x as u32;
+            let e = found.entry(id).or_insert((PixelRect { x0: x, y0: y, x1: x + 1, y1: y + 1 }, 0));
+            e.0 = e.0.union(&PixelRect { x0: x, y0: y, x1: x + 1, y1: y + 1 });
+            e.1 += 1;
+        }
+    }
+    found
+        .into_iter()
+        .filter_map(|(id, (bbox, area))| {
+            let b = boxes.by_instance(id as u32)?;
+            Some(InstanceLabel { instance_id: id as u32, bbox, area, object_to_camera: *world_to_camera * b.object_to_world() })
+        })
+        .collect()
+}

@@ -1,0 +1,25 @@
+//! 3D boxes to labels: read and validate `boxes.json`, classify surface
+//! points into boxes, project boxes into cameras, render only the pixels
+//! whose rays can meet a box, and write masks, depth, COCO and YOLO.
+//!
+//! Flow: [`parse`] (boxes.json) -> [`classify`] (point in smallest box, ray
+//! intervals) and [`project`] (pixel rectangles) -> [`label`] (per-frame
+//! depth, mask, 2D boxes, object poses) -> [`rle`], [`coco`] and [`output`]
+//! (files, swapped in atomically).
+//!
+//! Depends on `scan`, `poses` and `nerf` (to render depth); never on `synth`
+//! or the CLI. Never prints.
+
+pub mod classify;
+pub mod coco;
+pub mod label;
+pub mod options;
+pub mod parse;
+pub mod project;
+pub mod rle;
+
+pub use classify::BoxClassifier;
+pub use label::{FrameLabel, InstanceLabel, Labeler};
+pub use options::{DepthSource, FrameRange, LabelError, LabelOptions, DEFAULT_SOURCE};
+pub use parse::{parse_boxes, read_boxes, Box3, BoxError, BoxSet};
+pub use project::{project_box, PixelRect};

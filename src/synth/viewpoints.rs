@@ -1,0 +1,186 @@
+//! The stream of accepted viewpoints: candidates from [`PoseSampler`],
+//! probed in parallel with a low-resolution render and accepted in candidate
+//! order, so the views and the rejection counts depend only on the seed.
+//!
+//! A probe rejects a view that looks mostly at space the scan never observed
+//! (fewer than `min_observed` of its pixels with opacity > 0.5) or, when
+//! there are boxes, that sees no labelled object.
+
+use super::error::{Rejections, SynthError};
+use super::poses_file::ViewSpec;
+use super::render::Instances;
+use super::sampling::{Candidate, PoseSampler};
+use crate::nerf::view::ViewRenderer;
+use crate::scan::Intrinsics;
+use glam::DMat4;
+use rayon::prelude::*;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Width of the probe render (its height follows the view's aspect ratio).
+pub const PROBE_WIDTH: u32 = 32;
+/// Default fraction of probe pixels that must have opacity > 0.5.
+pub const MIN_OBSERVED: f64 = 0.5;
+/// Candidates allowed per requested view before giving up.
+pub const ATTEMPTS_PER_VIEW: u64 = 50;
+/// Fewest candidates tried before giving up, whatever the view count.
+pub const MIN_ATTEMPTS: u64 = 1000;
+/// Candidates evaluated per parallel round.
+const CHUNK: u64 = 32;
+
+/// Why a candidate was turned down, or its pose.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Verdict {
+    Accept(DMat4),
+    TooClose,
+    Unobserved,
+    NoObject,
+}
+
+/// Probe a view: opacity and depth at [`PROBE_WIDTH`] pixels across.
+pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, min_observed: f64) -> Verdict {
+    let pw = PROBE_WIDTH.min(spec.width).max(1);
+    let ph = ((f64::from(spec.height) * f64::from(pw) / f64::from(spec.width)).round() as u32).clamp(1, spec.height.max(1));
+    let k = spec.intrinsics.scaled((spec.width, spec.height), (pw, ph));
+    let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
+    let pixels: Vec<(f32, f32)> = (0..ph).flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32))).collect();
+    let (_, depth, opacity) = renderer.render_pixels(&camera, &pixels, false);
+    let observed = opacity.iter().filter(|&&a| a > 0.5).count();
+    if (observed as f64) < min_observed * pixels.len() as f64 {
+        return Verdict::Unobserved;
+    }
+    if instances.max_id() > 0 && !sees_object(&depth, &spec.camera_to_world, &k, &pixels, instances) {
+        return Verdict::NoObject;
+    }
+    Verdict::Accept(spec.camera_to_world)
+}
+
+/// Whether any probe pixel's surface lies in a box.
+fn sees_object(depth: &[f32], c2w: &DMat4, k: &Intrinsics, pixels: &[(f32, f32)], instances: &Instances) -> bool {
+    depth.iter().zip(pixels).any(|(&z, &(u, v))| {
+        z > 0.0
+            && z.is_finite()
+            && (instances.classify)(c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)) * f64::from(z))) > 0
+    })
+}
+
+/// Accepted sampled views, in order, with the rejections counted on the way.
+pub struct ViewStream<'a> {
+    sampler: PoseSampler<'a>,
+    renderer: &'a ViewRenderer<'a>,
+    instances: &'a Instances<'a>,
+    intrinsics: Intrinsics,
+    width: u32,
+    height: u32,
+    seed: u64,
+    min_observed: f64,
+    wanted: usize,
+    max_attempts: u64,
+    /// Next candidate index to evaluate.
+    next: u64,
+    /// Evaluated candidates not consumed yet, in index order.
+    queue: VecDeque<Verdict>,
+    accepted: usize,
+    attempts: u64,
+    rejections: Rejections,
+}
+
+impl<'a> ViewStream<'a> {
+    /// A stream of `wanted` views of `width` x `height` with intrinsics `k`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        sampler: PoseSampler<'a>,
+        renderer: &'a ViewRenderer<'a>,
+        instances: &'a Instances<'a>,
+        intrinsics: Intrinsics,
+        (width, height): (u32, u32),
+        seed: u64,
+        min_observed: f64,
+        wanted: usize,
+    ) -> ViewStream<'a> {
+        let max_attempts = (wanted as u64).saturating_mul(ATTEMPTS_PER_VIEW).max(MIN_ATTEMPTS);
+        ViewStream {
+            sampler,
+            renderer,
+            instances,
+            intrinsics,
+            width,
+            height,
+            seed,
+            min_observed,
+            wanted,
+            max_attempts,
+            next: 0,
+            queue: VecDeque::new(),
+            accepted: 0,
+            attempts: 0,
+            rejections: Rejections::default(),
+        }
+    }
+
+    /// Candidates consumed so far (accepted and rejected).
+    pub fn attempts(&self) -> u64 {
+        self.attempts
+    }
+
+    /// Rejections among the consumed candidates.
+    pub fn rejections(&self) -> Rejections {
+        self.rejections
+    }
+
+    /// The view of an accepted pose.
+    fn spec(&self, camera_to_world: DMat4) -> ViewSpec {
+        ViewSpec { camera_to_world, intrinsics: self.intrinsics, width: self.width, height: self.height }
+    }
+
+    /// Evaluate the next chunk of candidates in parallel.
+    fn evaluate_chunk(&mut self) {
+        let first = self.next;
+        let verdicts: Vec<Verdict> = (first..first + CHUNK)
+            .into_par_iter()
+            .map(|i| match self.sampler.candidate(self.seed, i) {
+                Candidate::TooClose => Verdict::TooClose,
+                Candidate::Pose { camera_to_world, .. } => {
+                    probe(self.renderer, &self.spec(camera_to_world), self.instances, self.min_observed)
+                }
+            })
+            .collect();
+        self.queue.extend(verdicts);
+        self.next += CHUNK;
+    }
+
+    /// The next `count` accepted views (fewer at the end of the `wanted`);
+    /// `None` when `stop` was raised.
+    pub fn next_views(&mut self, count: usize, stop: &AtomicBool) -> Result<Option<Vec<ViewSpec>>, SynthError> {
+        let count = count.min(self.wanted - self.accepted.min(self.wanted));
+        let mut out = Vec::with_capacity(count);
+        while out.len() < count {
+            if self.attempts >= self.max_attempts {
+                return Err(SynthError::GaveUp {
+                    attempts: self.attempts,
+                    accepted: self.accepted,
+                    wanted: self.wanted,
+                    rejections: self.rejections,
+                });
+            }
+            let Some(verdict) = self.queue.pop_front() else {
+                if stop.load(Ordering::Relaxed) {
+                    return Ok(None);
+                }
+                self.evaluate_chunk();
+                continue;
+            };
+            self.attempts += 1;
+            match verdict {
+                Verdict::Accept(pose) => {
+                    out.push(self.spec(pose));
+                    self.accepted += 1;
+                }
+                Verdict::TooClose => self.rejections.too_close += 1,
+                Verdict::Unobserved => self.rejections.unobserved += 1,
+                Verdict::NoObject => self.rejections.no_object += 1,
+            }
+        }
+        Ok(Some(out))
+    }
+}

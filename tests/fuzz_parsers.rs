@@ -1,0 +1,262 @@
+//! Seeded byte-mutation fuzzing of every parser that reads outside text or
+//! bytes: native `intrinsics.txt` and pose files, nerfstudio
+//! `transforms.json`, TUM `rgb.txt` / `groundtruth.txt`, and model files.
+//!
+//! Each iteration mutates a valid file (bit flips, random bytes, inserted
+//! tokens such as `nan` or `1e400`, deleted or duplicated ranges,
+//! truncation), loads it, and asserts: no panic, and an error (if any) is one
+//! non-empty line. The normal suite runs `ITERS` iterations per parser; the
+//! ignored `*_long` variants run `NERFLABEL_FUZZ_ITERS` (default 20 000):
+//!
+//! `NERFLABEL_FUZZ_ITERS=100000 cargo test --release --test fuzz_parsers -- --ignored`
+
+use nerflabel::nerf::model_file::Model;
+use nerflabel::rng::Rng;
+use nerflabel::scan::{load, Layout, LoadOptions};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Iterations per parser in the normal suite.
+const ITERS: usize = 300;
+
+fn long_iters() -> usize {
+    std::env::var("NERFLABEL_FUZZ_ITERS").ok().and_then(|s| s.parse().ok()).unwrap_or(20_000)
+}
+
+/// Tokens that tend to reach edge cases of number and JSON parsing.
+const TOKENS: &[&str] = &[
+    "nan", "NaN", "inf", "-inf", "1e400", "-1e400", "0", "-0", "-1", "1e-320", "18446744073709551616",
+    "99999999999999999999", "\n", " ", "\t", "\0", "#", "\"", "{", "}", "[", "]", ",", ":", "null", "true",
+    "\u{feff}", "é", "\r\n", "0x10", "4294967296", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]",
+];
+
+/// Apply 1-4 random mutations to `bytes`.
+fn mutate(bytes: &[u8], rng: &mut Rng) -> Vec<u8> {
+    let mut b = bytes.to_vec();
+    for _ in 0..1 + rng.below(4) {
+        let len = b.len() as u64;
+        let at = if len == 0 { 0 } else { rng.below(len) as usize };
+        match rng.below(8) {
+            0 if len > 0 => b[at] ^= 1 << rng.below(8),
+            1 if len > 0 => b[at] = rng.below(256) as u8,
+            2 => {
+                let tok = TOKENS[rng.below(TOKENS.len() as u64) as usize].as_bytes();
+                b.splice(at..at, tok.iter().copied());
+            }
+            3 if len > 0 => {
+                let end = (at + 1 + rng.below(16) as usize).min(b.len());
+                b.drain(at..end);
+            }
+            4 => b.truncate(at),
+            5 if len > 0 => {
+                let end = (at + 1 + rng.below(64) as usize).min(b.len());
+                let chunk: Vec<u8> = b[at..end].to_vec();
+                let to = rng.below(b.len() as u64 + 1) as usize;
+                b.splice(to..to, chunk);
+            }
+            6 if len > 0 && b[at].is_ascii_digit() => b[at] = b'0' + rng.below(10) as u8,
+            _ => {
+                // Replace a digit run with a random token (keeps the structure).
+                let tok = TOKENS[rng.below(TOKENS.len() as u64) as usize].as_bytes();
+                let end = (at..b.len()).find(|&i| !b[i].is_ascii_digit()).unwrap_or(b.len());
+                b.splice(at..end.max(at), tok.iter().copied());
+            }
+        }
+    }
+    b
+}
+
+/// Run `f`; fail on a panic or a multi-line or empty error message.
+fn no_panic_one_line<T, E: std::fmt::Display>(what: &str, f: impl FnOnce() -> Result<T, E>) -> bool {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Err(_) => panic!("{what}: parser panicked"),
+        Ok(Ok(_)) => true,
+        Ok(Err(e)) => {
+            let msg = e.to_string();
+            assert!(!msg.trim().is_empty(), "{what}: empty error");
+            assert!(!msg.contains('\n'), "{what}: multi-line error:\n{msg}");
+            false
+        }
+    }
+}
+
+fn fixture(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
+    let out = dir.join(name);
+    let o = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(["fixture", "--scene", "small", "--width", "16", "--height", "12", "--frames", "3", "--holdout", "0", "--clean"])
+        .args(extra)
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    out
+}
+
+/// Mutate `file` inside the scan `root` `iters` times, loading the scan each
+/// time with `layout`; the original file is restored afterwards.
+fn fuzz_scan_file(root: &Path, file: &Path, layout: Layout, iters: usize, seed: u64) {
+    let options = LoadOptions { layout: Some(layout), fix_poses: false };
+    assert!(load(root, &options).is_ok(), "the unmutated scan must load: {:?}", load(root, &options).err().map(|e| e.to_string()));
+    let original = std::fs::read(file).unwrap();
+    let mut rng = Rng::new(seed, 0);
+    let mut accepted = 0;
+    for i in 0..iters {
+        let bytes = mutate(&original, &mut rng);
+        std::fs::write(file, &bytes).unwrap();
+        let what = format!("{} iteration {i}: {:?}", file.display(), String::from_utf8_lossy(&bytes));
+        if no_panic_one_line(&what, || load(root, &options)) {
+            accepted += 1;
+        }
+    }
+    std::fs::write(file, &original).unwrap();
+    eprintln!("{}: {accepted} of {iters} mutations still loaded", file.display());
+    assert!(accepted < iters, "{}: no mutation was ever rejected; the fuzzer does not reach the parser", file.display());
+}
+
+fn fuzz_native(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "native", &[]);
+    fuzz_scan_file(&scan, &scan.join("intrinsics.txt"), Layout::Native, iters, 1);
+    fuzz_scan_file(&scan, &scan.join("pose/000001.txt"), Layout::Native, iters, 2);
+}
+
+fn fuzz_nerfstudio(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "ns", &["--layout", "nerfstudio"]);
+    fuzz_scan_file(&scan, &scan.join("transforms.json"), Layout::Nerfstudio, iters, 3);
+}
+
+/// A TUM scan built from a native fixture: the same images, timestamps 0.1 s
+/// apart, camera-to-world translations along x, identity rotations.
+fn tum_scan(dir: &Path) -> PathBuf {
+    let scan = fixture(dir, "tum", &[]);
+    let (mut rgb, mut depth, mut gt) = (String::from("# colour images\n"), String::from("# depth\n"), String::from("# ground truth\n"));
+    for i in 0..3 {
+        let t = 1305031102.0 + 0.1 * i as f64;
+        rgb.push_str(&format!("{t:.6} rgb/{i:06}.png\n"));
+        depth.push_str(&format!("{:.6} depth/{i:06}.png\n", t + 0.004));
+        gt.push_str(&format!("{:.4} {} 0.0 -1.5 0.0 0.0 0.0 1.0\n", t - 0.002, 0.1 * i as f64));
+    }
+    std::fs::write(scan.join("rgb.txt"), rgb).unwrap();
+    std::fs::write(scan.join("depth.txt"), depth).unwrap();
+    std::fs::write(scan.join("groundtruth.txt"), gt).unwrap();
+    std::fs::remove_dir_all(scan.join("pose")).unwrap();
+    scan
+}
+
+fn fuzz_tum(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = tum_scan(dir.path());
+    fuzz_scan_file(&scan, &scan.join("rgb.txt"), Layout::Tum, iters, 4);
+    fuzz_scan_file(&scan, &scan.join("groundtruth.txt"), Layout::Tum, iters, 5);
+}
+
+/// A real model file from a 2-step fit of a tiny fixture.
+fn model_bytes(dir: &Path) -> Vec<u8> {
+    let scan = fixture(dir, "m", &[]);
+    let path = dir.join("model.nlf");
+    let o = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .arg("fit")
+        .arg(&scan)
+        .args(["--steps", "2", "--holdout", "0", "--model"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::read(path).unwrap()
+}
+
+fn fuzz_model(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let original = model_bytes(dir.path());
+    let path = Path::new("fuzzed.nlf");
+    assert!(Model::from_bytes(&original, path).is_ok());
+    let mut rng = Rng::new(6, 0);
+    let (mut accepted_raw, mut accepted_fixed) = (0, 0);
+    for i in 0..iters {
+        // Mutations of the whole file (caught by magic, version or checksum)...
+        let raw = mutate(&original, &mut rng);
+        if no_panic_one_line(&format!("model iteration {i} (raw)"), || Model::from_bytes(&raw, path)) && raw != original {
+            accepted_raw += 1;
+        }
+        // ...and of the header and sections with the checksum recomputed, so
+        // the header JSON and section lengths are parsed.
+        let header_end = 16 + u32::from_le_bytes([original[12], original[13], original[14], original[15]]) as usize;
+        let mut body = original[..original.len() - 4].to_vec();
+        let focus = if rng.below(2) == 0 { 0..header_end.min(body.len()) } else { 0..body.len() };
+        let mutated = mutate(&body[focus.clone()], &mut rng);
+        body.splice(focus, mutated);
+        if rng.below(4) == 0 {
+            // Also a wrong header length now and then.
+            let n = rng.below(body.len() as u64 * 2 + 1) as u32;
+            if body.len() >= 16 {
+                body[12..16].copy_from_slice(&n.to_le_bytes());
+            }
+        }
+        let crc = crc32fast::hash(&body);
+        body.extend_from_slice(&crc.to_le_bytes());
+        let what = format!("model iteration {i} (checksum fixed)");
+        let ok = match catch_unwind(AssertUnwindSafe(|| Model::from_bytes(&body, path))) {
+            Err(_) => panic!("{what}: Model::from_bytes panicked"),
+            Ok(Ok(model)) => {
+                // Accepted files must hold a usable, consistent model.
+                let bytes = model.to_bytes();
+                assert!(Model::from_bytes(&bytes, path).is_ok(), "{what}: accepted model does not round-trip");
+                true
+            }
+            Ok(Err(e)) => {
+                let msg = e.to_string();
+                assert!(msg.contains("fuzzed.nlf") && !msg.contains('\n'), "{what}: {msg}");
+                false
+            }
+        };
+        accepted_fixed += ok as usize;
+    }
+    eprintln!("model: {accepted_raw} raw and {accepted_fixed} checksum-fixed mutations of {iters} accepted");
+    assert_eq!(accepted_raw, 0, "a mutated model passed the checksum");
+}
+
+#[test]
+fn fuzz_native_intrinsics_and_pose_files() {
+    fuzz_native(ITERS);
+}
+
+#[test]
+fn fuzz_nerfstudio_transforms_json() {
+    fuzz_nerfstudio(ITERS);
+}
+
+#[test]
+fn fuzz_tum_rgb_and_groundtruth_lists() {
+    fuzz_tum(ITERS);
+}
+
+#[test]
+fn fuzz_model_file_bytes() {
+    fuzz_model(ITERS);
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_native_long() {
+    fuzz_native(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_nerfstudio_long() {
+    fuzz_nerfstudio(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_tum_long() {
+    fuzz_tum(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_model_long() {
+    fuzz_model(long_iters());
+}

@@ -1,0 +1,335 @@
+//! Issue 6 through the real binary: degenerate scans (no depth, zero,
+//! saturated and 1 mm depth, one frame, duplicate poses, pure rotation,
+//! extreme intrinsics), extreme scene scales, and nothing lost (corrupted
+//! model files are rejected, a failed fit leaves an existing model intact).
+//!
+//! Each degenerate scan must give either a clean refusal (non-zero exit, one
+//! `error:` message, no panic) or a model whose every parameter is finite.
+
+use nerflabel::evaluate::score_holdout;
+use nerflabel::nerf::model_file::Model;
+use nerflabel::rng::Rng;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+}
+
+/// A small clean fixture scan `dir/name` (80x60, `frames` frames).
+fn fixture(dir: &Path, name: &str, frames: u32, extra: &[&str]) -> PathBuf {
+    let out = dir.join(name);
+    let frames = frames.to_string();
+    let o = bin()
+        .args(["fixture", "--scene", "small", "--width", "80", "--height", "60", "--frames", &frames, "--clean"])
+        .args(extra)
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "fixture: {}", String::from_utf8_lossy(&o.stderr));
+    out
+}
+
+fn fit(scan: &Path, model: &Path, steps: u32) -> Output {
+    bin()
+        .arg("fit")
+        .arg(scan)
+        .args(["--steps", &steps.to_string(), "--holdout", "0", "--seed", "1", "--model"])
+        .arg(model)
+        .output()
+        .unwrap()
+}
+
+/// Every parameter and occupancy density of the model is finite.
+fn assert_model_finite(model: &Model, what: &str) {
+    let f = &model.field;
+    let sections: [(&str, &[f32]); 4] = [
+        ("grid", &f.grid.params),
+        ("density MLP", &f.density.params),
+        ("colour MLP", &f.color.params),
+        ("occupancy", model.occupancy.densities()),
+    ];
+    for (name, params) in sections {
+        assert!(!params.is_empty() || name == "occupancy", "{what}: empty {name}");
+        if let Some(bad) = params.iter().find(|v| !v.is_finite()) {
+            panic!("{what}: {name} holds {bad}");
+        }
+    }
+}
+
+/// Every number in a JSON report is finite (serde_json writes NaN as null).
+fn assert_report_finite(path: &Path, what: &str) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    fn walk(v: &serde_json::Value, at: &str, what: &str) {
+        match v {
+            serde_json::Value::Number(n) => assert!(n.as_f64().is_some_and(f64::is_finite), "{what}: {at} = {n}"),
+            serde_json::Value::Null => panic!("{what}: {at} is null (NaN?)"),
+            serde_json::Value::Array(a) => a.iter().enumerate().for_each(|(i, x)| walk(x, &format!("{at}[{i}]"), what)),
+            serde_json::Value::Object(o) => o.iter().for_each(|(k, x)| walk(x, &format!("{at}.{k}"), what)),
+            _ => {}
+        }
+    }
+    walk(&json, "report", what);
+}
+
+/// What a fit on a degenerate scan did.
+#[derive(Debug)]
+enum Outcome {
+    Fitted,
+    /// The error message (printed with --nocapture for the docs).
+    Refused(#[allow(dead_code)] String),
+}
+
+/// Fit `scan`; accept a clean refusal or a finite model, fail on anything else.
+fn fit_degenerate(scan: &Path, steps: u32, what: &str) -> Outcome {
+    let model_path = scan.join("model.nlf");
+    let o = fit(scan, &model_path, steps);
+    let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!stderr.contains("panicked"), "{what}: panic\n{stderr}");
+    if o.status.success() {
+        let model = Model::load(&model_path).unwrap_or_else(|e| panic!("{what}: model does not load: {e}"));
+        assert_model_finite(&model, what);
+        assert_report_finite(&model_path.with_file_name("fit_report.json"), what);
+        Outcome::Fitted
+    } else {
+        assert_ne!(o.status.code(), Some(101), "{what}: exit code of a panic\n{stderr}");
+        assert!(stderr.trim_start().starts_with("error:"), "{what}: no error message\n{stderr}");
+        assert_eq!(stderr.matches("error:").count(), 1, "{what}: more than one message\n{stderr}");
+        assert!(!model_path.exists(), "{what}: a refused fit left a model behind");
+        Outcome::Refused(stderr)
+    }
+}
+
+fn frame_files(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+    v.sort();
+    v
+}
+
+/// Rewrite every depth PNG of a native scan with `f(old value)`.
+fn map_depth(scan: &Path, f: impl Fn(u16) -> u16) {
+    for p in frame_files(&scan.join("depth")) {
+        let mut img = image::open(&p).unwrap().to_luma16();
+        for px in img.pixels_mut() {
+            px.0[0] = f(px.0[0]);
+        }
+        img.save(&p).unwrap();
+    }
+}
+
+fn read_pose(p: &Path) -> [[f64; 4]; 4] {
+    let nums: Vec<f64> = std::fs::read_to_string(p).unwrap().split_whitespace().map(|s| s.parse().unwrap()).collect();
+    let mut m = [[0.0; 4]; 4];
+    for (i, v) in nums.iter().enumerate().take(16) {
+        m[i / 4][i % 4] = *v;
+    }
+    m
+}
+
+fn write_pose(p: &Path, m: &[[f64; 4]; 4]) {
+    let text: String = m.iter().map(|r| format!("{:.17} {:.17} {:.17} {:.17}\n", r[0], r[1], r[2], r[3])).collect();
+    std::fs::write(p, text).unwrap();
+}
+
+fn write_intrinsics(scan: &Path, fx: f64, fy: f64, cx: f64, cy: f64) {
+    std::fs::write(scan.join("intrinsics.txt"), format!("{fx} 0 {cx}\n0 {fy} {cy}\n0 0 1\n")).unwrap();
+}
+
+#[test]
+fn scan_without_any_depth_fits_photometrically() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "nodepth", 6, &[]);
+    std::fs::remove_dir_all(scan.join("depth")).unwrap();
+    let model_path = scan.join("model.nlf");
+    let o = fit(&scan, &model_path, 30);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let model = Model::load(&model_path).unwrap();
+    assert_model_finite(&model, "no depth");
+    assert_report_finite(&scan.join("fit_report.json"), "no depth");
+}
+
+#[test]
+fn all_zero_depth_is_refused_or_fits_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "zero", 6, &[]);
+    map_depth(&scan, |_| 0);
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "all-zero depth"));
+}
+
+#[test]
+fn saturated_65535_depth_is_refused_or_fits_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "sat", 6, &[]);
+    map_depth(&scan, |d| if d > 0 { 65535 } else { 0 });
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "65535 depth"));
+}
+
+#[test]
+fn one_millimetre_depth_is_refused_or_fits_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "mm", 6, &[]);
+    map_depth(&scan, |d| if d > 0 { 1 } else { 0 });
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "1 mm depth"));
+}
+
+#[test]
+fn single_frame_is_refused_or_fits_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "one", 3, &[]);
+    for sub in ["rgb", "depth", "pose"] {
+        for p in frame_files(&scan.join(sub)).into_iter().skip(1) {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "single frame"));
+}
+
+#[test]
+fn duplicate_poses_are_refused_or_fit_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "dup", 6, &[]);
+    let poses = frame_files(&scan.join("pose"));
+    let first = std::fs::read(&poses[0]).unwrap();
+    for p in &poses[1..] {
+        std::fs::write(p, &first).unwrap();
+    }
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "duplicate poses"));
+}
+
+#[test]
+fn pure_rotation_is_refused_or_fits_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = fixture(dir.path(), "rot", 6, &[]);
+    let poses = frame_files(&scan.join("pose"));
+    // World-to-camera [R | t]: centre C = -R^T t; keep R, set t = -R C0.
+    let m0 = read_pose(&poses[0]);
+    let c0: [f64; 3] = std::array::from_fn(|j| -(0..3).map(|i| m0[i][j] * m0[i][3]).sum::<f64>());
+    for p in &poses {
+        let mut m = read_pose(p);
+        for i in 0..3 {
+            m[i][3] = -(0..3).map(|j| m[i][j] * c0[j]).sum::<f64>();
+        }
+        write_pose(p, &m);
+    }
+    // Check the edit: every centre is now c0.
+    for p in &poses {
+        let m = read_pose(p);
+        for j in 0..3 {
+            let c = -(0..3).map(|i| m[i][j] * m[i][3]).sum::<f64>();
+            assert!((c - c0[j]).abs() < 1e-9);
+        }
+    }
+    eprintln!("{:?}", fit_degenerate(&scan, 20, "pure rotation"));
+}
+
+#[test]
+fn extreme_intrinsics_are_refused_or_fit_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (80.0, 60.0);
+    let cases = [
+        ("wide fx = 0.2 w", 0.2 * w, 0.2 * w, 40.0, 30.0),
+        ("narrow fx = 20 w", 20.0 * w, 20.0 * w, 40.0, 30.0),
+        ("fx != fy", 60.0, 140.0, 40.0, 30.0),
+        ("principal point off centre", 67.0, 67.0, 1.45 * w, -0.45 * h),
+    ];
+    for (i, (what, fx, fy, cx, cy)) in cases.into_iter().enumerate() {
+        let scan = fixture(dir.path(), &format!("k{i}"), 4, &[]);
+        write_intrinsics(&scan, fx, fy, cx, cy);
+        eprintln!("{what}: {:?}", fit_degenerate(&scan, 20, what));
+    }
+}
+
+/// Fit the small scene at `scale` (nerfstudio layout so depth keeps its
+/// units) and return depth MAE on held-out views divided by the scale.
+fn scaled_relative_depth_error(dir: &Path, scale: &str) -> f64 {
+    let scan = fixture(dir, &format!("scale{scale}"), 8, &["--scale", scale, "--layout", "nerfstudio", "--holdout", "2"]);
+    let model_path = scan.join("model.nlf");
+    let o = fit(&scan, &model_path, 60);
+    assert!(o.status.success(), "scale {scale}: {}", String::from_utf8_lossy(&o.stderr));
+    let model = Model::load(&model_path).unwrap();
+    assert_model_finite(&model, &format!("scale {scale}"));
+    assert_report_finite(&scan.join("fit_report.json"), &format!("scale {scale}"));
+    let score = score_holdout(&model, &scan).unwrap();
+    eprintln!("scale {scale}: {score:?}");
+    assert!(score.psnr.is_finite() && score.depth_mae_m.is_finite(), "scale {scale}: {score:?}");
+    score.depth_mae_m / scale.parse::<f64>().unwrap()
+}
+
+#[test]
+fn tiny_and_huge_scene_scales_fit_without_nan_and_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = scaled_relative_depth_error(dir.path(), "0.01");
+    let large = scaled_relative_depth_error(dir.path(), "100");
+    eprintln!("relative depth MAE: scale 0.01 {small:.5}, scale 100 {large:.5}");
+    // Bounds, steps and loss widths follow the scale: the same scene gives the
+    // same error relative to its size (60 steps is far from converged, so the
+    // error itself is large; only the agreement is tested).
+    // Measured: 1.82557 and 1.82555 (the fit is scale-invariant up to rounding).
+    let (lo, hi) = (small.min(large), small.max(large));
+    assert!(hi <= 1.02 * lo, "relative depth MAE differs: 0.01 -> {small}, 100 -> {large}");
+}
+
+/// A real model file, fitted for a few steps.
+fn small_model(dir: &Path) -> (PathBuf, Vec<u8>) {
+    let scan = fixture(dir, "m", 4, &[]);
+    let model_path = dir.join("model.nlf");
+    let o = fit(&scan, &model_path, 3);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bytes = std::fs::read(&model_path).unwrap();
+    (model_path, bytes)
+}
+
+#[test]
+fn truncated_or_bit_flipped_model_is_rejected_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, bytes) = small_model(dir.path());
+    let bad = dir.path().join("damaged.nlf");
+    let mut rng = Rng::new(21, 0);
+    let mut cuts: Vec<usize> = vec![0, 1, 7, 8, 12, 16, 19, 20, 21, bytes.len() - 4, bytes.len() - 1];
+    cuts.extend((0..40).map(|_| rng.below(bytes.len() as u64) as usize));
+    for cut in cuts {
+        std::fs::write(&bad, &bytes[..cut]).unwrap();
+        let err = match std::panic::catch_unwind(|| Model::load(&bad)) {
+            Ok(Err(e)) => e.to_string(),
+            Ok(Ok(_)) => panic!("truncated at {cut} of {} bytes: accepted", bytes.len()),
+            Err(_) => panic!("truncated at {cut}: Model::load panicked"),
+        };
+        assert!(err.contains("damaged.nlf") && !err.contains('\n'), "cut {cut}: {err}");
+    }
+    for _ in 0..60 {
+        let mut b = bytes.clone();
+        let i = rng.below(b.len() as u64) as usize;
+        b[i] ^= 1 << rng.below(8);
+        std::fs::write(&bad, &b).unwrap();
+        let err = match std::panic::catch_unwind(|| Model::load(&bad)) {
+            Ok(Err(e)) => e.to_string(),
+            Ok(Ok(_)) => panic!("bit flip at byte {i}: accepted"),
+            Err(_) => panic!("bit flip at byte {i}: Model::load panicked"),
+        };
+        assert!(err.contains("damaged.nlf") && !err.contains('\n'), "flip {i}: {err}");
+    }
+}
+
+#[test]
+fn failed_fit_leaves_the_existing_model_untouched() {
+    let dir = tempfile::tempdir().unwrap();
+    let (model_path, before) = small_model(dir.path());
+    // A scan that fails to load: a pose file that is not a matrix.
+    let broken = fixture(dir.path(), "broken", 4, &[]);
+    std::fs::write(frame_files(&broken.join("pose"))[1].as_path(), "not a pose\n").unwrap();
+    let o = fit(&broken, &model_path, 5);
+    assert!(!o.status.success(), "the broken scan fitted");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked") && stderr.contains("000001"), "{stderr}");
+    assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
+    // A scan whose intrinsics are invalid (zero focal length).
+    let bad_k = fixture(dir.path(), "badk", 4, &[]);
+    write_intrinsics(&bad_k, 0.0, 0.0, 40.0, 30.0);
+    let o = fit(&bad_k, &model_path, 5);
+    assert!(!o.status.success(), "zero focal length fitted");
+    assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
+    // No temp files left beside the model.
+    let leftovers: Vec<_> = frame_files(dir.path()).into_iter().filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json")).collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}

@@ -7,6 +7,7 @@ mod fixture;
 mod fit;
 mod info;
 mod report;
+mod synth;
 
 use clap::{Args, Parser, Subcommand};
 use nerflabel::scan::{Layout, LoadOptions};
@@ -260,6 +261,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Fixture(args) => fixture::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Label(_) => anyhow::bail!("`label` is not available in this build yet"),
-        Command::Synth(_) => anyhow::bail!("`synth` is not available in this build yet"),
+        Command::Synth(args) => synth::run(&args),
     }
 }

@@ -112,11 +112,13 @@ pub struct LabelOptions {
     /// Fused source: sensor depth is kept where it is within this many finest
     /// grid cells of the rendered depth.
     pub fused_tolerance_cells: f64,
+    /// Accumulated opacity at which a rendered ray has reached its surface.
+    pub surface_opacity: f32,
 }
 
 impl Default for LabelOptions {
     fn default() -> Self {
-        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 4.0 }
+        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 1.0, surface_opacity: 0.5 }
     }
 }
 

@@ -201,8 +201,10 @@ print(n)
 "#;
     let out = std::process::Command::new("python3").args(["-c", script]).arg(coco).output().unwrap();
     assert!(out.status.success(), "pycocotools rejected coco.json: {}", String::from_utf8_lossy(&out.stderr));
-    let n: usize = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let n: usize = stdout.lines().last().unwrap_or_default().trim().parse().unwrap();
     assert!(n > 0);
+    eprintln!("pycocotools agrees on the area and bbox of {n} annotations");
 }
 
 #[test]

@@ -67,6 +67,31 @@ fn nerf_labels_match_ground_truth_and_beat_sensor_on_the_object_without_depth() 
     assert!(sensor.per_object()[&can] < 0.1, "the can has no sensor depth");
     assert!(nerf.per_object()[&can] > 0.5, "nerf must recover the can: {}", nerf.per_object()[&can]);
     assert!(fused.per_object()[&can] > 0.5, "fused falls back to the rendering on the can");
+
+    // Full depth: every pixel rendered; compare with the exact depth.
+    let unit = nerflabel::fixture::read_meta(dir.path()).unwrap().gt_depth_unit;
+    let labeler = Labeler::new(&boxes, Some(&model), LabelOptions { source: DepthSource::Nerf, full_depth: true, ..LabelOptions::default() }).unwrap();
+    let (mut errors, mut surface, mut found) = (Vec::new(), 0, 0);
+    for frame in scan.frames.iter().step_by(6) {
+        let label = labeler.label_frame(frame);
+        let depth = label.depth_m.as_ref().unwrap();
+        assert_eq!(depth.len(), 160 * 120);
+        let exact = read_ids(&dir.path().join("gt/depth").join(format!("{}.png", frame.name))).2;
+        for (&d, &e) in depth.iter().zip(&exact) {
+            if e > 0 {
+                surface += 1;
+                if d > 0.0 {
+                    found += 1;
+                    errors.push((d as f64 - e as f64 * unit).abs());
+                }
+            }
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let median = errors[errors.len() / 2];
+    eprintln!("full depth: {found}/{surface} pixels with a surface, median error {:.1} mm", median * 1000.0);
+    assert!(found as f64 > 0.95 * surface as f64, "completed depth covers the scene: {found}/{surface}");
+    assert!(median < 0.03, "median depth error {median} m");
 }
 
 /// Reference COCO RLE string decoder (spec: 5-bit groups, 0x20 = more, 0x10 = sign,

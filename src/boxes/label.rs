@@ -15,7 +15,8 @@ use crate::nerf::camera::LocalCamera;
 use crate::nerf::fit::render_options;
 use crate::nerf::march::ray_interval;
 use crate::nerf::model_file::Model;
-use crate::nerf::render::{render_rays, RayOutput, RenderOptions, RenderRay, RenderWorkspace};
+use crate::nerf::render::{RenderOptions, RenderRay};
+use super::surface::{first_crossings, SurfaceWorkspace};
 use crate::nerf::view::ViewRenderer;
 use crate::scan::Frame;
 use glam::{DMat3, DMat4};
@@ -104,22 +105,22 @@ impl<'a> Labeler<'a> {
         self.fused_tolerance_m
     }
 
-    /// Label frames in parallel (one frame per task); `progress` hears the
+    /// Label frames in parallel; `progress` hears the
     /// number of frames finished so far.
     pub fn label_frames(&self, frames: &[&Frame], progress: &(dyn Fn(usize) + Sync)) -> Vec<FrameLabel> {
         let done = AtomicUsize::new(0);
         frames
             .par_iter()
-            .map_init(RenderWorkspace::default, |ws, frame| {
-                let label = self.label_frame(frame, ws);
+            .map(|frame| {
+                let label = self.label_frame(frame);
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1);
                 label
             })
             .collect()
     }
 
-    /// Label one frame on the calling thread.
-    pub fn label_frame(&self, frame: &Frame, ws: &mut RenderWorkspace) -> FrameLabel {
+    /// Label one frame (its rays are rendered in parallel packets).
+    pub fn label_frame(&self, frame: &Frame) -> FrameLabel {
         let (w, h) = frame.size();
         let c2w = frame.camera_to_world;
         let k = frame.intrinsics;
@@ -160,7 +161,7 @@ impl<'a> Labeler<'a> {
 
         let rendered = match self.options.source {
             DepthSource::Sensor => None,
-            DepthSource::Nerf | DepthSource::Fused => Some(self.render_jobs(frame, &jobs, ws)),
+            DepthSource::Nerf | DepthSource::Fused => Some(self.render_jobs(frame, &jobs)),
         };
         let sensor = |j: &Job| frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64);
         let mut mask = vec![0u16; w as usize * h as usize];
@@ -206,8 +207,8 @@ impl<'a> Labeler<'a> {
         }
     }
 
-    /// Rendered z-depth in metres (0 = no surface) for every job.
-    fn render_jobs(&self, frame: &Frame, jobs: &[Job], ws: &mut RenderWorkspace) -> Vec<f64> {
+    /// Rendered z-depth in metres (0 = no surface) for every job, packets in parallel.
+    fn render_jobs(&self, frame: &Frame, jobs: &[Job]) -> Vec<f64> {
         let mut depth = vec![0.0; jobs.len()];
         let (Some(renderer), Some(opts)) = (&self.renderer, &self.render) else {
             return depth;
@@ -216,40 +217,40 @@ impl<'a> Labeler<'a> {
         let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
         let scale = renderer.transform.scale;
         let near = opts.rule.min_step;
-        let mut rays = Vec::with_capacity(PACKET);
-        let mut index = Vec::with_capacity(PACKET);
-        let mut t_per_z = Vec::with_capacity(PACKET);
-        let mut out = Vec::with_capacity(PACKET);
-        for (chunk_no, chunk) in jobs.chunks(PACKET).enumerate() {
-            rays.clear();
-            index.clear();
-            t_per_z.clear();
-            for (i, j) in chunk.iter().enumerate() {
-                let (ray, norm) = camera.ray(j.x as f32, j.y as f32);
-                let Some((t0, t1)) = ray_interval(&ray, near) else { continue };
-                // World metres along the unit ray -> local units along the unit local ray.
-                let t_max = match (self.options.full_depth, j.box_far) {
-                    (false, Some(far)) => t1.min((far * scale) as f32),
-                    _ => t1,
-                };
-                if t_max > t0 {
-                    rays.push(RenderRay { ray, t_min: t0, t_max });
-                    index.push(chunk_no * PACKET + i);
-                    t_per_z.push(norm);
-                }
-            }
-            out.clear();
-            out.resize(rays.len(), RayOutput::default());
-            render_rays(&renderer.model.field, &renderer.model.occupancy, &rays, opts, ws, &mut out);
-            for ((o, &i), &norm) in out.iter().zip(&index).zip(&t_per_z) {
-                if let Some(t) = o.depth_median {
-                    let z = t as f64 / norm as f64 / scale;
-                    if z.is_finite() && z > 0.0 {
-                        depth[i] = z;
+        let model = renderer.model;
+        jobs.par_chunks(PACKET).zip(depth.par_chunks_mut(PACKET)).for_each_init(
+            || (SurfaceWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
+            |(ws, rays, index, out), (chunk, depth)| {
+                rays.clear();
+                index.clear();
+                for (i, j) in chunk.iter().enumerate() {
+                    let (ray, norm) = camera.ray(j.x as f32, j.y as f32);
+                    let Some((t0, t1)) = ray_interval(&ray, near) else { continue };
+                    // World metres along the unit ray -> local units along the unit local ray.
+                    let t_max = match (self.options.full_depth, j.box_far) {
+                        (false, Some(far)) => t1.min((far * scale) as f32),
+                        _ => t1,
+                    };
+                    if t_max > t0 {
+                        rays.push(RenderRay { ray, t_min: t0, t_max });
+                        index.push((i, norm));
                     }
                 }
-            }
-        }
+                out.clear();
+                out.resize(rays.len(), None);
+                let threshold = self.options.surface_opacity;
+                first_crossings(&model.field, &model.occupancy, rays, &opts.rule, threshold, opts.max_samples_per_ray, ws, out);
+                for (o, &(i, norm)) in out.iter().zip(index.iter()) {
+                    if let Some(t) = *o {
+                        // Distance along the unit local ray -> local z -> metres.
+                        let z = t as f64 / norm as f64 / scale;
+                        if z.is_finite() && z > 0.0 {
+                            depth[i] = z;
+                        }
+                    }
+                }
+            },
+        );
         depth
     }
 }

@@ -13,13 +13,17 @@
 pub mod classify;
 pub mod coco;
 pub mod label;
+pub mod metrics;
 pub mod options;
+pub mod output;
 pub mod parse;
 pub mod project;
 pub mod rle;
+pub mod surface;
 
 pub use classify::BoxClassifier;
 pub use label::{FrameLabel, InstanceLabel, Labeler};
+pub use output::{write_labels, LabelSummary, OutputOptions};
 pub use options::{DepthSource, FrameRange, LabelError, LabelOptions, DEFAULT_SOURCE};
 pub use parse::{parse_boxes, read_boxes, Box3, BoxError, BoxSet};
 pub use project::{project_box, PixelRect};

@@ -38,7 +38,7 @@ impl DepthSource {
 }
 
 /// The default source: the most accurate in the benchmark (README table).
-pub const DEFAULT_SOURCE: DepthSource = DepthSource::Nerf;
+pub const DEFAULT_SOURCE: DepthSource = DepthSource::Fused;
 
 impl fmt::Display for DepthSource {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -107,16 +107,20 @@ impl FromStr for FrameRange {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LabelOptions {
     pub source: DepthSource,
-    /// Render completed depth for every pixel (else only pixels that can meet a box).
+    /// Depth for every pixel: rendered (completed) with the nerf and fused
+    /// sources, the scan's own depth with the sensor source. Otherwise only
+    /// pixels whose ray can meet a box are rendered.
     pub full_depth: bool,
     /// Fused source: sensor depth is kept where it is within this many finest
     /// grid cells of the rendered depth.
     pub fused_tolerance_cells: f64,
+    /// Accumulated opacity at which a rendered ray has reached its surface.
+    pub surface_opacity: f32,
 }
 
 impl Default for LabelOptions {
     fn default() -> Self {
-        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 4.0 }
+        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 1.0, surface_opacity: 0.5 }
     }
 }
 

@@ -1,0 +1,278 @@
+//! Labelling accuracy and speed: sensor vs nerf vs fused depth sources
+//! against exact ground-truth masks of a generated fixture (default: the
+//! tabletop scene, 640x480, 120 frames), or against the silhouettes of
+//! `reference_box.json` on the real cabinet scan (frames 1-57).
+//!
+//! Run: `cargo run --release --example bench_label -- [FIXTURE_DIR] [--fit-seconds S]`
+//! Options: `--scene tabletop|small|cabinet`, `--size WxH`, `--frames N`,
+//! `--model PATH` (load if present, else fit and save there),
+//! `--cabinet [SCAN]` (real scan; default ../shared/data/scans/cabinet),
+//! `--fused-cells C` (fused agreement tolerance in finest grid cells),
+//! `--clean` (generate the fixture without sensor corruptions),
+//! `--opacity A` (accumulated opacity that marks the rendered surface),
+//! `--depth-errors` (fixture: rendered depth against exact depth inside each object),
+//! `--dump DIR` (error images of every 10th frame: green = right, red =
+//! labelled but not in the reference, blue = missed, yellow = wrong id).
+
+use nerflabel::boxes::metrics::MaskScores;
+use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
+use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
+use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::model_file::Model;
+use nerflabel::scan::{load, Frame, LoadOptions, Scan};
+use glam::DMat3;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+type Error = Box<dyn std::error::Error>;
+
+struct Args {
+    dir: PathBuf,
+    fit_seconds: f64,
+    scene: SceneKind,
+    size: (u32, u32),
+    frames: usize,
+    model: Option<PathBuf>,
+    cabinet: Option<PathBuf>,
+    fused_cells: f64,
+    clean: bool,
+    dump: Option<PathBuf>,
+    depth_errors: bool,
+    opacity: f32,
+}
+
+fn shared_data() -> PathBuf {
+    std::env::var_os("NERFLABEL_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")))
+}
+
+fn parse_args() -> Result<Args, Error> {
+    let mut args = Args {
+        dir: std::env::temp_dir().join("nerflabel-bench-label-tabletop"),
+        fit_seconds: 60.0,
+        scene: SceneKind::Tabletop,
+        size: (640, 480),
+        frames: 120,
+        model: None,
+        cabinet: None,
+        fused_cells: LabelOptions::default().fused_tolerance_cells,
+        clean: false,
+        dump: None,
+        depth_errors: false,
+        opacity: LabelOptions::default().surface_opacity,
+    };
+    let mut it = std::env::args().skip(1).peekable();
+    while let Some(a) = it.next() {
+        let mut value = |name: &str| it.next().ok_or_else(|| format!("{name} needs a value"));
+        match a.as_str() {
+            "--fit-seconds" => args.fit_seconds = value("--fit-seconds")?.parse()?,
+            "--scene" => args.scene = value("--scene")?.parse().map_err(|e| format!("{e:?}"))?,
+            "--frames" => args.frames = value("--frames")?.parse()?,
+            "--model" => args.model = Some(value("--model")?.into()),
+            "--clean" => args.clean = true,
+            "--opacity" => args.opacity = value("--opacity")?.parse()?,
+            "--depth-errors" => args.depth_errors = true,
+            "--dump" => args.dump = Some(value("--dump")?.into()),
+            "--fused-cells" => args.fused_cells = value("--fused-cells")?.parse()?,
+            "--size" => {
+                let v = value("--size")?;
+                let (w, h) = v.split_once('x').ok_or("--size WxH")?;
+                args.size = (w.parse()?, h.parse()?);
+            }
+            "--cabinet" => {
+                let next_is_path = it.peek().is_some_and(|p| !p.starts_with("--"));
+                args.cabinet = Some(if next_is_path { it.next().unwrap_or_default().into() } else { shared_data().join("scans/cabinet") });
+            }
+            other if !other.starts_with("--") => args.dir = other.into(),
+            other => return Err(format!("unknown option {other}").into()),
+        }
+    }
+    Ok(args)
+}
+
+/// Fit (or load) the model of a scan.
+fn model_for(scan: &Scan, path: &Path, seconds: f64) -> Result<Model, Error> {
+    if path.is_file() {
+        eprintln!("loading {}", path.display());
+        return Ok(Model::load(path)?);
+    }
+    eprintln!("fitting for {seconds} s ...");
+    let opts = FitOptions { time: Some(seconds), holdout_every: 0, ..FitOptions::default() };
+    let t = Instant::now();
+    let out = fit(scan, &opts, &AtomicBool::new(false), &mut |e| {
+        if let FitEvent::Prepared { train_views, .. } = e {
+            eprintln!("  {train_views} training views");
+        }
+    })?;
+    eprintln!("  fitted {} steps in {:.1} s", out.model.header.steps, t.elapsed().as_secs_f64());
+    out.model.save(path)?;
+    Ok(out.model)
+}
+
+fn read_mask(path: &Path) -> Result<Vec<u16>, Error> {
+    Ok(match image::open(path)? {
+        image::DynamicImage::ImageLuma8(m) => m.into_raw().into_iter().map(u16::from).collect(),
+        image::DynamicImage::ImageLuma16(m) => m.into_raw(),
+        other => return Err(format!("{}: unexpected colour type {:?}", path.display(), other.color()).into()),
+    })
+}
+
+/// Silhouette of a box set in a frame: pixels whose centre ray meets a box.
+fn silhouette(frame: &Frame, boxes: &BoxSet) -> Vec<u16> {
+    let classifier = BoxClassifier::new(boxes);
+    let (w, h) = frame.size();
+    let origin = frame.camera_to_world.w_axis.truncate();
+    let rot = DMat3::from_mat4(frame.camera_to_world);
+    let mut mask = vec![0u16; (w * h) as usize];
+    for y in 0..h {
+        for x in 0..w {
+            let dir = rot * frame.intrinsics.unproject(x as f64, y as f64);
+            if classifier.ray_interval(origin, dir).is_some() {
+                mask[(y * w + x) as usize] = 1;
+            }
+        }
+    }
+    mask
+}
+
+/// Rendered (full-frame) depth against the exact depth on each object's ground-truth pixels.
+fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], truth: &[(usize, Vec<u16>)], surface_opacity: f32) -> Result<(), Error> {
+    let unit = nerflabel::fixture::read_meta(dir)?.gt_depth_unit;
+    let opts = LabelOptions { source: DepthSource::Nerf, full_depth: true, surface_opacity, ..LabelOptions::default() };
+    let labeler = Labeler::new(boxes, Some(model), opts)?;
+    let labels = labeler.label_frames(frames, &|_| {});
+    let mut per: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
+    for (l, (_, gt)) in labels.iter().zip(truth) {
+        let exact = read_mask(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;
+        let depth = l.depth_m.as_ref().ok_or("no depth")?;
+        for i in 0..gt.len() {
+            if gt[i] != 0 {
+                let z = exact[i] as f64 * unit;
+                per.entry(gt[i]).or_default().push(if depth[i] > 0.0 { depth[i] as f64 - z } else { f64::NAN });
+            }
+        }
+    }
+    println!("rendered depth minus exact depth on object pixels (mm): none%  p5  p25  median  p75  p95  |err|>5mm%");
+    for (id, mut e) in per {
+        let n = e.len();
+        let none = e.iter().filter(|v| v.is_nan()).count();
+        e.retain(|v| !v.is_nan());
+        e.sort_by(f64::total_cmp);
+        let q = |f: f64| e.get(((e.len() as f64 - 1.0) * f) as usize).map_or(f64::NAN, |v| v * 1000.0);
+        let big = e.iter().filter(|v| v.abs() > 0.005).count();
+        println!(
+            "  {id}: {:5.1} {:7.1} {:6.1} {:6.1} {:6.1} {:7.1} {:5.1}",
+            100.0 * none as f64 / n as f64, q(0.05), q(0.25), q(0.5), q(0.75), q(0.95), 100.0 * big as f64 / n as f64
+        );
+    }
+    Ok(())
+}
+
+/// Error images of every 10th frame.
+fn dump_errors(dir: &Path, source: DepthSource, labels: &[nerflabel::boxes::FrameLabel], truth: &[(usize, Vec<u16>)]) -> Result<(), Error> {
+    std::fs::create_dir_all(dir)?;
+    for (l, (_, gt)) in labels.iter().zip(truth).step_by(10) {
+        let rgb: Vec<u8> = l
+            .mask
+            .iter()
+            .zip(gt)
+            .flat_map(|(&p, &t)| match (p, t) {
+                (0, 0) => [0, 0, 0],
+                (p, t) if p == t => [0, 160, 0],
+                (p, 0) if p != 0 => [255, 0, 0],
+                (0, _) => [0, 80, 255],
+                _ => [255, 255, 0],
+            })
+            .collect();
+        let img = image::RgbImage::from_raw(l.width, l.height, rgb).ok_or("image size")?;
+        img.save(dir.join(format!("{}_{}.png", source.name(), l.name)))?;
+    }
+    Ok(())
+}
+
+fn main() -> Result<(), Error> {
+    let args = parse_args()?;
+    let (scan, boxes, truth, model_path): (Scan, BoxSet, Vec<(usize, Vec<u16>)>, PathBuf) = match &args.cabinet {
+        Some(root) => {
+            let scan = load(root, &LoadOptions::default())?;
+            let boxes = read_boxes(&root.join("boxes.json"))?;
+            let reference = read_boxes(&root.join("reference_box.json"))?;
+            let truth = scan
+                .frames
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| (1..=57).contains(&f.id))
+                .map(|(i, f)| (i, silhouette(f, &reference)))
+                .collect();
+            let model = args.model.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("nerflabel-bench-cabinet-{}s.nlf", args.fit_seconds)));
+            (scan, boxes, truth, model)
+        }
+        None => {
+            if !args.dir.join("gt/meta.json").is_file() {
+                let mut o = FixtureOptions::new(args.scene);
+                (o.width, o.height, o.frames) = (args.size.0, args.size.1, Some(args.frames));
+                if args.clean {
+                    o.corruptions = nerflabel::fixture::Corruptions::none();
+                }
+                eprintln!("generating {} fixture in {}", args.scene, args.dir.display());
+                generate(&args.dir, &o)?;
+            }
+            let scan = load(&args.dir, &LoadOptions::default())?;
+            let boxes = read_boxes(&args.dir.join("boxes.json"))?;
+            let truth = scan
+                .frames
+                .iter()
+                .enumerate()
+                .map(|(i, f)| Ok((i, read_mask(&args.dir.join("gt/masks").join(format!("{}.png", f.name)))?)))
+                .collect::<Result<_, Error>>()?;
+            let model = args.model.clone().unwrap_or_else(|| args.dir.join(format!("nerflabel/bench-{}s.nlf", args.fit_seconds)));
+            (scan, boxes, truth, model)
+        }
+    };
+    let model = model_for(&scan, &model_path, args.fit_seconds)?;
+    let frames: Vec<&Frame> = truth.iter().map(|(i, _)| &scan.frames[*i]).collect();
+    let (w, h) = scan.size();
+    println!(
+        "{} frames {w}x{h}, {} boxes, model {} steps; {} threads",
+        frames.len(),
+        boxes.boxes.len(),
+        model.header.steps,
+        rayon::current_num_threads()
+    );
+    let mut header = format!("{:<7} {:>8} {:>8} {:>7}", "source", "mIoU/frm", "box IoU", "frm/s");
+    for b in &boxes.boxes {
+        header.push_str(&format!(" {:>9}", format!("{}:{}", b.instance_id, b.label).chars().take(9).collect::<String>()));
+    }
+    println!("{header}   (per-object IoU aggregated over frames)");
+    if args.depth_errors && args.cabinet.is_none() {
+        depth_errors(&args.dir, &boxes, &model, &frames, &truth, args.opacity)?;
+    }
+    for source in DepthSource::ALL {
+        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, surface_opacity: args.opacity, ..LabelOptions::default() };
+        let labeler = Labeler::new(&boxes, Some(&model), opts)?;
+        if source == DepthSource::Fused {
+            eprintln!("fused tolerance {:.1} mm", labeler.fused_tolerance_m() * 1000.0);
+        }
+        let t = Instant::now();
+        let labels = labeler.label_frames(&frames, &|_| {});
+        let secs = t.elapsed().as_secs_f64();
+        let mut scores = MaskScores::default();
+        for (l, (_, gt)) in labels.iter().zip(&truth) {
+            scores.add(&l.mask, gt, l.width as usize);
+        }
+        if let Some(dir) = &args.dump {
+            dump_errors(dir, source, &labels, &truth)?;
+        }
+        let per = scores.per_object();
+        let mut line = format!("{:<7} {:>8.4} {:>8.4} {:>7.1}", source.name(), scores.mean_frame_iou(), scores.mean_box_iou(), frames.len() as f64 / secs);
+        for b in &boxes.boxes {
+            line.push_str(&format!(" {:>9.4}", per.get(&(b.instance_id as u16)).copied().unwrap_or(0.0)));
+        }
+        let rays: usize = labels.iter().map(|l| l.rendered_rays).sum();
+        line.push_str(&format!("   ({:.1} s, {:.1} % of pixels rendered)", secs, 100.0 * rays as f64 / (frames.len() * (w * h) as usize) as f64));
+        println!("{line}");
+    }
+    Ok(())
+}

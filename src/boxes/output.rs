@@ -1,0 +1,265 @@
+//! Write a labelling run into an output folder exactly as FORMATS.md
+//! section 3: `masks/`, `depth/` (full depth), `coco.json`, and with YOLO
+//! `labels/` and `classes.txt`. Everything is written into a staging folder
+//! inside the output folder and swapped in at the end, so a failed run keeps
+//! the previous outputs and a re-run never leaves a mix of old and new.
+
+use super::coco::{assemble, frame_record, yolo_classes, CocoInfo, FrameRecord};
+use super::label::{FrameLabel, Labeler};
+use super::options::{FrameRange, LabelError};
+use super::parse::BoxSet;
+use crate::atomic;
+use crate::scan::{Frame, Scan};
+use image::codecs::png::PngEncoder;
+use image::{ExtendedColorType, ImageEncoder};
+use rayon::prelude::*;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+/// Entries of the output folder a run owns; replaced as a whole, `coco.json` last.
+const OWNED: [&str; 5] = ["masks", "depth", "labels", "classes.txt", "coco.json"];
+
+/// What to write besides masks and COCO.
+#[derive(Clone, Debug, Default)]
+pub struct OutputOptions {
+    /// Only frames with ids in this range.
+    pub frames: Option<FrameRange>,
+    /// Also write YOLO `labels/<stem>.txt` and `classes.txt`.
+    pub yolo: bool,
+    /// Provenance for `coco.json` (`source` is filled in from the labeler).
+    pub info: CocoInfo,
+}
+
+/// What a run produced.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelSummary {
+    pub out: PathBuf,
+    pub frames: usize,
+    pub annotations: usize,
+    /// Per box (instance-id order): frames in which it got mask pixels.
+    pub frames_visible: Vec<usize>,
+    /// Fraction of all pixels whose ray meets a box (the part that was rendered).
+    pub box_pixel_fraction: f64,
+    /// Rays handed to the renderer.
+    pub rendered_rays: usize,
+    /// Non-fatal findings (boxes no frame sees, depth beyond 65.535 m).
+    pub warnings: Vec<String>,
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LabelError + '_ {
+    move |source| LabelError::Io { path: path.to_path_buf(), source }
+}
+
+/// Encode a single-channel PNG and write it atomically.
+fn write_png(path: &Path, bytes: &[u8], w: u32, h: u32, colour: ExtendedColorType) -> Result<(), LabelError> {
+    let mut png = Vec::new();
+    PngEncoder::new(&mut png)
+        .write_image(bytes, w, h, colour)
+        .map_err(|source| LabelError::Encode { path: path.to_path_buf(), source })?;
+    atomic::write_file(path, &png).map_err(io_err(path))
+}
+
+/// Instance mask: 8-bit when the box set has at most 255 boxes, else 16-bit.
+pub fn write_mask(path: &Path, mask: &[u16], w: u32, h: u32, sixteen_bit: bool) -> Result<(), LabelError> {
+    if sixteen_bit {
+        let bytes: Vec<u8> = mask.iter().flat_map(|v| v.to_ne_bytes()).collect();
+        write_png(path, &bytes, w, h, ExtendedColorType::L16)
+    } else {
+        let bytes: Vec<u8> = mask.iter().map(|&v| v.min(255) as u8).collect();
+        write_png(path, &bytes, w, h, ExtendedColorType::L8)
+    }
+}
+
+/// Depth in millimetres as 16-bit PNG (0 = no surface); returns how many
+/// depths beyond 65.535 m were written as 0.
+pub fn write_depth_mm(path: &Path, depth_m: &[f32], w: u32, h: u32) -> Result<usize, LabelError> {
+    let mut overflow = 0;
+    let bytes: Vec<u8> = depth_m
+        .iter()
+        .flat_map(|&z| {
+            let mm = (z as f64 * 1000.0).round();
+            let v = if !(mm > 0.0) {
+                0
+            } else if mm > u16::MAX as f64 {
+                overflow += 1;
+                0
+            } else {
+                mm as u16
+            };
+            v.to_ne_bytes()
+        })
+        .collect();
+    write_png(path, &bytes, w, h, ExtendedColorType::L16)?;
+    Ok(overflow)
+}
+
+/// The colour file of a frame relative to the scan folder, where a usual
+/// layout keeps it; the frame name with `.png` otherwise.
+fn rgb_file_name(scan: &Scan, frame: &Frame) -> String {
+    for dir in ["rgb", "images", "color"] {
+        for ext in ["png", "jpg", "jpeg"] {
+            let rel = format!("{dir}/{}.{ext}", frame.name);
+            if scan.root.join(&rel).is_file() {
+                return rel;
+            }
+        }
+    }
+    format!("{}.png", frame.name)
+}
+
+/// Per-frame results kept after the mask is written.
+struct Written {
+    record: FrameRecord,
+    visible: Vec<u32>,
+    in_view: Vec<u32>,
+    box_pixels: usize,
+    pixels: usize,
+    rendered_rays: usize,
+    depth_overflow: usize,
+}
+
+/// Label the selected frames of `scan` and write every output into `out`.
+pub fn write_labels(
+    out: &Path,
+    scan: &Scan,
+    boxes: &BoxSet,
+    labeler: &Labeler,
+    options: &OutputOptions,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<LabelSummary, LabelError> {
+    let frames: Vec<&Frame> = scan.frames.iter().filter(|f| options.frames.is_none_or(|r| r.contains(f.id))).collect();
+    if frames.is_empty() {
+        return Err(LabelError::NoFrames(options.frames.unwrap_or(FrameRange { start: None, end: None })));
+    }
+    fs::create_dir_all(out).map_err(io_err(out))?;
+    let staging = out.join(format!(".staging-{}", std::process::id()));
+    if staging.exists() {
+        fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
+    }
+    let result = stage(&staging, scan, boxes, labeler, options, &frames, progress).and_then(|summary| {
+        swap_in(out, &staging)?;
+        Ok(LabelSummary { out: out.to_path_buf(), ..summary })
+    });
+    if staging.exists() {
+        let _ = fs::remove_dir_all(&staging);
+    }
+    result
+}
+
+/// Write everything into `staging`.
+fn stage(
+    staging: &Path,
+    scan: &Scan,
+    boxes: &BoxSet,
+    labeler: &Labeler,
+    options: &OutputOptions,
+    frames: &[&Frame],
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<LabelSummary, LabelError> {
+    let sixteen_bit = boxes.boxes.len() > 255;
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let written: Vec<Written> = frames
+        .par_iter()
+        .map(|frame| {
+            let label: FrameLabel = labeler.label_frame(frame);
+            let (w, h) = (label.width, label.height);
+            write_mask(&staging.join("masks").join(format!("{}.png", label.name)), &label.mask, w, h, sixteen_bit)?;
+            let depth_overflow = match &label.depth_m {
+                Some(d) => write_depth_mm(&staging.join("depth").join(format!("{}.png", label.name)), d, w, h)?,
+                None => 0,
+            };
+            let record = frame_record(&label, boxes, rgb_file_name(scan, frame));
+            if options.yolo {
+                let path = staging.join("labels").join(format!("{}.txt", label.name));
+                atomic::write_file(&path, record.yolo.as_bytes()).map_err(io_err(&path))?;
+            }
+            progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
+            Ok(Written {
+                visible: label.instances.iter().map(|i| i.instance_id).collect(),
+                in_view: label.in_view,
+                box_pixels: label.box_pixels,
+                pixels: w as usize * h as usize,
+                rendered_rays: label.rendered_rays,
+                depth_overflow,
+                record,
+            })
+        })
+        .collect::<Result<_, LabelError>>()?;
+
+    let mut warnings = boxes.warnings();
+    let n = boxes.boxes.len();
+    let mut frames_visible = vec![0usize; n];
+    let mut frames_in_view = vec![0usize; n];
+    for w in &written {
+        for &id in &w.visible {
+            if let Some(c) = frames_visible.get_mut(id as usize - 1) {
+                *c += 1;
+            }
+        }
+        for &id in &w.in_view {
+            if let Some(c) = frames_in_view.get_mut(id as usize - 1) {
+                *c += 1;
+            }
+        }
+    }
+    for b in &boxes.boxes {
+        let i = b.instance_id as usize - 1;
+        if frames_in_view[i] == 0 {
+            warnings.push(format!("box {} (`{}`) is outside the view of every labelled frame", b.instance_id, b.label));
+        } else if frames_visible[i] == 0 {
+            warnings.push(format!(
+                "box {} (`{}`) is in view of {} frames but no surface point falls inside it (empty box, or hidden)",
+                b.instance_id, b.label, frames_in_view[i]
+            ));
+        }
+    }
+    let overflow: usize = written.iter().map(|w| w.depth_overflow).sum();
+    if overflow > 0 {
+        warnings.push(format!("{overflow} depth pixels beyond 65.535 m were written as 0"));
+    }
+
+    if options.yolo {
+        let path = staging.join("classes.txt");
+        atomic::write_file(&path, yolo_classes(boxes).as_bytes()).map_err(io_err(&path))?;
+    }
+    let records: Vec<FrameRecord> = written.iter().map(|w| w.record.clone()).collect();
+    let info = CocoInfo { source: labeler.options().source.name().to_string(), ..options.info.clone() };
+    let coco = assemble(info, boxes, &records);
+    let path = staging.join("coco.json");
+    let json = serde_json::to_vec(&coco).map_err(|source| LabelError::Json { path: path.clone(), source })?;
+    atomic::write_file(&path, &json).map_err(io_err(&path))?;
+
+    let pixels: usize = written.iter().map(|w| w.pixels).sum();
+    Ok(LabelSummary {
+        out: PathBuf::new(),
+        frames: written.len(),
+        annotations: coco.annotations.len(),
+        frames_visible,
+        box_pixel_fraction: written.iter().map(|w| w.box_pixels).sum::<usize>() as f64 / pixels.max(1) as f64,
+        rendered_rays: written.iter().map(|w| w.rendered_rays).sum(),
+        warnings,
+    })
+}
+
+/// Replace the owned entries of `out` by those in `staging`: old ones are
+/// moved aside first (and deleted after), `coco.json` comes in last.
+fn swap_in(out: &Path, staging: &Path) -> Result<(), LabelError> {
+    let old = out.join(format!(".replaced-{}", std::process::id()));
+    if old.exists() {
+        fs::remove_dir_all(&old).map_err(io_err(&old))?;
+    }
+    fs::create_dir_all(&old).map_err(io_err(&old))?;
+    for name in OWNED {
+        let p = out.join(name);
+        if p.exists() {
+            fs::rename(&p, old.join(name)).map_err(io_err(&p))?;
+        }
+    }
+    for name in OWNED {
+        let p = staging.join(name);
+        if p.exists() {
+            fs::rename(&p, out.join(name)).map_err(io_err(&p))?;
+        }
+    }
+    fs::remove_dir_all(&old).map_err(io_err(&old))
+}

@@ -8,6 +8,7 @@
 //! boxes, and stop at termination.
 
 use super::classify::BoxClassifier;
+use super::cleanup::clean_mask;
 use super::options::{DepthSource, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
@@ -181,6 +182,9 @@ impl<'a> Labeler<'a> {
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
                 mask[index] = self.classifier.classify(p) as u16;
             }
+        }
+        if self.options.cleanup_fraction > 0.0 {
+            clean_mask(&mut mask, w, h, self.options.cleanup_fraction);
         }
         let instances = instances_of(&mask, w, h, self.boxes, &c2w.inverse());
         FrameLabel {

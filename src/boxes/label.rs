@@ -17,7 +17,7 @@ use crate::nerf::fit::render_options;
 use crate::nerf::march::ray_interval;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::{RenderOptions, RenderRay};
-use super::surface::{first_crossings, SurfaceWorkspace};
+use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use crate::nerf::view::ViewRenderer;
 use crate::scan::Frame;
 use glam::{DMat3, DMat4};
@@ -222,6 +222,8 @@ impl<'a> Labeler<'a> {
         let scale = renderer.transform.scale;
         let near = opts.rule.min_step;
         let model = renderer.model;
+        let crossing =
+            CrossingOptions { rule: opts.rule, threshold: self.options.surface_opacity, max_samples: opts.max_samples_per_ray };
         jobs.par_chunks(PACKET).zip(depth.par_chunks_mut(PACKET)).for_each_init(
             || (SurfaceWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
             |(ws, rays, index, out), (chunk, depth)| {
@@ -242,8 +244,7 @@ impl<'a> Labeler<'a> {
                 }
                 out.clear();
                 out.resize(rays.len(), None);
-                let threshold = self.options.surface_opacity;
-                first_crossings(&model.field, &model.occupancy, rays, &opts.rule, threshold, opts.max_samples_per_ray, ws, out);
+                first_crossings(&model.field, &model.occupancy, rays, &crossing, ws, out);
                 for (o, &(i, norm)) in out.iter().zip(index.iter()) {
                     if let Some(t) = *o {
                         // Distance along the unit local ray -> local z -> metres.

@@ -78,7 +78,7 @@ pub fn write_depth_mm(path: &Path, depth_m: &[f32], w: u32, h: u32) -> Result<us
         .iter()
         .flat_map(|&z| {
             let mm = (z as f64 * 1000.0).round();
-            let v = if !(mm > 0.0) {
+            let v = if mm.is_nan() || mm <= 0.0 {
                 0
             } else if mm > u16::MAX as f64 {
                 overflow += 1;

@@ -146,7 +146,9 @@ fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], tr
     let unit = nerflabel::fixture::read_meta(dir)?.gt_depth_unit;
     let opts = LabelOptions { source: DepthSource::Nerf, full_depth: true, surface_opacity, ..LabelOptions::default() };
     let labeler = Labeler::new(boxes, Some(model), opts)?;
+    let t = Instant::now();
     let labels = labeler.label_frames(frames, &|_| {});
+    println!("full-frame depth (--depth): {:.1} frames/s", frames.len() as f64 / t.elapsed().as_secs_f64());
     let mut per: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
     for (l, (_, gt)) in labels.iter().zip(truth) {
         let exact = read_mask(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;

@@ -283,3 +283,43 @@ pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::boxes::parse::Box3;
+    use crate::scan::{DepthMap, Intrinsics};
+    use glam::DVec3;
+
+    /// Sensor source on a hand-made frame: a wall 2 m ahead, a 0.5 m cube
+    /// centred on it and a second box out of view.
+    #[test]
+    fn sensor_labels_of_a_wall_through_a_box() {
+        let (w, h) = (64u32, 48u32);
+        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
+        let depth = DepthMap { width: w, height: h, metres: vec![2.0; (w * h) as usize] };
+        let frame = Frame::new(7, "000007", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let cube = Box3 { label: "cube".into(), instance_id: 1, center: DVec3::new(0.0, 0.0, 2.0), size: DVec3::splat(0.5), rotation: DMat3::IDENTITY };
+        let away = Box3 { label: "away".into(), instance_id: 2, center: DVec3::new(0.0, 0.0, -3.0), ..cube.clone() };
+        let boxes = BoxSet::from_boxes(vec![cube, away]);
+        let opts = LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() };
+        let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
+        // Wall points (x, y, 2) fall in the cube when |x|, |y| <= 0.25: |u - cx| <= 40 * 0.25 / 2 = 5.
+        let inside = |u: u32, v: u32| (u as f64 - k.cx).abs() <= 5.0 && (v as f64 - k.cy).abs() <= 5.0;
+        for v in 0..h {
+            for u in 0..w {
+                assert_eq!(label.mask[(v * w + u) as usize], inside(u, v) as u16, "pixel ({u}, {v})");
+            }
+        }
+        assert_eq!(label.in_view, vec![1]);
+        assert_eq!(label.instances.len(), 1);
+        let inst = &label.instances[0];
+        assert_eq!((inst.instance_id, inst.area), (1, 100));
+        assert_eq!(inst.bbox, PixelRect { x0: 27, y0: 19, x1: 37, y1: 29 });
+        assert_eq!(inst.object_to_camera.w_axis.truncate(), DVec3::new(0.0, 0.0, 2.0));
+        // Rays through the cube: its front face spans |u - cx| <= 40 * 0.25 / 1.75.
+        assert!(label.box_pixels > 100 && label.box_pixels < 14 * 14, "{}", label.box_pixels);
+        assert_eq!(label.rendered_rays, 0);
+        assert!(label.depth_m.is_none());
+    }
+}

@@ -106,8 +106,7 @@ impl<'a> Labeler<'a> {
         self.fused_tolerance_m
     }
 
-    /// Label frames in parallel; `progress` hears the
-    /// number of frames finished so far.
+    /// Label frames in parallel; `progress` hears the number of frames finished so far.
     pub fn label_frames(&self, frames: &[&Frame], progress: &(dyn Fn(usize) + Sync)) -> Vec<FrameLabel> {
         let done = AtomicUsize::new(0);
         frames

@@ -9,6 +9,7 @@
 //! `--cabinet [SCAN]` (real scan; default ../shared/data/scans/cabinet),
 //! `--fused-cells C` (fused agreement tolerance in finest grid cells),
 //! `--clean` (generate the fixture without sensor corruptions),
+//! `--cleanup F` (mask clean-up fraction, 0 = off),
 //! `--opacity A` (accumulated opacity that marks the rendered surface),
 //! `--depth-errors` (fixture: rendered depth against exact depth inside each object),
 //! `--dump DIR` (error images of every 10th frame: green = right, red =
@@ -40,6 +41,7 @@ struct Args {
     dump: Option<PathBuf>,
     depth_errors: bool,
     opacity: f32,
+    cleanup: f64,
 }
 
 fn shared_data() -> PathBuf {
@@ -62,6 +64,7 @@ fn parse_args() -> Result<Args, Error> {
         dump: None,
         depth_errors: false,
         opacity: LabelOptions::default().surface_opacity,
+        cleanup: LabelOptions::default().cleanup_fraction,
     };
     let mut it = std::env::args().skip(1).peekable();
     while let Some(a) = it.next() {
@@ -72,6 +75,7 @@ fn parse_args() -> Result<Args, Error> {
             "--frames" => args.frames = value("--frames")?.parse()?,
             "--model" => args.model = Some(value("--model")?.into()),
             "--clean" => args.clean = true,
+            "--cleanup" => args.cleanup = value("--cleanup")?.parse()?,
             "--opacity" => args.opacity = value("--opacity")?.parse()?,
             "--depth-errors" => args.depth_errors = true,
             "--dump" => args.dump = Some(value("--dump")?.into()),
@@ -142,7 +146,9 @@ fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], tr
     let unit = nerflabel::fixture::read_meta(dir)?.gt_depth_unit;
     let opts = LabelOptions { source: DepthSource::Nerf, full_depth: true, surface_opacity, ..LabelOptions::default() };
     let labeler = Labeler::new(boxes, Some(model), opts)?;
+    let t = Instant::now();
     let labels = labeler.label_frames(frames, &|_| {});
+    println!("full-frame depth (--depth): {:.1} frames/s", frames.len() as f64 / t.elapsed().as_secs_f64());
     let mut per: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
     for (l, (_, gt)) in labels.iter().zip(truth) {
         let exact = read_mask(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;
@@ -250,7 +256,7 @@ fn main() -> Result<(), Error> {
         depth_errors(&args.dir, &boxes, &model, &frames, &truth, args.opacity)?;
     }
     for source in DepthSource::ALL {
-        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, surface_opacity: args.opacity, ..LabelOptions::default() };
+        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, ..LabelOptions::default() };
         let labeler = Labeler::new(&boxes, Some(&model), opts)?;
         if source == DepthSource::Fused {
             eprintln!("fused tolerance {:.1} mm", labeler.fused_tolerance_m() * 1000.0);

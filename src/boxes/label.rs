@@ -8,6 +8,7 @@
 //! boxes, and stop at termination.
 
 use super::classify::BoxClassifier;
+use super::cleanup::clean_mask;
 use super::options::{DepthSource, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
@@ -16,7 +17,7 @@ use crate::nerf::fit::render_options;
 use crate::nerf::march::ray_interval;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::{RenderOptions, RenderRay};
-use super::surface::{first_crossings, SurfaceWorkspace};
+use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use crate::nerf::view::ViewRenderer;
 use crate::scan::Frame;
 use glam::{DMat3, DMat4};
@@ -105,8 +106,7 @@ impl<'a> Labeler<'a> {
         self.fused_tolerance_m
     }
 
-    /// Label frames in parallel; `progress` hears the
-    /// number of frames finished so far.
+    /// Label frames in parallel; `progress` hears the number of frames finished so far.
     pub fn label_frames(&self, frames: &[&Frame], progress: &(dyn Fn(usize) + Sync)) -> Vec<FrameLabel> {
         let done = AtomicUsize::new(0);
         frames
@@ -182,6 +182,9 @@ impl<'a> Labeler<'a> {
                 mask[index] = self.classifier.classify(p) as u16;
             }
         }
+        if self.options.cleanup_fraction > 0.0 {
+            clean_mask(&mut mask, w, h, self.options.cleanup_fraction);
+        }
         let instances = instances_of(&mask, w, h, self.boxes, &c2w.inverse());
         FrameLabel {
             frame_id: frame.id,
@@ -218,6 +221,8 @@ impl<'a> Labeler<'a> {
         let scale = renderer.transform.scale;
         let near = opts.rule.min_step;
         let model = renderer.model;
+        let crossing =
+            CrossingOptions { rule: opts.rule, threshold: self.options.surface_opacity, max_samples: opts.max_samples_per_ray };
         jobs.par_chunks(PACKET).zip(depth.par_chunks_mut(PACKET)).for_each_init(
             || (SurfaceWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
             |(ws, rays, index, out), (chunk, depth)| {
@@ -238,8 +243,7 @@ impl<'a> Labeler<'a> {
                 }
                 out.clear();
                 out.resize(rays.len(), None);
-                let threshold = self.options.surface_opacity;
-                first_crossings(&model.field, &model.occupancy, rays, &opts.rule, threshold, opts.max_samples_per_ray, ws, out);
+                first_crossings(&model.field, &model.occupancy, rays, &crossing, ws, out);
                 for (o, &(i, norm)) in out.iter().zip(index.iter()) {
                     if let Some(t) = *o {
                         // Distance along the unit local ray -> local z -> metres.
@@ -277,4 +281,44 @@ pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world
             Some(InstanceLabel { instance_id: id as u32, bbox, area, object_to_camera: *world_to_camera * b.object_to_world() })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::boxes::parse::Box3;
+    use crate::scan::{DepthMap, Intrinsics};
+    use glam::DVec3;
+
+    /// Sensor source on a hand-made frame: a wall 2 m ahead, a 0.5 m cube
+    /// centred on it and a second box out of view.
+    #[test]
+    fn sensor_labels_of_a_wall_through_a_box() {
+        let (w, h) = (64u32, 48u32);
+        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
+        let depth = DepthMap { width: w, height: h, metres: vec![2.0; (w * h) as usize] };
+        let frame = Frame::new(7, "000007", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let cube = Box3 { label: "cube".into(), instance_id: 1, center: DVec3::new(0.0, 0.0, 2.0), size: DVec3::splat(0.5), rotation: DMat3::IDENTITY };
+        let away = Box3 { label: "away".into(), instance_id: 2, center: DVec3::new(0.0, 0.0, -3.0), ..cube.clone() };
+        let boxes = BoxSet::from_boxes(vec![cube, away]);
+        let opts = LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() };
+        let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
+        // Wall points (x, y, 2) fall in the cube when |x|, |y| <= 0.25: |u - cx| <= 40 * 0.25 / 2 = 5.
+        let inside = |u: u32, v: u32| (u as f64 - k.cx).abs() <= 5.0 && (v as f64 - k.cy).abs() <= 5.0;
+        for v in 0..h {
+            for u in 0..w {
+                assert_eq!(label.mask[(v * w + u) as usize], inside(u, v) as u16, "pixel ({u}, {v})");
+            }
+        }
+        assert_eq!(label.in_view, vec![1]);
+        assert_eq!(label.instances.len(), 1);
+        let inst = &label.instances[0];
+        assert_eq!((inst.instance_id, inst.area), (1, 100));
+        assert_eq!(inst.bbox, PixelRect { x0: 27, y0: 19, x1: 37, y1: 29 });
+        assert_eq!(inst.object_to_camera.w_axis.truncate(), DVec3::new(0.0, 0.0, 2.0));
+        // Rays through the cube: its front face spans |u - cx| <= 40 * 0.25 / 1.75.
+        assert!(label.box_pixels > 100 && label.box_pixels < 14 * 14, "{}", label.box_pixels);
+        assert_eq!(label.rendered_rays, 0);
+        assert!(label.depth_m.is_none());
+    }
 }

@@ -4,13 +4,15 @@
 //!
 //! Flow: [`parse`] (boxes.json) -> [`classify`] (point in smallest box, ray
 //! intervals) and [`project`] (pixel rectangles) -> [`label`] (per-frame
-//! depth, mask, 2D boxes, object poses) -> [`rle`], [`coco`] and [`output`]
-//! (files, swapped in atomically).
+//! depth from [`surface`] and/or the sensor, mask, [`cleanup`], 2D boxes,
+//! object poses) -> [`rle`], [`coco`] and [`output`] (files, swapped in
+//! at the end). [`metrics`] scores masks against ground truth.
 //!
 //! Depends on `scan`, `poses` and `nerf` (to render depth); never on `synth`
 //! or the CLI. Never prints.
 
 pub mod classify;
+pub mod cleanup;
 pub mod coco;
 pub mod label;
 pub mod metrics;

@@ -116,11 +116,14 @@ pub struct LabelOptions {
     pub fused_tolerance_cells: f64,
     /// Accumulated opacity at which a rendered ray has reached its surface.
     pub surface_opacity: f32,
+    /// Mask clean-up: fill enclosed holes and drop detached specks smaller
+    /// than this fraction of their instance (0 = off).
+    pub cleanup_fraction: f64,
 }
 
 impl Default for LabelOptions {
     fn default() -> Self {
-        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 1.0, surface_opacity: 0.5 }
+        LabelOptions { source: DEFAULT_SOURCE, full_depth: false, fused_tolerance_cells: 1.0, surface_opacity: 0.5, cleanup_fraction: 0.02 }
     }
 }
 

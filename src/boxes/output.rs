@@ -78,7 +78,7 @@ pub fn write_depth_mm(path: &Path, depth_m: &[f32], w: u32, h: u32) -> Result<us
         .iter()
         .flat_map(|&z| {
             let mm = (z as f64 * 1000.0).round();
-            let v = if !(mm > 0.0) {
+            let v = if mm.is_nan() || mm <= 0.0 {
                 0
             } else if mm > u16::MAX as f64 {
                 overflow += 1;
@@ -262,4 +262,46 @@ fn swap_in(out: &Path, staging: &Path) -> Result<(), LabelError> {
         }
     }
     fs::remove_dir_all(&old).map_err(io_err(&old))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn masks_are_8_or_16_bit_and_depth_is_millimetres() {
+        let dir = tempfile::tempdir().unwrap();
+        let mask = [0u16, 3, 300, 65535];
+        let p8 = dir.path().join("m8.png");
+        write_mask(&p8, &mask[..2], 2, 1, false).unwrap();
+        let img = image::open(&p8).unwrap();
+        assert_eq!(img.as_luma8().unwrap().as_raw(), &vec![0u8, 3]);
+        let p16 = dir.path().join("m16.png");
+        write_mask(&p16, &mask, 2, 2, true).unwrap();
+        assert_eq!(image::open(&p16).unwrap().as_luma16().unwrap().as_raw(), &mask.to_vec());
+        let pd = dir.path().join("d.png");
+        let overflow = write_depth_mm(&pd, &[0.0, 1.2344, 70.0, f32::NAN], 2, 2).unwrap();
+        assert_eq!(overflow, 1);
+        assert_eq!(image::open(&pd).unwrap().as_luma16().unwrap().as_raw(), &vec![0u16, 1234, 0, 0]);
+    }
+
+    #[test]
+    fn swap_replaces_owned_entries_and_keeps_the_rest() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("labels");
+        for (rel, text) in [("masks/000001.png", "old"), ("depth/000001.png", "old"), ("coco.json", "old"), ("notes.txt", "mine")] {
+            atomic::write_file(&out.join(rel), text.as_bytes()).unwrap();
+        }
+        let staging = out.join(".staging-test");
+        for rel in ["masks/000002.png", "coco.json"] {
+            atomic::write_file(&staging.join(rel), b"new").unwrap();
+        }
+        swap_in(&out, &staging).unwrap();
+        let mut names: Vec<String> = fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        assert_eq!(names, vec![".staging-test", "coco.json", "masks", "notes.txt"]);
+        assert_eq!(fs::read_to_string(out.join("coco.json")).unwrap(), "new");
+        assert!(out.join("masks/000002.png").is_file() && !out.join("masks/000001.png").exists());
+        assert_eq!(fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
+    }
 }

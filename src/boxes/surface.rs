@@ -32,19 +32,28 @@ pub struct SurfaceWorkspace {
     sigma: Vec<f32>,
 }
 
-/// For each ray, the distance where accumulated opacity first reaches
-/// `threshold` (interpolated inside the sample), `None` when it never does
+/// How to find the surface along a ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CrossingOptions {
+    pub rule: StepRule,
+    /// Accumulated opacity that marks the surface.
+    pub threshold: f32,
+    /// Hard cap per ray so nothing can hang.
+    pub max_samples: usize,
+}
+
+/// For each ray, the distance where accumulated opacity first reaches the
+/// threshold (interpolated inside the sample), `None` when it never does
 /// within `[t_min, t_max)`.
 pub fn first_crossings(
     field: &Field,
     grid: &OccupancyGrid,
     rays: &[RenderRay],
-    rule: &StepRule,
-    threshold: f32,
-    max_samples: usize,
+    opts: &CrossingOptions,
     ws: &mut SurfaceWorkspace,
     out: &mut [Option<f32>],
 ) {
+    let (rule, threshold, max_samples) = (&opts.rule, opts.threshold, opts.max_samples);
     debug_assert_eq!(rays.len(), out.len());
     out.iter_mut().for_each(|o| *o = None);
     ws.state.clear();
@@ -93,5 +102,67 @@ pub fn first_crossings(
             }
         }
         ws.active = keep;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::field::{FieldConfig, GridSpec};
+    use crate::nerf::hash_grid::HashGridConfig;
+    use crate::nerf::march::{ray_interval, LocalRay};
+    use crate::nerf::render::{render_rays, RayOutput, RenderOptions, RenderWorkspace};
+    use crate::rng::Rng;
+
+    /// At opacity 0.5 the early-stopping renderer finds exactly the median
+    /// depth of the full renderer, on a random field and random rays.
+    #[test]
+    fn crossing_at_one_half_matches_the_full_renderers_median() {
+        let mut rng = Rng::new(4, 0);
+        let grid = HashGridConfig::for_scene(1.0, 1.0 / 64.0);
+        let config = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![16], color_hidden: vec![16] };
+        let mut field = Field::new(config, &mut rng);
+        for p in field.grid.params.iter_mut() {
+            *p = 4.0 * (rng.f32() - 0.5);
+        }
+        let occupancy = OccupancyGrid::full(32);
+        let rule = StepRule { min_step: 1.0 / 128.0, max_step: 1.0 / 32.0, cone: 1.0 / 256.0 };
+        let rays: Vec<RenderRay> = (0..3000)
+            .filter_map(|_| {
+                let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, -0.6];
+                let target = [rng.f32(), rng.f32(), rng.f32()];
+                let d: [f32; 3] = std::array::from_fn(|a| target[a] - origin[a]);
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let ray = LocalRay { origin, dir: d.map(|v| v / n) };
+                ray_interval(&ray, rule.min_step).map(|(t_min, t_max)| RenderRay { ray, t_min, t_max })
+            })
+            .collect();
+        let opts = RenderOptions { color: false, rule, max_samples_per_ray: 4096, background: [0.0; 3] };
+        let mut reference = vec![RayOutput::default(); rays.len()];
+        render_rays(&field, &occupancy, &rays, &opts, &mut RenderWorkspace::default(), &mut reference);
+        let mut found = vec![None; rays.len()];
+        let crossing = CrossingOptions { rule, threshold: 0.5, max_samples: 4096 };
+        first_crossings(&field, &occupancy, &rays, &crossing, &mut SurfaceWorkspace::default(), &mut found);
+        let mut hits = 0;
+        for (r, f) in reference.iter().zip(&found) {
+            match (r.depth_median, f) {
+                (None, None) => {}
+                (Some(a), Some(b)) => {
+                    hits += 1;
+                    assert!((a - b).abs() < 1e-4, "median {a} vs crossing {b}");
+                }
+                other => panic!("renderers disagree on whether there is a surface: {other:?}"),
+            }
+        }
+        assert!(hits > 300 && hits < found.len() - 300, "both outcomes occur: {hits} of {}", found.len());
+        // A lower threshold is crossed no later.
+        let mut early = vec![None; rays.len()];
+        let crossing = CrossingOptions { threshold: 0.25, ..crossing };
+        first_crossings(&field, &occupancy, &rays, &crossing, &mut SurfaceWorkspace::default(), &mut early);
+        for (e, f) in early.iter().zip(&found) {
+            if let Some(f) = f {
+                assert!(e.is_some_and(|e| e <= *f + 1e-6), "{e:?} after {f}");
+            }
+        }
     }
 }

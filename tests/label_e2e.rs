@@ -54,7 +54,7 @@ fn scores(dir: &Path, scan: &Scan, boxes: &BoxSet, model: Option<&Model>, source
 fn nerf_labels_match_ground_truth_and_beat_sensor_on_the_object_without_depth() {
     let dir = tempfile::tempdir().unwrap();
     let scan = fixture(dir.path(), SceneKind::Small, 160, 120, 24);
-    let model = fit_steps(&scan, 200);
+    let model = fit_steps(&scan, 400);
     let boxes = read_boxes(&dir.path().join("boxes.json")).unwrap();
     let can = boxes.boxes.iter().find(|b| b.label == "can").unwrap().instance_id as u16;
     let nerf = scores(dir.path(), &scan, &boxes, Some(&model), DepthSource::Nerf);

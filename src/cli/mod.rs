@@ -6,6 +6,7 @@ mod demo;
 mod fixture;
 mod fit;
 mod info;
+mod label;
 mod report;
 mod synth;
 
@@ -210,7 +211,7 @@ pub struct LabelArgs {
     /// Only frames A..B (ids, inclusive start, exclusive end).
     #[arg(long)]
     pub frames: Option<String>,
-    /// Depth source: nerf, sensor or fused.
+    /// Depth source: nerf (rendered), sensor (raw depth, no model needed) or fused (default: sensor depth where it agrees with the rendered depth, rendered elsewhere).
     #[arg(long)]
     pub source: Option<String>,
     /// Also write YOLO txt boxes.
@@ -260,7 +261,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Report(args) => report::run(&args),
         Command::Fixture(args) => fixture::run(&args),
         Command::Demo(args) => demo::run(&args),
-        Command::Label(_) => anyhow::bail!("`label` is not available in this build yet"),
+        Command::Label(args) => label::run(&args),
         Command::Synth(args) => synth::run(&args),
     }
 }

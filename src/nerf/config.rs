@@ -41,6 +41,16 @@ impl Preset {
         }
     }
 
+    /// Fewest finest cells across the unit cube: low-resolution scans still
+    /// get geometry finer than their pixels (depth supervision resolves it).
+    fn min_cells(self) -> f64 {
+        match self {
+            Preset::Fast => 128.0,
+            Preset::Default => 256.0,
+            Preset::Quality => 384.0,
+        }
+    }
+
     fn samples_per_step(self) -> usize {
         match self {
             Preset::Fast => 1 << 15,
@@ -59,8 +69,8 @@ pub struct NerfSettings {
     pub render_step: StepSpec,
 }
 
-/// Coarsest and finest finest-level resolution across the unit cube.
-const FINEST_CELLS: (f64, f64) = (64.0, 2048.0);
+/// Most finest-level cells across the unit cube.
+const FINEST_CELLS: f64 = 2048.0;
 
 /// Settings for a scene whose unit cube spans `metres_per_unit` metres and
 /// whose cameras see `pixel_footprint_m` metres per pixel at their typical
@@ -75,7 +85,7 @@ pub fn settings_for_scene(
 ) -> NerfSettings {
     let wanted = pixel_footprint_m * preset.pixels_per_cell();
     let cells = if wanted.is_finite() && wanted > 0.0 { metres_per_unit / wanted } else { 256.0 };
-    let cells = cells.clamp(FINEST_CELLS.0, FINEST_CELLS.1);
+    let cells = cells.clamp(preset.min_cells(), FINEST_CELLS);
     let grid = HashGridConfig::for_scene(metres_per_unit, metres_per_unit / cells);
     let finest = grid.finest_resolution.max(16) as f32;
     // About one finest cell per step; far steps grow slowly for big scenes.

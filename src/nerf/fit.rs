@@ -214,13 +214,13 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
     let mut next_eval = opts.eval_interval_s;
     let mut last_point = (0.0f64, 0u64);
     let mut interrupted = false;
-    let evaluate_now = |trainer: &Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| -> Option<CurvePoint> {
+    let evaluate_now = |trainer: &mut Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| -> Option<CurvePoint> {
         if data.holdout.is_empty() {
             return None;
         }
         let t = Instant::now();
-        let r: EvalResult =
-            evaluate(&trainer.field, &trainer.occupancy, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
+        let grid = trainer.rendering_occupancy();
+        let r: EvalResult = evaluate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
         timings.eval_s += t.elapsed().as_secs_f64();
         let samples = trainer.counters.samples;
         let dt = (train_seconds - last.0).max(1e-9);
@@ -255,7 +255,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         train_seconds += t.elapsed().as_secs_f64();
         on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds, progress });
         if train_seconds >= next_eval {
-            if let Some(point) = evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+            if let Some(point) = evaluate_now(&mut trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
                 on_event(FitEvent::Eval(&point));
             }
             while next_eval <= train_seconds {
@@ -264,7 +264,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         }
     }
     if curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
-        if let Some(point) = evaluate_now(&trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+        if let Some(point) = evaluate_now(&mut trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
             on_event(FitEvent::Eval(&point));
         }
     }
@@ -299,9 +299,12 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         timings,
         counters: trainer.counters,
         interrupted,
-        occupied_fraction: trainer.occupancy.occupied_fraction(),
+        occupied_fraction: 0.0,
         curve,
     };
-    let model = Model { header, field: trainer.field, occupancy: trainer.occupancy };
+    let occupancy = trainer.rendering_occupancy();
+    let mut report = report;
+    report.occupied_fraction = occupancy.occupied_fraction();
+    let model = Model { header, field: trainer.field, occupancy };
     Ok(FitOutcome { model, report })
 }

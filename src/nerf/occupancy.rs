@@ -236,6 +236,18 @@ impl OccupancyGrid {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
     }
 
+    /// Re-estimate every cell from the model (no memory of the past):
+    /// carved space the model did not fill stays skipped in renders.
+    pub fn prune_for_rendering<F>(&mut self, rng: &mut Rng, positions: &mut Vec<[f32; 3]>, sigmas: &mut Vec<f32>, mut density_at: F)
+    where
+        F: FnMut(&[[f32; 3]], &mut [f32]),
+    {
+        for _ in 0..REFRESH_PARTS {
+            self.refresh(0.0, rng, positions, sigmas, &mut density_at);
+        }
+        self.rebuild_bits();
+    }
+
     /// Carved-cell mask (for the model file).
     pub fn carved_words(&self) -> &[u64] {
         &self.carved

@@ -250,6 +250,19 @@ impl Trainer {
         total
     }
 
+    /// An occupancy grid for rendering the current field: every cell
+    /// re-evaluated, untrained space dropped.
+    pub fn rendering_occupancy(&mut self) -> OccupancyGrid {
+        let mut grid = self.occupancy.clone();
+        let mut rng = Rng::new(self.config.seed, u64::MAX / 2);
+        let field = &self.field;
+        let ws = &mut self.occupancy_ws;
+        grid.prune_for_rendering(&mut rng, &mut self.occupancy_positions, &mut self.occupancy_sigmas, |p, s| {
+            density_batched(field, ws, p, s)
+        });
+        grid
+    }
+
     fn maybe_refresh_occupancy(&mut self, step: u64) {
         let warmup = self.config.warmup_steps;
         let every = self.config.occupancy_every.max(1);
@@ -318,7 +331,6 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     let cfg = ctx.config;
     let window = cfg.surface_window;
     let fine_step = 0.75 * ctx.rule.min_step;
-    let coarse = StepRule { min_step: 2.0 * ctx.rule.min_step, max_step: ctx.rule.max_step.max(2.0 * ctx.rule.min_step), cone: ctx.rule.cone };
     let sparse = StepRule { min_step: 4.0 * ctx.rule.min_step, max_step: ctx.rule.max_step.max(4.0 * ctx.rule.min_step), cone: ctx.rule.cone };
     let mut attempts = 0usize;
     // Bounded attempts: views that see nothing must not hang the step.
@@ -352,8 +364,8 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 w1
             }
             // Without depth: stop where the grid says the ray is surely absorbed.
-            // Coarser steps and fewer samples: these rays only see colour.
-            _ => march_until(&ray, t0, t1, ctx.occupancy, &coarse, jitter, max / 4, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
+            // Fewer samples: these rays only see colour.
+            _ => march_until(&ray, t0, t1, ctx.occupancy, &ctx.rule, jitter, max / 4, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
                 .min(t1),
         };
         let count = chunk.segments.len() - first;

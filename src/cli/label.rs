@@ -1,0 +1,56 @@
+//! `nerflabel label`: 3D boxes to masks, 2D boxes, object poses and COCO.
+
+use super::common::{load_scan, model_path, progress_bar, work_dir};
+use super::LabelArgs;
+use anyhow::Context;
+use nerflabel::boxes::coco::CocoInfo;
+use nerflabel::boxes::{read_boxes, write_labels, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions, DEFAULT_SOURCE};
+use nerflabel::nerf::model_file::Model;
+
+pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
+    let scan_dir = &args.scan.scan;
+    let source: DepthSource = match &args.source {
+        Some(s) => s.parse()?,
+        None => DEFAULT_SOURCE,
+    };
+    let frames: Option<FrameRange> = args.frames.as_deref().map(str::parse).transpose()?;
+    let boxes = read_boxes(&args.boxes)?;
+    let model_path = model_path(scan_dir, args.model.as_ref());
+    let model = if source.needs_model() {
+        Some(Model::load(&model_path).with_context(|| format!("source `{source}` needs a model: run `nerflabel fit` first"))?)
+    } else {
+        None
+    };
+    let scan = load_scan(&args.scan)?;
+    let out = args.out.clone().unwrap_or_else(|| work_dir(scan_dir).join("labels"));
+    let options = LabelOptions { source, full_depth: args.depth, ..LabelOptions::default() };
+    let labeler = Labeler::new(&boxes, model.as_ref(), options)?;
+    let info = CocoInfo {
+        description: "nerflabel instance labels".into(),
+        nerflabel_version: env!("CARGO_PKG_VERSION").into(),
+        source: source.name().into(),
+        seed: model.as_ref().map(|m| m.header.seed),
+        scan: scan_dir.display().to_string(),
+        boxes: args.boxes.display().to_string(),
+        model: model.as_ref().map(|_| model_path.display().to_string()),
+        model_steps: model.as_ref().map(|m| m.header.steps),
+        frames: args.frames.clone(),
+    };
+    let output = OutputOptions { frames, yolo: args.yolo, info };
+    let total = scan.frames.iter().filter(|f| frames.is_none_or(|r| r.contains(f.id))).count();
+    let bar = progress_bar(total as u64, "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})");
+    let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|done| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    for warning in &summary.warnings {
+        eprintln!("warning: {warning}");
+    }
+    println!(
+        "labelled {} frames with {} depth: {} annotations in {}; rendered {:.1} % of the pixels (rays that can meet a box)",
+        summary.frames,
+        source,
+        summary.annotations,
+        summary.out.display(),
+        summary.box_pixel_fraction * 100.0
+    );
+    Ok(())
+}

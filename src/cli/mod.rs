@@ -190,6 +190,9 @@ pub struct ReportArgs {
     /// Draw PSNR and depth error against seconds into this PNG.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Model file whose report to read (the report sits beside it; default SCAN/nerflabel/model.nlf).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -1,13 +1,13 @@
 //! `nerflabel report`: print the error-against-run-time curve of a fit.
 
-use super::common::work_dir;
+use super::common::model_path;
 use super::ReportArgs;
 use anyhow::Context;
 use nerflabel::nerf::fit::{CurvePoint, FitReport};
 use nerflabel::plot::{render_panels, write_png, Panel, Series};
 
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
-    let path = work_dir(&args.scan).join("fit_report.json");
+    let path = model_path(&args.scan, args.model.as_ref()).with_file_name("fit_report.json");
     let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the fit report (run `nerflabel fit` first)", path.display()))?;
     let report: FitReport = serde_json::from_slice(&bytes).with_context(|| format!("{}: not a valid fit report", path.display()))?;
     println!("fit of {} ({} training frames, preset {:?}, seed {}, {} threads)", report.scan, report.train_frames, report.preset, report.seed, report.threads);

@@ -27,7 +27,6 @@ pub struct OccupancyGrid {
     /// Cells the sensor saw as free space; they need strong evidence
     /// (`carved_threshold`) from the model to count as occupied again.
     carved: Vec<u64>,
-    threshold: f32,
     carved_threshold: f32,
     occupied: usize,
     /// Which 1/REFRESH_PARTS of the cells the next refresh evaluates.
@@ -44,20 +43,17 @@ impl OccupancyGrid {
     pub fn full(res: usize) -> Self {
         let res = res.clamp(4, 512);
         let cells = res * res * res;
-        // Opacity below 0.1 % across one cell is treated as empty. An
-        // untrained field (sigma ~ 1) stays above it, so only space the
-        // training made empty is skipped (objects without depth survive).
-        let threshold = 0.001 * res as f32;
+        // A faint initial estimate (0.1 % opacity per cell): seeding and
+        // model refreshes replace it.
+        let initial = 0.001 * res as f32;
         let words = cells.div_ceil(64);
         let mut grid = OccupancyGrid {
             res,
             carved: vec![0; words],
+            // Carved cells come back only at >= 1 % opacity across a cell.
             carved_threshold: 0.01 * res as f32,
-            // Just above the threshold: the first model refresh keeps a cell
-            // only where the model confirms density.
-            density: vec![threshold * 1.01; cells],
+            density: vec![initial; cells],
             bits: vec![0; words],
-            threshold,
             occupied: 0,
             refresh_phase: 0,
         };
@@ -68,11 +64,6 @@ impl OccupancyGrid {
     /// Cells per axis.
     pub fn resolution(&self) -> usize {
         self.res
-    }
-
-    /// Density above which a cell counts as occupied (local units).
-    pub fn threshold(&self) -> f32 {
-        self.threshold
     }
 
     /// Fraction of cells marked occupied.

@@ -128,7 +128,6 @@ pub struct Trainer {
     loss_ema: f64,
     occupancy_positions: Vec<[f32; 3]>,
     occupancy_sigmas: Vec<f32>,
-    occupancy_ws: FieldWorkspace,
 }
 
 impl Trainer {
@@ -167,7 +166,6 @@ impl Trainer {
             loss_ema: 0.0,
             occupancy_positions: Vec::new(),
             occupancy_sigmas: Vec::new(),
-            occupancy_ws: FieldWorkspace::default(),
         }
     }
 
@@ -256,9 +254,8 @@ impl Trainer {
         let mut grid = self.occupancy.clone();
         let mut rng = Rng::new(self.config.seed, u64::MAX / 2);
         let field = &self.field;
-        let ws = &mut self.occupancy_ws;
         grid.prune_for_rendering(&mut rng, &mut self.occupancy_positions, &mut self.occupancy_sigmas, |p, s| {
-            density_batched(field, ws, p, s)
+            density_batched(field, p, s)
         });
         grid
     }
@@ -274,13 +271,12 @@ impl Trainer {
         let mut rng = Rng::new(self.config.seed, u64::MAX - step);
         for _ in 0..passes {
             let field = &self.field;
-            let ws = &mut self.occupancy_ws;
             self.occupancy.refresh(
                 self.config.occupancy_decay,
                 &mut rng,
                 &mut self.occupancy_positions,
                 &mut self.occupancy_sigmas,
-                |positions, sigmas| density_batched(field, ws, positions, sigmas),
+                |positions, sigmas| density_batched(field, positions, sigmas),
             );
         }
         self.counters.occupancy_refreshes += 1;
@@ -288,7 +284,7 @@ impl Trainer {
 }
 
 /// Density for many points, in parallel blocks.
-pub fn density_batched(field: &Field, _ws: &mut FieldWorkspace, positions: &[[f32; 3]], sigmas: &mut [f32]) {
+pub fn density_batched(field: &Field, positions: &[[f32; 3]], sigmas: &mut [f32]) {
     const BLOCK: usize = 8192;
     positions.par_chunks(BLOCK).zip(sigmas.par_chunks_mut(BLOCK)).for_each_init(FieldWorkspace::default, |ws, (p, s)| {
         field.density_only(p, ws, s);

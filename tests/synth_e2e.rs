@@ -25,7 +25,7 @@ use std::sync::OnceLock;
 
 /// Training steps of the shared model: enough for recognisable views, few
 /// enough to keep the file's tests within about half a minute.
-const STEPS: u64 = 150;
+const STEPS: u64 = 250;
 
 /// Fixture scan and the model fitted to it, shared by every test in this file.
 struct Fitted {

@@ -26,6 +26,18 @@ pub(crate) fn rel(root: &Path, path: &Path) -> String {
     path.strip_prefix(root).unwrap_or(path).display().to_string()
 }
 
+/// Depth PNGs of `root/depth` by frame number; a missing folder means no
+/// depth supervision (warned about), not an error.
+pub(crate) fn optional_depth_files(root: &Path, warnings: &mut Vec<String>) -> Result<BTreeMap<u64, PathBuf>, ScanError> {
+    let depth_dir = root.join("depth");
+    if depth_dir.is_dir() {
+        files_by_id(&depth_dir, &["png"], warnings)
+    } else {
+        warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        Ok(BTreeMap::new())
+    }
+}
+
 /// Files of `dir` with one of `exts`, keyed by frame number. Names that are
 /// not numbers are skipped with one warning; two files for the same number
 /// are an error naming the frame.

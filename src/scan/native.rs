@@ -3,7 +3,7 @@
 //! optional `bbox.txt`. Frames pair by the integer value of the file stem.
 
 use super::assemble::{check_frame_count, FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, id_list, rel, stem};
+use super::files::{files_by_id, id_list, rel, stem, optional_depth_files};
 use super::image_io::RGB_EXTENSIONS;
 use super::text::{self, read_text};
 use super::{Layout, ScanError};
@@ -49,16 +49,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
 
     let rgb = files_by_id(&rgb_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     let poses = files_by_id(&pose_dir, &["txt"], &mut listing.warnings)?;
-    let depth_dir = root.join("depth");
-    let depth = if depth_dir.is_dir() {
-        files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
-    } else {
-        listing.warnings.push(format!(
-            "{}: no depth folder, frames have no depth supervision",
-            depth_dir.display()
-        ));
-        BTreeMap::new()
-    };
+    let depth = optional_depth_files(root, &mut listing.warnings)?;
     if rgb.is_empty() && poses.is_empty() {
         return Err(ScanError::NoFrames(
             root.to_path_buf(),

@@ -6,12 +6,11 @@
 //! colour grid; `intrinsic_depth.txt` is only compared for a warning.
 
 use super::assemble::{FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, id_list, stem};
+use super::files::{files_by_id, id_list, stem, optional_depth_files};
 use super::image_io::RGB_EXTENSIONS;
 use super::native::{pair_parts, require_dir, require_file};
 use super::text::{self, read_text};
 use super::{Intrinsics, Layout, ScanError};
-use std::collections::BTreeMap;
 use std::path::Path;
 
 /// ScanNet's colour resolution, which `intrinsic_color.txt` refers to.
@@ -27,16 +26,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
 
     let color = files_by_id(&color_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     let poses = files_by_id(&pose_dir, &["txt"], &mut listing.warnings)?;
-    let depth_dir = root.join("depth");
-    let depth = if depth_dir.is_dir() {
-        files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
-    } else {
-        listing.warnings.push(format!(
-            "{}: no depth folder, frames have no depth supervision",
-            depth_dir.display()
-        ));
-        BTreeMap::new()
-    };
+    let depth = optional_depth_files(root, &mut listing.warnings)?;
     if color.is_empty() && poses.is_empty() {
         return Err(ScanError::NoFrames(
             root.to_path_buf(),

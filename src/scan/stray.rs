@@ -5,14 +5,14 @@
 //! scaled here to the extracted image size). `confidence/` is ignored.
 
 use super::assemble::{check_frame_count, FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, stem};
+use super::files::{files_by_id, stem, optional_depth_files};
 use super::image_io::RGB_EXTENSIONS;
 use super::native::require_file;
 use super::rigid::pose_from_translation_quaternion;
 use super::text::{self, read_text, Table, TextError};
 use super::{Layout, ScanError};
 use glam::DMat4;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::path::Path;
 
 /// Resolution of the video `camera_matrix.csv` was calibrated for.
@@ -45,16 +45,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
         ));
     }
     check_frame_count(&image_dir, images.len())?;
-    let depth_dir = root.join("depth");
-    let depth = if depth_dir.is_dir() {
-        files_by_id(&depth_dir, &["png"], &mut listing.warnings)?
-    } else {
-        listing.warnings.push(format!(
-            "{}: no depth folder, frames have no depth supervision",
-            depth_dir.display()
-        ));
-        BTreeMap::new()
-    };
+    let depth = optional_depth_files(root, &mut listing.warnings)?;
     let odometry = read_odometry(&odometry_path)?;
 
     for (id, rgb) in &images {

@@ -2,7 +2,7 @@
 //! (640x480, 120 frames, 4 objects): the held-out curve measured during
 //! training, then the final model scored against the exact ground truth.
 //!
-//! cargo run --release --example bench_fit -- [FIXTURE_DIR] [--time SECS] [--preset P] [--seed N]
+//! cargo run --release --example bench_fit -- [FIXTURE_DIR] [--time SECS | --steps N] [--preset P] [--seed N]
 
 use nerflabel::evaluate::score_holdout;
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
@@ -15,10 +15,14 @@ use std::sync::atomic::AtomicBool;
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
     let mut dir = PathBuf::from("target/bench/tabletop");
-    let (mut time, mut preset, mut seed) = (120.0, Preset::Default, 0u64);
+    let (mut time, mut steps, mut preset, mut seed) = (Some(120.0), None, Preset::Default, 0u64);
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--time" => time = args.next().unwrap_or_default().parse()?,
+            "--time" => time = Some(args.next().unwrap_or_default().parse()?),
+            "--steps" => {
+                steps = Some(args.next().unwrap_or_default().parse()?);
+                time = None;
+            }
             "--preset" => preset = args.next().unwrap_or_default().parse().map_err(anyhow::Error::msg)?,
             "--seed" => seed = args.next().unwrap_or_default().parse()?,
             other => dir = PathBuf::from(other),
@@ -30,7 +34,7 @@ fn main() -> anyhow::Result<()> {
         println!("generated the tabletop fixture in {}", dir.display());
     }
     let scan = load(&dir, &LoadOptions::default())?;
-    let options = FitOptions { time: Some(time), seed, preset, ..FitOptions::default() };
+    let options = FitOptions { time, steps, seed, preset, ..FitOptions::default() };
     let stop = AtomicBool::new(false);
     let outcome = fit(&scan, &options, &stop, &mut |e| {
         if let FitEvent::Eval(p) = e {
@@ -72,5 +76,13 @@ fn main() -> anyhow::Result<()> {
         score.depth_missing * 100.0
     );
     println!("timings: {:?}", r.timings);
+    let c = &r.counters;
+    let with_depth = (c.rays - c.rays_without_depth).max(1) as f64;
+    println!(
+        "rays with depth: {:.1} samples each; without depth ({:.0} % of rays): {:.1} samples each",
+        (c.samples - c.samples_without_depth) as f64 / with_depth,
+        100.0 * c.rays_without_depth as f64 / c.rays.max(1) as f64,
+        c.samples_without_depth as f64 / c.rays_without_depth.max(1) as f64
+    );
     Ok(())
 }

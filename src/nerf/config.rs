@@ -36,7 +36,7 @@ impl Preset {
     fn pixels_per_cell(self) -> f64 {
         match self {
             Preset::Fast => 12.0,
-            Preset::Default => 6.0,
+            Preset::Default => 3.0,
             Preset::Quality => 4.0,
         }
     }

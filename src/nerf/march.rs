@@ -146,7 +146,7 @@ mod tests {
             for j in 0..32 {
                 let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
                 for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.6 });
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.8 });
                 }
             }
         }
@@ -156,7 +156,7 @@ mod tests {
         let mut out = Vec::new();
         march(&ray, t0, t1, &grid, &rule(), 0.3, 10_000, &mut out);
         assert!(out.len() < 256 / 2, "half the ray is carved: {}", out.len());
-        assert!(out.iter().any(|s| (s.mid() - 1.1).abs() < 0.02), "surface at local z = 0.6 is sampled");
+        assert!(out.iter().any(|s| (s.mid() - 1.3).abs() < 0.02), "surface at local z = 0.8 is sampled");
     }
 
     #[test]

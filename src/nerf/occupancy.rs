@@ -148,11 +148,18 @@ impl OccupancyGrid {
                 t += step;
             }
         }
+        let mut seen_free = vec![false; cells];
         for i in 0..cells {
             let free = free_votes[i] as u32;
             let surface = surface_votes[i] as u32;
             // A stray flying pixel cannot carve an object: need a clear majority.
-            if surface == 0 && free >= 2 || free > 3 * surface + 2 {
+            seen_free[i] = surface == 0 && free >= 2 || free > 3 * surface + 2;
+        }
+        // Erode by one cell: a free cell next to space that is not seen free
+        // may still hold part of an object the sensor missed (glass, holes),
+        // which carving would make unlearnable.
+        for i in 0..cells {
+            if seen_free[i] && all_neighbours(i, res, |n| seen_free[n]) {
                 self.density[i] = 0.0;
                 self.carved[i >> 6] |= 1 << (i & 63);
             }
@@ -284,6 +291,14 @@ impl OccupancyGrid {
     }
 }
 
+/// Whether `keep` holds for every cell of the 3x3x3 block around `cell`
+/// that lies inside the grid.
+fn all_neighbours(cell: usize, res: usize, keep: impl Fn(usize) -> bool) -> bool {
+    let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+    let span = |v: usize| v.saturating_sub(1)..=(v + 1).min(res - 1);
+    span(z).all(|nz| span(y).all(|ny| span(x).all(|nx| keep((nz * res + ny) * res + nx))))
+}
+
 /// Half-width (in cells, per axis) of the core a free-space ray must cross.
 const CORE_RADIUS: f32 = 0.3;
 
@@ -351,6 +366,29 @@ mod tests {
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
         assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
         assert!(grid.occupied_fraction() > 0.5 && grid.occupied_fraction() < 1.0);
+    }
+
+    #[test]
+    fn space_next_to_a_region_without_depth_stays_occupied() {
+        let mut grid = OccupancyGrid::full(32);
+        // A wall at z = 0.5 seen along +z, except a column x in cells 14..18
+        // where the sensor returned nothing (a glass object stands there).
+        let mut rays = Vec::new();
+        for i in (8..24).filter(|i| !(14..18).contains(i)) {
+            for j in 8..24 {
+                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                for _ in 0..3 {
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
+                }
+            }
+        }
+        grid.seed_from_depth(&rays);
+        let at = |cell_x: f32| [(cell_x + 0.5) / 32.0, 16.5 / 32.0, 0.2];
+        assert!(!grid.is_occupied(at(10.0)), "free space well away from the column is carved");
+        assert!(grid.is_occupied(at(15.0)), "the column itself was never seen free");
+        // The object may reach into the neighbouring cells that rays crossed.
+        assert!(grid.is_occupied(at(13.0)) && grid.is_occupied(at(18.0)), "cells bordering the column stay");
+        assert!(!grid.is_occupied(at(12.0)) && !grid.is_occupied(at(19.0)), "one cell of margin, not more");
     }
 
     #[test]

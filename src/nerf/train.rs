@@ -20,6 +20,11 @@ const GRAD_SCALE: f32 = 1.0 / 1024.0;
 /// Estimated optical depth after which a training ray without measured
 /// depth stops (transmittance e^-20: several surface cells deep).
 const ABSORBED_OPTICAL_DEPTH: f32 = 20.0;
+/// Step of the samples in front of the surface window, in minimum steps.
+const SPARSE_STEP_FACTOR: f32 = 8.0;
+/// Step of rays without measured depth, in minimum steps: they carry only
+/// colour, and at the base step they would cost most of a batch's samples.
+const COLOUR_ONLY_STEP_FACTOR: f32 = 4.0;
 /// Samples of whole rays processed together by the field.
 const SUB_BATCH: usize = 4096;
 
@@ -65,6 +70,8 @@ pub struct StepStats {
     pub loss_depth: f64,
     pub rays: usize,
     pub samples: usize,
+    pub rays_without_depth: usize,
+    pub samples_without_depth: usize,
     pub skipped: bool,
 }
 
@@ -76,6 +83,11 @@ pub struct TrainCounters {
     pub samples: u64,
     pub rays: u64,
     pub occupancy_refreshes: u64,
+    /// Rays (and their samples) without measured depth: colour only.
+    #[serde(default)]
+    pub rays_without_depth: u64,
+    #[serde(default)]
+    pub samples_without_depth: u64,
 }
 
 struct RayRecord {
@@ -93,6 +105,8 @@ struct ChunkStats {
     loss_depth: f64,
     rays: usize,
     samples: usize,
+    rays_without_depth: usize,
+    samples_without_depth: usize,
 }
 
 /// Per-thread buffers, allocated once and reused every step.
@@ -220,6 +234,8 @@ impl Trainer {
             total.loss_depth += s.loss_depth;
             total.rays += s.rays;
             total.samples += s.samples;
+            total.rays_without_depth += s.rays_without_depth;
+            total.samples_without_depth += s.samples_without_depth;
         }
         let rays = total.rays.max(1) as f64;
         total.loss_rgb /= rays;
@@ -228,6 +244,8 @@ impl Trainer {
         self.counters.steps += 1;
         self.counters.samples += total.samples as u64;
         self.counters.rays += total.rays as u64;
+        self.counters.rays_without_depth += total.rays_without_depth as u64;
+        self.counters.samples_without_depth += total.samples_without_depth as u64;
 
         let grad = &first[0].grad;
         let diverged = self.counters.steps > 50 && self.loss_ema > 0.0 && total.loss > 20.0 * self.loss_ema + 1e-3;
@@ -303,6 +321,10 @@ struct StepContext<'a> {
 fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) -> ChunkStats {
     draw_rays(ctx, chunk, rng, budget);
     let mut stats = ChunkStats { rays: chunk.rays.len(), samples: chunk.segments.len(), ..Default::default() };
+    for ray in chunk.rays.iter().filter(|r| r.depth_t.is_none()) {
+        stats.rays_without_depth += 1;
+        stats.samples_without_depth += ray.count;
+    }
     let mut start = 0;
     while start < chunk.rays.len() {
         // Whole rays up to SUB_BATCH samples (a longer single ray goes alone).
@@ -327,7 +349,11 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     let cfg = ctx.config;
     let window = cfg.surface_window;
     let fine_step = 0.75 * ctx.rule.min_step;
-    let sparse = StepRule { min_step: 4.0 * ctx.rule.min_step, max_step: ctx.rule.max_step.max(4.0 * ctx.rule.min_step), cone: ctx.rule.cone };
+    // In front of the surface window only sparse samples: enough to push
+    // free space empty and to find occluders the sensor missed.
+    let sparse = coarser(&ctx.rule, SPARSE_STEP_FACTOR);
+    // Rays without depth only see colour: coarser, and capped.
+    let colour_only = coarser(&ctx.rule, COLOUR_ONLY_STEP_FACTOR);
     let mut attempts = 0usize;
     // Bounded attempts: views that see nothing must not hang the step.
     while chunk.segments.len() < budget && attempts < 4 * budget {
@@ -349,8 +375,6 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 // Occupancy-skipped up to the surface window, dense inside it
                 // whatever the grid says, and nothing behind it.
                 let (w0, w1) = ((td - window).max(t0), (td + window).min(t1));
-                // In front of the window only sparse samples: enough to push
-                // free space empty and to find occluders the sensor missed.
                 march(&ray, t0, w0, ctx.occupancy, &sparse, jitter, max, &mut chunk.segments);
                 let mut t = w0 + jitter * fine_step;
                 while t < w1 && chunk.segments.len() - first < max {
@@ -360,14 +384,14 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 w1
             }
             // Without depth: stop where the grid says the ray is surely absorbed.
-            // Fewer samples: these rays only see colour.
-            _ => march_until(&ray, t0, t1, ctx.occupancy, &ctx.rule, jitter, max / 4, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
+            _ => march_until(&ray, t0, t1, ctx.occupancy, &colour_only, jitter, max / 16, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
                 .min(t1),
         };
         let count = chunk.segments.len() - first;
         if count == 0 {
             continue;
         }
+
         if chunk.segments.len() > budget && !chunk.rays.is_empty() {
             chunk.segments.truncate(first);
             break;
@@ -378,6 +402,12 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
         chunk.ray_origins.push(ray.origin);
         chunk.ray_dirs.push(ray.dir);
     }
+}
+
+/// `rule` with its smallest step multiplied by `factor`.
+fn coarser(rule: &StepRule, factor: f32) -> StepRule {
+    let min_step = factor * rule.min_step;
+    StepRule { min_step, max_step: rule.max_step.max(min_step), cone: rule.cone }
 }
 
 fn sized<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {

@@ -51,6 +51,10 @@ impl Default for FitOptions {
     }
 }
 
+/// Training seconds between evaluations are at least this multiple of the
+/// last evaluation's cost (bounds its overhead to 25 % of training).
+const EVAL_COST_RATIO: f64 = 4.0;
+
 /// Default training time when neither `time` nor `steps` is given.
 pub const DEFAULT_TIME_S: f64 = 120.0;
 
@@ -255,9 +259,14 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         train_seconds += t.elapsed().as_secs_f64();
         on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds, progress });
         if train_seconds >= next_eval {
+            let eval_s_before = timings.eval_s;
             if let Some(point) = evaluate_now(&mut trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
                 on_event(FitEvent::Eval(&point));
             }
+            // Evaluation must not dominate a fit: the next one comes after
+            // at least four times the last one's cost in training time.
+            let last_cost = timings.eval_s - eval_s_before;
+            next_eval = (next_eval + opts.eval_interval_s).max(train_seconds + EVAL_COST_RATIO * last_cost);
             while next_eval <= train_seconds {
                 next_eval += opts.eval_interval_s;
             }

@@ -152,8 +152,10 @@ impl Model {
             word_bytes.chunks_exact(8).map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect();
         let field = Field::from_params(header.field.clone(), grid, density, color)
             .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration".into()))?;
-        let occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy, carved)
+        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy, carved)
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
+        // A model's grid is for rendering: the saved estimates decide what is marched.
+        occupancy.restrict_to_rendering();
         Ok(Model { header, field, occupancy })
     }
 }

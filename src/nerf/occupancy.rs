@@ -33,6 +33,9 @@ pub struct OccupancyGrid {
 
 /// A refresh evaluates one of this many interleaved subsets of the cells.
 const REFRESH_PARTS: usize = 8;
+/// Rendering skips cells whose estimated optical depth across one cell is
+/// below this (at most 1 % of the light lost per skipped cell).
+const RENDER_MIN_CELL_OPTICAL_DEPTH: f32 = 0.01;
 /// Never let fewer than this fraction of cells stay occupied.
 const MIN_OCCUPIED_FRACTION: f64 = 1e-3;
 
@@ -231,16 +234,45 @@ impl OccupancyGrid {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
     }
 
-    /// Re-estimate every cell from the model (no memory of the past):
-    /// carved space the model did not fill stays skipped in renders.
+    /// Grid for rendering: every cell re-sampled once more from the model
+    /// (keeping the running maximum of earlier refreshes, so thin surfaces
+    /// a single sample misses survive), then cells whose estimated optical
+    /// depth is negligible dropped. Untrained haze behind surfaces and in
+    /// space no camera saw is never marched; carved space stays empty.
     pub fn prune_for_rendering<F>(&mut self, rng: &mut Rng, positions: &mut Vec<[f32; 3]>, sigmas: &mut Vec<f32>, mut density_at: F)
     where
         F: FnMut(&[[f32; 3]], &mut [f32]),
     {
         for _ in 0..REFRESH_PARTS {
-            self.refresh(0.0, rng, positions, sigmas, &mut density_at);
+            self.refresh(1.0, rng, positions, sigmas, &mut density_at);
         }
-        self.rebuild_bits();
+        self.restrict_to_rendering();
+    }
+
+    /// Keep only cells dense enough to matter in a render (see
+    /// [`Self::prune_for_rendering`]); a grid whose estimates are all
+    /// negligible (nothing trained) is left as it is.
+    pub fn restrict_to_rendering(&mut self) {
+        let min_density = RENDER_MIN_CELL_OPTICAL_DEPTH * self.res as f32;
+        let cells = self.density.len();
+        let min_occupied = ((cells as f64 * MIN_OCCUPIED_FRACTION) as usize).max(1);
+        let dense_count = (0..cells).filter(|&i| !self.is_carved(i) && self.density[i] >= min_density).count();
+        if dense_count < min_occupied {
+            // Nothing trained yet: keep the full training grid.
+            return;
+        }
+        // One cell of margin around dense cells: a thin surface inside a
+        // cell can be missed by the cell's samples while the cell behind it
+        // is dense, and skipping it would put the surface a cell too far.
+        let dense: Vec<bool> = (0..cells).map(|i| !self.is_carved(i) && self.density[i] >= min_density).collect();
+        let res = self.res;
+        self.bits.iter_mut().for_each(|w| *w = 0);
+        for i in 0..cells {
+            if !self.is_carved(i) && (dense[i] || !all_neighbours(i, res, |n| !dense[n])) {
+                self.bits[i >> 6] |= 1 << (i & 63);
+            }
+        }
+        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
     }
 
     /// Carved-cell mask (for the model file).
@@ -389,6 +421,28 @@ mod tests {
         // The object may reach into the neighbouring cells that rays crossed.
         assert!(grid.is_occupied(at(13.0)) && grid.is_occupied(at(18.0)), "cells bordering the column stay");
         assert!(!grid.is_occupied(at(12.0)) && !grid.is_occupied(at(19.0)), "one cell of margin, not more");
+    }
+
+    #[test]
+    fn rendering_grid_keeps_dense_cells_and_their_neighbours_only() {
+        let res = 16;
+        let index = |x: usize, y: usize, z: usize| (z * res + y) * res + x;
+        let mut density = vec![0.01f32; res * res * res];
+        for (x, y, z) in (0..8).map(|k| (8 + (k & 1), 8 + ((k >> 1) & 1), 8 + (k >> 2))) {
+            density[index(x, y, z)] = 100.0;
+        }
+        let trained = OccupancyGrid::from_saved(res, density.clone(), vec![0; (res * res * res).div_ceil(64)]).unwrap();
+        let mut grid = trained;
+        grid.restrict_to_rendering();
+        let centre = |x: usize, y: usize, z: usize| [(x as f32 + 0.5) / 16.0, (y as f32 + 0.5) / 16.0, (z as f32 + 0.5) / 16.0];
+        assert!(grid.is_occupied(centre(8, 9, 8)), "a dense cell");
+        assert!(grid.is_occupied(centre(7, 8, 8)) && grid.is_occupied(centre(10, 10, 10)), "its neighbours (a thin surface may sit there)");
+        assert!(!grid.is_occupied(centre(5, 8, 8)) && !grid.is_occupied(centre(0, 0, 0)), "negligible haze is skipped");
+        assert_eq!(grid.occupied_fraction(), 64.0 / 4096.0);
+        // Nothing dense at all (an untrained model): the grid is left full.
+        let mut flat = OccupancyGrid::from_saved(res, vec![0.01; res * res * res], vec![0; 64]).unwrap();
+        flat.restrict_to_rendering();
+        assert_eq!(flat.occupied_fraction(), 1.0);
     }
 
     #[test]

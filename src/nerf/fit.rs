@@ -54,6 +54,9 @@ impl Default for FitOptions {
 /// Training seconds between evaluations are at least this multiple of the
 /// last evaluation's cost (bounds its overhead to 25 % of training).
 const EVAL_COST_RATIO: f64 = 4.0;
+/// ... but never more than this many intervals apart (an untrained model
+/// renders slowly; the curve still needs its points).
+const MAX_EVAL_SPACING: f64 = 3.0;
 
 /// Default training time when neither `time` nor `steps` is given.
 pub const DEFAULT_TIME_S: f64 = 120.0;
@@ -266,7 +269,8 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
             // Evaluation must not dominate a fit: the next one comes after
             // at least four times the last one's cost in training time.
             let last_cost = timings.eval_s - eval_s_before;
-            next_eval = (next_eval + opts.eval_interval_s).max(train_seconds + EVAL_COST_RATIO * last_cost);
+            let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * opts.eval_interval_s);
+            next_eval = (next_eval + opts.eval_interval_s).max(train_seconds + spacing);
             while next_eval <= train_seconds {
                 next_eval += opts.eval_interval_s;
             }

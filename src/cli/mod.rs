@@ -177,7 +177,13 @@ pub struct FitArgs {
     /// Weight of the depth loss.
     #[arg(long)]
     pub lambda_depth: Option<f32>,
-    /// Continue from the last checkpoint of this model.
+    /// Adam learning rate (default 0.01).
+    #[arg(long)]
+    pub learning_rate: Option<f32>,
+    /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint, written every
+    /// ~10 s of training and at the end, and kept). --steps and --time count what was already trained;
+    /// without them the original budget applies, so an interrupted fit finishes and a finished one is
+    /// extended by giving a larger budget. The scan and the other settings must be the same.
     #[arg(long)]
     pub resume: bool,
 }

@@ -446,7 +446,7 @@ mod tests {
         let mut t = Trainer::new(field, OccupancyGrid::full(16), train, [0.5; 3]);
         let views = plane_views(3, 16, true);
         for s in 0..steps {
-            t.step(&views, s as f32 / 40.0);
+            t.step(&views, s as f32 / 70.0);
         }
         t
     }
@@ -467,27 +467,30 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("model.checkpoint");
         let views = plane_views(3, 16, true);
-        let mut a = trained(20);
+        // Past warm-up (32) and two occupancy refreshes, so the refresh phase matters.
+        let mut a = trained(50);
         let progress = FitProgress { train_seconds: 1.5, last_point: (1.0, 99), ..FitProgress::default() };
         save(&path, &identity(), &progress, &a).unwrap();
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temp file left");
         let ckpt = Checkpoint::load(&path).unwrap();
-        assert_eq!(ckpt.steps(), 20);
+        assert_eq!(ckpt.steps(), 50);
+        assert_ne!(ckpt.header.refresh_phase, 0);
         ckpt.check(&identity()).unwrap();
         // A fresh trainer (other initial weights) takes over the saved state.
         let (field_cfg, train) = small_config(9);
         let mut b = Trainer::new(Field::new(field_cfg, &mut Rng::new(1, 0)), OccupancyGrid::full(16), train, [0.5; 3]);
         let back = ckpt.restore(&mut b).unwrap();
         assert_eq!((back.train_seconds, back.last_point), (1.5, (1.0, 99)));
-        for s in 20..40 {
-            a.step(&views, s as f32 / 40.0);
-            b.step(&views, s as f32 / 40.0);
+        for s in 50..70 {
+            a.step(&views, s as f32 / 70.0);
+            b.step(&views, s as f32 / 70.0);
         }
         assert_eq!(a.field.grid.params, b.field.grid.params);
         assert_eq!(a.field.density.params, b.field.density.params);
         assert_eq!(a.field.color.params, b.field.color.params);
         assert_eq!(a.occupancy.densities(), b.occupancy.densities());
-        assert_eq!(a.counters.steps, 40);
+        assert_eq!(a.counters.steps, 70);
+        assert!(a.counters.occupancy_refreshes >= 3);
         assert_eq!(b.counters.samples, a.counters.samples);
     }
 

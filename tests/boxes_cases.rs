@@ -10,7 +10,9 @@
 //! runs the rendered (nerf) path.
 
 use glam::{DMat3, DVec3};
-use nerflabel::boxes::{read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions};
+use nerflabel::boxes::{
+    read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions,
+};
 use nerflabel::nerf::config::Preset;
 use nerflabel::nerf::fit::{fit, FitOptions};
 use nerflabel::scan::{load, LoadOptions, Scan};
@@ -40,7 +42,11 @@ fn set(mut boxes: Vec<Box3>) -> BoxSet {
 }
 
 fn sensor() -> LabelOptions {
-    LabelOptions { source: DepthSource::Sensor, cleanup_fraction: 0.0, ..LabelOptions::default() }
+    LabelOptions {
+        source: DepthSource::Sensor,
+        cleanup_fraction: 0.0,
+        ..LabelOptions::default()
+    }
 }
 
 /// Masks of every frame (frame order).
@@ -62,7 +68,11 @@ fn count(masks: &[Vec<u16>], id: u16) -> usize {
 
 /// Pixels where both sets of masks hold the given ids.
 fn count_pairs(a: &[Vec<u16>], b: &[Vec<u16>], f: impl Fn(u16, u16) -> bool) -> usize {
-    a.iter().zip(b).flat_map(|(x, y)| x.iter().zip(y)).filter(|(&p, &q)| f(p, q)).count()
+    a.iter()
+        .zip(b)
+        .flat_map(|(x, y)| x.iter().zip(y))
+        .filter(|(&p, &q)| f(p, q))
+        .count()
 }
 
 /// Write labels to a temp folder and return the summary.
@@ -96,16 +106,38 @@ fn zero_volume_box_is_accepted_with_a_warning_and_stays_empty() {
     let boxes = read_boxes(path.path()).unwrap();
     let warnings = boxes.warnings();
     assert_eq!(warnings.len(), 2, "{warnings:?}");
-    assert!(warnings[0].contains("box 4 (`sheet`) has zero volume") && warnings[1].contains("box 5 (`line`) has zero volume"), "{warnings:?}");
+    assert!(
+        warnings[0].contains("box 4 (`sheet`) has zero volume")
+            && warnings[1].contains("box 5 (`line`) has zero volume"),
+        "{warnings:?}"
+    );
     let m = masks(&boxes, sensor(), None);
-    assert_eq!((count(&m, 4), count(&m, 5)), (0, 0), "a zero-volume box holds no surface point");
+    assert_eq!(
+        (count(&m, 4), count(&m, 5)),
+        (0, 0),
+        "a zero-volume box holds no surface point"
+    );
     assert!(m == *baseline(), "the other boxes' masks changed");
     let s = summary(&boxes, sensor());
     assert_eq!(s.frames_visible[3..], [0, 0]);
-    assert!(s.warnings.iter().any(|w| w.contains("box 4 (`sheet`) has zero volume")), "{:?}", s.warnings);
-    assert!(s.warnings.iter().any(|w| w.contains("box 4 (`sheet`) is in view") && w.contains("no surface point")), "{:?}", s.warnings);
+    assert!(
+        s.warnings.iter().any(|w| w.contains("box 4 (`sheet`) has zero volume")),
+        "{:?}",
+        s.warnings
+    );
+    assert!(
+        s.warnings
+            .iter()
+            .any(|w| w.contains("box 4 (`sheet`) is in view") && w.contains("no surface point")),
+        "{:?}",
+        s.warnings
+    );
     // A line meets (almost) no pixel-centre ray: warned as unseen or empty.
-    assert!(s.warnings.iter().filter(|w| w.contains("box 5 (`line`)")).count() == 2, "{:?}", s.warnings);
+    assert!(
+        s.warnings.iter().filter(|w| w.contains("box 5 (`line`)")).count() == 2,
+        "{:?}",
+        s.warnings
+    );
 }
 
 /// A box around the whole scene and every camera.
@@ -119,7 +151,13 @@ fn enclosing() -> Box3 {
     }
     let centre = (lo + hi) * 0.5;
     let size = (hi - lo) + DVec3::splat(10.0);
-    Box3 { label: "room".into(), instance_id: 0, center: centre, size, rotation: DMat3::IDENTITY }
+    Box3 {
+        label: "room".into(),
+        instance_id: 0,
+        center: centre,
+        size,
+        rotation: DMat3::IDENTITY,
+    }
 }
 
 #[test]
@@ -139,13 +177,20 @@ fn box_enclosing_the_whole_scene_and_the_cameras_takes_only_what_no_smaller_box_
             let z = depth.metres[i];
             if z > 0.0 {
                 with_depth += 1;
-                assert_ne!(id, 0, "{}: a surface pixel fell outside a box enclosing everything", frame.name);
+                assert_ne!(
+                    id, 0,
+                    "{}: a surface pixel fell outside a box enclosing everything",
+                    frame.name
+                );
             } else {
                 assert_eq!(id, 0, "{}: a pixel without depth was labelled", frame.name);
             }
         }
     }
-    assert_eq!(count(&m, 1) + count(base, 1) + count(base, 2) + count(base, 3), with_depth);
+    assert_eq!(
+        count(&m, 1) + count(base, 1) + count(base, 2) + count(base, 3),
+        with_depth
+    );
     assert!(count(&m, 1) > with_depth / 2, "the room holds most of the surface");
 }
 
@@ -161,15 +206,31 @@ fn nested_box_takes_its_part_and_the_outer_box_keeps_the_rest() {
     };
     let others = fixture_boxes()[1..].to_vec();
     let base = baseline();
-    for (order, list) in [("outer first", [vec![outer.clone(), inner.clone()], others.clone()].concat()), ("inner first", [vec![inner.clone(), outer.clone()], others.clone()].concat())] {
+    for (order, list) in [
+        (
+            "outer first",
+            [vec![outer.clone(), inner.clone()], others.clone()].concat(),
+        ),
+        (
+            "inner first",
+            [vec![inner.clone(), outer.clone()], others.clone()].concat(),
+        ),
+    ] {
         let boxes = set(list);
         let (o, i) = if order == "outer first" { (1u16, 2u16) } else { (2, 1) };
         let m = masks(&boxes, sensor(), None);
         let (n_outer, n_inner) = (count(&m, o), count(&m, i));
         eprintln!("{order}: outer {n_outer}, inner {n_inner}");
-        assert!(n_inner > 50 && n_outer > 50, "{order}: both parts are seen: outer {n_outer}, inner {n_inner}");
+        assert!(
+            n_inner > 50 && n_outer > 50,
+            "{order}: both parts are seen: outer {n_outer}, inner {n_inner}"
+        );
         // Together exactly the pixels of the outer box alone.
-        assert_eq!(count_pairs(base, &m, |b, n| (b == 1) != (n == o || n == i)), 0, "{order}: outer + inner differ from the outer box alone");
+        assert_eq!(
+            count_pairs(base, &m, |b, n| (b == 1) != (n == o || n == i)),
+            0,
+            "{order}: outer + inner differ from the outer box alone"
+        );
         // The other boxes are untouched.
         assert_eq!(count_pairs(base, &m, |b, n| b > 1 && n != b + 1), 0, "{order}");
     }
@@ -187,7 +248,11 @@ fn overlapping_boxes_give_the_overlap_to_the_smaller_whatever_their_order() {
         ..a.clone()
     };
     let others = fixture_boxes()[1..].to_vec();
-    let first = masks(&set([vec![a.clone(), b.clone()], others.clone()].concat()), sensor(), None);
+    let first = masks(
+        &set([vec![a.clone(), b.clone()], others.clone()].concat()),
+        sensor(),
+        None,
+    );
     let second = masks(&set([vec![b.clone(), a.clone()], others].concat()), sensor(), None);
     // Same masks with ids 1 and 2 swapped: the order in the file does not matter.
     let swap = |v: u16| match v {
@@ -195,7 +260,11 @@ fn overlapping_boxes_give_the_overlap_to_the_smaller_whatever_their_order() {
         2 => 1,
         x => x,
     };
-    assert_eq!(count_pairs(&first, &second, |p, q| swap(p) != q), 0, "order changed the labels");
+    assert_eq!(
+        count_pairs(&first, &second, |p, q| swap(p) != q),
+        0,
+        "order changed the labels"
+    );
     // Every pixel of a alone is still a or b (nothing lost) and the overlap went to b.
     let base = baseline();
     assert_eq!(count_pairs(base, &first, |p, q| p == 1 && q != 1 && q != 2), 0);
@@ -208,12 +277,26 @@ fn overlapping_boxes_give_the_overlap_to_the_smaller_whatever_their_order() {
 /// A box well above every camera: all corners have negative camera-frame z.
 fn behind_every_camera() -> Box3 {
     let s = scan();
-    let top = s.frames.iter().map(|f| f.camera_to_world.w_axis.z).fold(f64::NEG_INFINITY, f64::max);
-    let b = Box3 { label: "sky".into(), instance_id: 0, center: DVec3::new(0.0, 0.0, top + 20.0), size: DVec3::splat(0.5), rotation: DMat3::IDENTITY };
+    let top = s
+        .frames
+        .iter()
+        .map(|f| f.camera_to_world.w_axis.z)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let b = Box3 {
+        label: "sky".into(),
+        instance_id: 0,
+        center: DVec3::new(0.0, 0.0, top + 20.0),
+        size: DVec3::splat(0.5),
+        rotation: DMat3::IDENTITY,
+    };
     for f in &s.frames {
         let w2c = f.camera_to_world.inverse();
         for c in b.corners() {
-            assert!(w2c.transform_point3(c).z < 0.0, "{}: test set-up: the box must be behind the camera", f.name);
+            assert!(
+                w2c.transform_point3(c).z < 0.0,
+                "{}: test set-up: the box must be behind the camera",
+                f.name
+            );
         }
     }
     b
@@ -227,33 +310,64 @@ fn box_behind_every_camera_is_warned_about_and_gets_no_pixel() {
     assert!(m == *baseline(), "the other boxes' masks changed");
     let labeler = Labeler::new(&boxes, None, sensor()).unwrap();
     for f in &scan().frames {
-        assert!(!labeler.label_frame(f).in_view.contains(&4), "{}: a box behind the camera counted as in view", f.name);
+        assert!(
+            !labeler.label_frame(f).in_view.contains(&4),
+            "{}: a box behind the camera counted as in view",
+            f.name
+        );
     }
     let s = summary(&boxes, sensor());
     assert_eq!(s.frames_visible[3], 0);
-    assert!(s.warnings.iter().any(|w| w.contains("box 4 (`sky`) is outside the view of every labelled frame")), "{:?}", s.warnings);
+    assert!(
+        s.warnings
+            .iter()
+            .any(|w| w.contains("box 4 (`sky`) is outside the view of every labelled frame")),
+        "{:?}",
+        s.warnings
+    );
 }
 
 #[test]
 fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
     // A few training steps are enough: this checks the rendering path, not accuracy.
-    let opts = FitOptions { steps: Some(5), preset: Preset::Fast, holdout_every: 0, ..FitOptions::default() };
+    let opts = FitOptions {
+        steps: Some(5),
+        preset: Preset::Fast,
+        holdout_every: 0,
+        ..FitOptions::default()
+    };
     let model = fit(scan(), &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model;
     let boxes = set(vec![enclosing(), behind_every_camera()]);
-    let options = LabelOptions { source: DepthSource::Nerf, full_depth: true, ..LabelOptions::default() };
+    let options = LabelOptions {
+        source: DepthSource::Nerf,
+        full_depth: true,
+        ..LabelOptions::default()
+    };
     let labeler = Labeler::new(&boxes, Some(&model), options).unwrap();
     let mut room = 0;
     for f in scan().frames.iter().step_by(6) {
         let l = labeler.label_frame(f);
-        assert!(l.mask.iter().all(|&v| v != 2), "{}: the box behind the cameras got pixels", f.name);
+        assert!(
+            l.mask.iter().all(|&v| v != 2),
+            "{}: the box behind the cameras got pixels",
+            f.name
+        );
         let depth = l.depth_m.as_ref().unwrap();
-        assert!(depth.iter().all(|d| d.is_finite() && *d >= 0.0), "{}: non-finite rendered depth", f.name);
+        assert!(
+            depth.iter().all(|d| d.is_finite() && *d >= 0.0),
+            "{}: non-finite rendered depth",
+            f.name
+        );
         // With the camera inside the room box every pixel's ray meets it.
         assert_eq!(l.box_pixels, (f.size().0 * f.size().1) as usize, "{}", f.name);
         room += l.mask.iter().filter(|&&v| v == 1).count();
         // Where a surface was rendered inside the room, it is labelled the room.
         let surfaced = depth.iter().zip(&l.mask).filter(|(d, m)| **d > 0.0 && **m == 0).count();
-        assert!(surfaced < depth.len() / 100, "{}: {surfaced} rendered surface pixels left unlabelled", f.name);
+        assert!(
+            surfaced < depth.len() / 100,
+            "{}: {surfaced} rendered surface pixels left unlabelled",
+            f.name
+        );
     }
     assert!(room > 0, "the room box must receive the rendered surface");
 }

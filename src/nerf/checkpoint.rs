@@ -33,7 +33,10 @@ const SECTIONS: usize = 11;
 pub fn checkpoint_path(model: &Path) -> PathBuf {
     if model.extension().is_some_and(|e| e == "checkpoint") {
         // Never the model path itself.
-        let name = model.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = model
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         return model.with_file_name(format!("{name}.checkpoint"));
     }
     model.with_extension("checkpoint")
@@ -66,8 +69,13 @@ pub struct FitIdentity {
 impl FitIdentity {
     /// Identity of a fit of `scan` with `opts` and the derived `settings`.
     pub fn new(scan: &Scan, opts: &FitOptions, settings: &NerfSettings) -> FitIdentity {
-        let derived = serde_json::to_string(&(&settings.field, &settings.train, settings.occupancy_resolution, &settings.render_step))
-            .unwrap_or_default();
+        let derived = serde_json::to_string(&(
+            &settings.field,
+            &settings.train,
+            settings.occupancy_resolution,
+            &settings.render_step,
+        ))
+        .unwrap_or_default();
         let mut h = Fnv::new();
         h.bytes(derived.as_bytes());
         FitIdentity {
@@ -118,7 +126,10 @@ pub fn scan_fingerprint(scan: &Scan) -> u64 {
         let (w, hgt) = f.size();
         h.u64(((w as u64) << 32) | hgt as u64);
         let k = f.intrinsics;
-        for v in [k.fx, k.fy, k.cx, k.cy].into_iter().chain(f.camera_to_world.to_cols_array()) {
+        for v in [k.fx, k.fy, k.cx, k.cy]
+            .into_iter()
+            .chain(f.camera_to_world.to_cols_array())
+        {
             h.u64(v.to_bits());
         }
         h.u64(f.depth.is_some() as u64);
@@ -221,7 +232,12 @@ fn write_f32s<W: Write>(w: &mut W, values: &[f32]) -> io::Result<()> {
 }
 
 /// Save the state of `trainer` and `progress` to `path` atomically.
-pub fn save(path: &Path, identity: &FitIdentity, progress: &FitProgress, trainer: &Trainer) -> Result<(), CheckpointError> {
+pub fn save(
+    path: &Path,
+    identity: &FitIdentity,
+    progress: &FitProgress,
+    trainer: &Trainer,
+) -> Result<(), CheckpointError> {
     let (adams, lr_scale, loss_ema) = trainer.optimiser();
     let field = &trainer.field;
     let moments = adams.map(|a| a.moments());
@@ -253,9 +269,15 @@ pub fn save(path: &Path, identity: &FitIdentity, progress: &FitProgress, trainer
             moments[2].1.len(),
         ],
     };
-    let json = serde_json::to_vec(&header).map_err(|e| CheckpointError::Write { path: path.to_path_buf(), source: e.into() })?;
+    let json = serde_json::to_vec(&header).map_err(|e| CheckpointError::Write {
+        path: path.to_path_buf(),
+        source: e.into(),
+    })?;
     crate::atomic::write_with(path, |file| {
-        let mut w = CrcWriter { inner: file, crc: crc32fast::Hasher::new() };
+        let mut w = CrcWriter {
+            inner: file,
+            crc: crc32fast::Hasher::new(),
+        };
         w.write_all(MAGIC)?;
         w.write_all(&VERSION.to_le_bytes())?;
         w.write_all(&(json.len() as u32).to_le_bytes())?;
@@ -273,11 +295,17 @@ pub fn save(path: &Path, identity: &FitIdentity, progress: &FitProgress, trainer
         let crc = w.crc.finalize();
         file.write_all(&crc.to_le_bytes())
     })
-    .map_err(|source| CheckpointError::Write { path: path.to_path_buf(), source })
+    .map_err(|source| CheckpointError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 fn damaged(path: &Path, what: impl Into<String>) -> CheckpointError {
-    CheckpointError::Damaged { path: path.to_path_buf(), what: what.into() }
+    CheckpointError::Damaged {
+        path: path.to_path_buf(),
+        what: what.into(),
+    }
 }
 
 impl Checkpoint {
@@ -285,12 +313,21 @@ impl Checkpoint {
     pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
         let meta = match std::fs::metadata(path) {
             Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(CheckpointError::Missing(path.to_path_buf())),
-            other => other.map_err(|source| CheckpointError::Read { path: path.to_path_buf(), source })?,
+            other => other.map_err(|source| CheckpointError::Read {
+                path: path.to_path_buf(),
+                source,
+            })?,
         };
         if meta.len() > MAX_FILE {
-            return Err(damaged(path, format!("{} bytes is larger than any checkpoint", meta.len())));
+            return Err(damaged(
+                path,
+                format!("{} bytes is larger than any checkpoint", meta.len()),
+            ));
         }
-        let bytes = std::fs::read(path).map_err(|source| CheckpointError::Read { path: path.to_path_buf(), source })?;
+        let bytes = std::fs::read(path).map_err(|source| CheckpointError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Checkpoint::from_bytes(&bytes, path)
     }
 
@@ -304,7 +341,10 @@ impl Checkpoint {
         }
         let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
         if version != VERSION {
-            return Err(CheckpointError::Version { path: path.to_path_buf(), found: version });
+            return Err(CheckpointError::Version {
+                path: path.to_path_buf(),
+                found: version,
+            });
         }
         let (body, crc_bytes) = bytes.split_at(bytes.len() - 4);
         let stored = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
@@ -313,39 +353,63 @@ impl Checkpoint {
         }
         let header_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
         if header_len > MAX_HEADER || 16 + header_len > body.len() {
-            return Err(damaged(path, format!("header length {header_len} does not fit the file")));
+            return Err(damaged(
+                path,
+                format!("header length {header_len} does not fit the file"),
+            ));
         }
-        let header: CheckpointHeader =
-            serde_json::from_slice(&body[16..16 + header_len]).map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
+        let header: CheckpointHeader = serde_json::from_slice(&body[16..16 + header_len])
+            .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
         let s = header.sections;
         let words = s[4];
-        let floats = s.iter().enumerate().filter(|&(i, _)| i != 4).try_fold(0usize, |acc, (_, &n)| acc.checked_add(n));
+        let floats = s
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| i != 4)
+            .try_fold(0usize, |acc, (_, &n)| acc.checked_add(n));
         let needed = floats
             .and_then(|f| f.checked_mul(4))
             .and_then(|f| words.checked_mul(8).and_then(|w| w.checked_add(f)))
             .ok_or_else(|| damaged(path, "section sizes overflow"))?;
         let mut data = &body[16 + header_len..];
         if needed != data.len() {
-            return Err(damaged(path, format!("expected {needed} bytes of arrays, found {}", data.len())));
+            return Err(damaged(
+                path,
+                format!("expected {needed} bytes of arrays, found {}", data.len()),
+            ));
         }
         let mut take_f32 = |n: usize| -> Vec<f32> {
             let (head, tail) = data.split_at(4 * n);
             data = tail;
-            head.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+            head.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
         };
         let (grid, density, color, occ) = (take_f32(s[0]), take_f32(s[1]), take_f32(s[2]), take_f32(s[3]));
         let (carved_bytes, rest) = data.split_at(8 * words);
         data = rest;
-        let carved: Vec<u64> =
-            carved_bytes.chunks_exact(8).map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect();
+        let carved: Vec<u64> = carved_bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+            .collect();
         let mut take_f32 = |n: usize| -> Vec<f32> {
             let (head, tail) = data.split_at(4 * n);
             data = tail;
-            head.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+            head.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
         };
-        let moments = [(take_f32(s[5]), take_f32(s[6])), (take_f32(s[7]), take_f32(s[8])), (take_f32(s[9]), take_f32(s[10]))];
+        let moments = [
+            (take_f32(s[5]), take_f32(s[6])),
+            (take_f32(s[7]), take_f32(s[8])),
+            (take_f32(s[9]), take_f32(s[10])),
+        ];
         let lengths = [grid.len(), density.len(), color.len()];
-        if moments.iter().zip(lengths).any(|((m, v), n)| m.len() != n || v.len() != n) {
+        if moments
+            .iter()
+            .zip(lengths)
+            .any(|((m, v), n)| m.len() != n || v.len() != n)
+        {
             return Err(damaged(path, "optimiser moments do not match the parameter counts"));
         }
         let field = Field::from_params(header.field.clone(), grid, density, color)
@@ -353,7 +417,13 @@ impl Checkpoint {
         let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occ, carved)
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution"))?;
         occupancy.set_refresh_phase(header.refresh_phase);
-        Ok(Checkpoint { path: path.to_path_buf(), header, field, occupancy, moments })
+        Ok(Checkpoint {
+            path: path.to_path_buf(),
+            header,
+            field,
+            occupancy,
+            moments,
+        })
     }
 
     /// Steps trained so far.
@@ -374,7 +444,10 @@ impl Checkpoint {
         if saved.scan_fingerprint != identity.scan_fingerprint {
             return Err(CheckpointError::OtherScan {
                 path: self.path.clone(),
-                what: format!("same {} frames, but other poses, intrinsics, image sizes or frame names", saved.frames),
+                what: format!(
+                    "same {} frames, but other poses, intrinsics, image sizes or frame names",
+                    saved.frames
+                ),
             });
         }
         let (a, b) = (&saved.settings, &identity.settings);
@@ -394,18 +467,32 @@ impl Checkpoint {
             diffs.push(format!("--holdout {} (this run: {})", a.holdout_every, b.holdout_every));
         }
         if !close(a.lambda_depth, b.lambda_depth) {
-            diffs.push(format!("--lambda-depth {} (this run: {})", opt(a.lambda_depth), opt(b.lambda_depth)));
+            diffs.push(format!(
+                "--lambda-depth {} (this run: {})",
+                opt(a.lambda_depth),
+                opt(b.lambda_depth)
+            ));
         }
         if !close(a.learning_rate, b.learning_rate) {
-            diffs.push(format!("--learning-rate {} (this run: {})", opt(a.learning_rate), opt(b.learning_rate)));
+            diffs.push(format!(
+                "--learning-rate {} (this run: {})",
+                opt(a.learning_rate),
+                opt(b.learning_rate)
+            ));
         }
         if !diffs.is_empty() {
-            return Err(CheckpointError::OtherSettings { path: self.path.clone(), what: diffs.join(", ") });
+            return Err(CheckpointError::OtherSettings {
+                path: self.path.clone(),
+                what: diffs.join(", "),
+            });
         }
         if saved.settings_fingerprint != identity.settings_fingerprint {
             return Err(CheckpointError::OtherSettings {
                 path: self.path.clone(),
-                what: format!("network and training settings of nerflabel {} that this build derives differently", self.header.nerflabel_version),
+                what: format!(
+                    "network and training settings of nerflabel {} that this build derives differently",
+                    self.header.nerflabel_version
+                ),
             });
         }
         Ok(())
@@ -455,7 +542,13 @@ mod tests {
         FitIdentity {
             scan_fingerprint: 7,
             frames: 3,
-            settings: FitSettings { seed: 9, preset: Preset::Fast, holdout_every: 0, lambda_depth: Some(0.3), learning_rate: None },
+            settings: FitSettings {
+                seed: 9,
+                preset: Preset::Fast,
+                holdout_every: 0,
+                lambda_depth: Some(0.3),
+                learning_rate: None,
+            },
             settings_fingerprint: 11,
             time: None,
             steps: Some(40),
@@ -469,7 +562,11 @@ mod tests {
         let views = plane_views(3, 16, true);
         // Past warm-up (32) and two occupancy refreshes, so the refresh phase matters.
         let mut a = trained(50);
-        let progress = FitProgress { train_seconds: 1.5, last_point: (1.0, 99), ..FitProgress::default() };
+        let progress = FitProgress {
+            train_seconds: 1.5,
+            last_point: (1.0, 99),
+            ..FitProgress::default()
+        };
         save(&path, &identity(), &progress, &a).unwrap();
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temp file left");
         let ckpt = Checkpoint::load(&path).unwrap();
@@ -478,7 +575,12 @@ mod tests {
         ckpt.check(&identity()).unwrap();
         // A fresh trainer (other initial weights) takes over the saved state.
         let (field_cfg, train) = small_config(9);
-        let mut b = Trainer::new(Field::new(field_cfg, &mut Rng::new(1, 0)), OccupancyGrid::full(16), train, [0.5; 3]);
+        let mut b = Trainer::new(
+            Field::new(field_cfg, &mut Rng::new(1, 0)),
+            OccupancyGrid::full(16),
+            train,
+            [0.5; 3],
+        );
         let back = ckpt.restore(&mut b).unwrap();
         assert_eq!((back.train_seconds, back.last_point), (1.5, (1.0, 99)));
         for s in 50..70 {
@@ -501,36 +603,75 @@ mod tests {
         save(&path, &identity(), &FitProgress::default(), &trained(2)).unwrap();
         let ckpt = Checkpoint::load(&path).unwrap();
         let msg = |id: FitIdentity| ckpt.check(&id).unwrap_err().to_string();
-        let m = msg(FitIdentity { frames: 4, ..identity() });
-        assert!(m.contains("another scan") && m.contains("3 frames") && m.contains("has 4"), "{m}");
-        let m = msg(FitIdentity { scan_fingerprint: 8, ..identity() });
+        let m = msg(FitIdentity {
+            frames: 4,
+            ..identity()
+        });
+        assert!(
+            m.contains("another scan") && m.contains("3 frames") && m.contains("has 4"),
+            "{m}"
+        );
+        let m = msg(FitIdentity {
+            scan_fingerprint: 8,
+            ..identity()
+        });
         assert!(m.contains("other poses"), "{m}");
         let mut other = identity();
         other.settings.seed = 1;
         other.settings.learning_rate = Some(10.0);
         let m = msg(other);
-        assert!(m.contains("--seed 9 (this run: 1)") && m.contains("--learning-rate default (this run: 10)"), "{m}");
-        let m = msg(FitIdentity { settings_fingerprint: 12, ..identity() });
+        assert!(
+            m.contains("--seed 9 (this run: 1)") && m.contains("--learning-rate default (this run: 10)"),
+            "{m}"
+        );
+        let m = msg(FitIdentity {
+            settings_fingerprint: 12,
+            ..identity()
+        });
         assert!(m.contains("derives differently"), "{m}");
         // A larger budget is fine.
-        ckpt.check(&FitIdentity { steps: Some(400), time: Some(3.0), ..identity() }).unwrap();
+        ckpt.check(&FitIdentity {
+            steps: Some(400),
+            time: Some(3.0),
+            ..identity()
+        })
+        .unwrap();
 
         let bytes = std::fs::read(&path).unwrap();
         for cut in [0usize, 8, 19, 100, bytes.len() / 2, bytes.len() - 1] {
             let m = Checkpoint::from_bytes(&bytes[..cut], &path).err().unwrap().to_string();
-            assert!(m.starts_with(&path.display().to_string()) && !m.contains('\n'), "cut {cut}: {m}");
+            assert!(
+                m.starts_with(&path.display().to_string()) && !m.contains('\n'),
+                "cut {cut}: {m}"
+            );
         }
         let mut flipped = bytes.clone();
         flipped[bytes.len() / 2] ^= 4;
-        assert!(Checkpoint::from_bytes(&flipped, &path).err().unwrap().to_string().contains("corrupted"));
-        let missing = Checkpoint::load(&dir.path().join("none.checkpoint")).err().unwrap().to_string();
-        assert!(missing.contains("none.checkpoint") && missing.contains("without --resume"), "{missing}");
+        assert!(Checkpoint::from_bytes(&flipped, &path)
+            .err()
+            .unwrap()
+            .to_string()
+            .contains("corrupted"));
+        let missing = Checkpoint::load(&dir.path().join("none.checkpoint"))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            missing.contains("none.checkpoint") && missing.contains("without --resume"),
+            "{missing}"
+        );
     }
 
     #[test]
     fn checkpoint_path_sits_beside_the_model_and_never_on_it() {
-        assert_eq!(checkpoint_path(Path::new("s/nerflabel/model.nlf")), Path::new("s/nerflabel/model.checkpoint"));
+        assert_eq!(
+            checkpoint_path(Path::new("s/nerflabel/model.nlf")),
+            Path::new("s/nerflabel/model.checkpoint")
+        );
         assert_eq!(checkpoint_path(Path::new("m")), Path::new("m.checkpoint"));
-        assert_eq!(checkpoint_path(Path::new("a.checkpoint")), Path::new("a.checkpoint.checkpoint"));
+        assert_eq!(
+            checkpoint_path(Path::new("a.checkpoint")),
+            Path::new("a.checkpoint.checkpoint")
+        );
     }
 }

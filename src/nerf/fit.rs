@@ -181,7 +181,6 @@ pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
     distance / focal.max(1e-9)
 }
 
-
 /// Everything a fit sets up before training: views, settings and a trainer at step 0.
 pub struct Prepared {
     pub data: Dataset,

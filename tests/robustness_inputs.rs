@@ -464,6 +464,8 @@ fn truncated_or_bit_flipped_model_is_rejected_naming_the_file() {
 fn failed_fit_leaves_the_existing_model_untouched() {
     let dir = tempfile::tempdir().unwrap();
     let (model_path, before) = small_model(dir.path());
+    let checkpoint = model_path.with_extension("checkpoint");
+    let checkpoint_before = std::fs::read(&checkpoint).unwrap();
     // A scan that fails to load: a pose file that is not a matrix.
     let broken = fixture(dir.path(), "broken", 4, &[]);
     std::fs::write(frame_files(&broken.join("pose"))[1].as_path(), "not a pose\n").unwrap();
@@ -478,7 +480,11 @@ fn failed_fit_leaves_the_existing_model_untouched() {
     let o = fit(&bad_k, &model_path, 5);
     assert!(!o.status.success(), "zero focal length fitted");
     assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
+    assert!(std::fs::read(&checkpoint).unwrap() == checkpoint_before, "the old checkpoint changed");
     // No temp files left beside the model.
-    let leftovers: Vec<_> = frame_files(dir.path()).into_iter().filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json")).collect();
+    let leftovers: Vec<_> = frame_files(dir.path())
+        .into_iter()
+        .filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint"))
+        .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }

@@ -184,7 +184,7 @@ fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
         serde_json::from_slice(&std::fs::read(out.join("fit_report.json")).unwrap()).unwrap();
     assert_eq!(report["interrupted"], true);
     let steps = report["counters"]["steps"].as_u64().unwrap();
-    assert!(steps >= 1 && steps < 100_000, "{steps}");
+    assert!((1..100_000).contains(&steps), "{steps}");
     assert_eq!(model.header.steps, steps);
     assert_eq!(
         report["curve"].as_array().unwrap().last().unwrap()["step"].as_u64(),

@@ -1,6 +1,7 @@
 //! Seeded byte-mutation fuzzing of every parser that reads outside text or
 //! bytes: native `intrinsics.txt` and pose files, nerfstudio
-//! `transforms.json`, TUM `rgb.txt` / `groundtruth.txt`, and model files.
+//! `transforms.json`, TUM `rgb.txt` / `depth.txt` / `groundtruth.txt`,
+//! `boxes.json`, and model files.
 //!
 //! Each iteration mutates a valid file (bit flips, random bytes, inserted
 //! tokens such as `nan` or `1e400`, deleted or duplicated ranges,
@@ -10,6 +11,7 @@
 //!
 //! `NERFLABEL_FUZZ_ITERS=100000 cargo test --release --test fuzz_parsers -- --ignored`
 
+use nerflabel::boxes::{read_boxes, BoxClassifier};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::rng::Rng;
 use nerflabel::scan::{load, Layout, LoadOptions};
@@ -152,6 +154,65 @@ fn fuzz_tum(iters: usize) {
     fuzz_scan_file(&scan, &scan.join("groundtruth.txt"), Layout::Tum, iters, 5);
 }
 
+fn fuzz_tum_depth(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = tum_scan(dir.path());
+    fuzz_scan_file(&scan, &scan.join("depth.txt"), Layout::Tum, iters, 7);
+}
+
+/// The committed fixture's boxes.json (rotation matrices) plus boxes given
+/// by a quaternion and by nothing (identity), as one file.
+fn boxes_text() -> String {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small/boxes.json");
+    let mut json: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+    let list = json["boxes"].as_array_mut().unwrap();
+    list.push(serde_json::json!({"label": "mug", "center": [0.41, -0.12, 0.05], "size": [0.1, 0.12, 0.11], "quaternion": [0, 0, 0.38268343, 0.92387953]}));
+    list.push(serde_json::json!({"label": "sheet", "center": [0, 0, 0], "size": [1, 1, 0]}));
+    serde_json::to_string_pretty(&json).unwrap()
+}
+
+fn fuzz_boxes(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("boxes.json");
+    let original = boxes_text().into_bytes();
+    std::fs::write(&path, &original).unwrap();
+    assert_eq!(read_boxes(&path).unwrap().boxes.len(), 5);
+    let mut rng = Rng::new(8, 0);
+    let mut accepted = 0;
+    for i in 0..iters {
+        let bytes = mutate(&original, &mut rng);
+        std::fs::write(&path, &bytes).unwrap();
+        let what = format!("boxes.json iteration {i}: {:?}", String::from_utf8_lossy(&bytes));
+        let result = catch_unwind(AssertUnwindSafe(|| read_boxes(&path))).unwrap_or_else(|_| panic!("{what}: parser panicked"));
+        match result {
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.starts_with(&path.display().to_string()) && !msg.contains('\n'), "{what}: {msg}");
+            }
+            Ok(set) => {
+                accepted += 1;
+                // An accepted file holds usable boxes: finite, non-negative
+                // sizes, proper rotations, ids 1..n, known categories.
+                for (k, b) in set.boxes.iter().enumerate() {
+                    assert_eq!(b.instance_id as usize, k + 1, "{what}");
+                    assert!(b.center.is_finite() && b.size.is_finite() && b.size.min_element() >= 0.0, "{what}: {b:?}");
+                    let r = b.rotation;
+                    assert!((r.transpose() * r).abs_diff_eq(glam::DMat3::IDENTITY, 1e-9), "{what}: {r:?}");
+                    assert!((r.determinant() - 1.0).abs() < 1e-9, "{what}: {r:?}");
+                    assert!(!b.label.trim().is_empty() && set.category_id(&b.label).is_some(), "{what}");
+                }
+                // The classifier puts each box centre into some box (its own or a smaller one).
+                let classifier = catch_unwind(AssertUnwindSafe(|| BoxClassifier::new(&set))).unwrap_or_else(|_| panic!("{what}: classifier panicked"));
+                for b in &set.boxes {
+                    assert_ne!(classifier.classify(b.center), 0, "{what}: centre of box {} in no box", b.instance_id);
+                }
+            }
+        }
+    }
+    eprintln!("boxes.json: {accepted} of {iters} mutations still parsed");
+    assert!(accepted < iters, "no mutation was ever rejected; the fuzzer does not reach the parser");
+}
+
 /// A real model file from a 2-step fit of a tiny fixture.
 fn model_bytes(dir: &Path) -> Vec<u8> {
     let scan = fixture(dir, "m", &[]);
@@ -233,6 +294,16 @@ fn fuzz_tum_rgb_and_groundtruth_lists() {
 }
 
 #[test]
+fn fuzz_tum_depth_list() {
+    fuzz_tum_depth(ITERS);
+}
+
+#[test]
+fn fuzz_boxes_json() {
+    fuzz_boxes(ITERS);
+}
+
+#[test]
 fn fuzz_model_file_bytes() {
     fuzz_model(ITERS);
 }
@@ -259,4 +330,16 @@ fn fuzz_tum_long() {
 #[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
 fn fuzz_model_long() {
     fuzz_model(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_tum_depth_long() {
+    fuzz_tum_depth(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_boxes_long() {
+    fuzz_boxes(long_iters());
 }

@@ -1,16 +1,23 @@
 //! Issue 6 through the real binary: degenerate scans (no depth, zero,
 //! saturated and 1 mm depth, one frame, duplicate poses, pure rotation,
-//! extreme intrinsics), extreme scene scales, and nothing lost (corrupted
-//! model files are rejected, a failed fit leaves an existing model intact).
+//! extreme intrinsics), extreme scene scales (same depth error relative to
+//! the scene, same label masks), labelling without any depth, and nothing
+//! lost (corrupted model files are rejected, a failed fit leaves an existing
+//! model intact).
+//!
+//! The no-depth labelling test needs 1000 training steps and is ignored:
+//! `cargo test --release --test robustness_inputs -- --ignored`
 //!
 //! Each degenerate scan must give either a clean refusal (non-zero exit, one
 //! `error:` message, no panic) or a model whose every parameter is finite.
 
+use nerflabel::boxes::metrics::MaskScores;
 use nerflabel::evaluate::score_holdout;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::rng::Rng;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::OnceLock;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_nerflabel"))
@@ -240,34 +247,176 @@ fn extreme_intrinsics_are_refused_or_fit_finite() {
     }
 }
 
-/// Fit the small scene at `scale` (nerfstudio layout so depth keeps its
-/// units) and return depth MAE on held-out views divided by the scale.
-fn scaled_relative_depth_error(dir: &Path, scale: &str) -> f64 {
-    let scan = fixture(dir, &format!("scale{scale}"), 8, &["--scale", scale, "--layout", "nerfstudio", "--holdout", "2"]);
-    let model_path = scan.join("model.nlf");
-    let o = fit(&scan, &model_path, 60);
-    assert!(o.status.success(), "scale {scale}: {}", String::from_utf8_lossy(&o.stderr));
-    let model = Model::load(&model_path).unwrap();
-    assert_model_finite(&model, &format!("scale {scale}"));
-    assert_report_finite(&scan.join("fit_report.json"), &format!("scale {scale}"));
-    let score = score_holdout(&model, &scan).unwrap();
-    eprintln!("scale {scale}: {score:?}");
-    assert!(score.psnr.is_finite() && score.depth_mae_m.is_finite(), "scale {scale}: {score:?}");
-    score.depth_mae_m / scale.parse::<f64>().unwrap()
+/// An instance-id PNG as u16 values (8-bit files are widened).
+fn read_ids(path: &Path) -> Vec<u16> {
+    match image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())) {
+        image::DynamicImage::ImageLuma8(m) => m.into_raw().into_iter().map(u16::from).collect(),
+        image::DynamicImage::ImageLuma16(m) => m.into_raw(),
+        other => panic!("{}: colour type {:?}", path.display(), other.color()),
+    }
+}
+
+/// Run `label` with the nerf depth source into `out` and return the masks by frame name.
+fn label_masks(scan: &Path, model: &Path, boxes: &Path, out: &Path) -> Vec<(String, Vec<u16>)> {
+    let o = bin()
+        .arg("label")
+        .arg(scan)
+        .arg("--boxes")
+        .arg(boxes)
+        .args(["--source", "nerf", "--model"])
+        .arg(model)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "label {}: {}", scan.display(), String::from_utf8_lossy(&o.stderr));
+    frame_files(&out.join("masks"))
+        .into_iter()
+        .map(|p| (p.file_stem().unwrap().to_string_lossy().into_owned(), read_ids(&p)))
+        .collect()
+}
+
+/// Masks scored against the fixture's exact instance masks.
+fn scores_against_truth(scan: &Path, masks: &[(String, Vec<u16>)], width: usize) -> MaskScores {
+    let mut s = MaskScores::default();
+    for (name, mask) in masks {
+        s.add(mask, &read_ids(&scan.join("gt/masks").join(format!("{name}.png"))), width);
+    }
+    s
+}
+
+/// The small scene at scales 0.01 and 100 (nerfstudio layout so depth keeps
+/// its units), each fitted 150 steps at the fast preset, shared by the tests.
+struct Scaled {
+    _dir: tempfile::TempDir,
+    /// (scale, scan folder, model path)
+    fits: Vec<(f64, PathBuf, PathBuf)>,
+}
+
+fn scaled_fits() -> &'static Scaled {
+    static SCALED: OnceLock<Scaled> = OnceLock::new();
+    SCALED.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let fits = ["0.01", "100"]
+            .into_iter()
+            .map(|scale| {
+                let scan = bin_fixture(dir.path(), &format!("scale{scale}"), scale);
+                let model_path = scan.join("model.nlf");
+                let o = bin()
+                    .arg("fit")
+                    .arg(&scan)
+                    .args(["--steps", "150", "--preset", "fast", "--holdout", "0", "--seed", "1", "--model"])
+                    .arg(&model_path)
+                    .output()
+                    .unwrap();
+                assert!(o.status.success(), "scale {scale}: {}", String::from_utf8_lossy(&o.stderr));
+                (scale.parse().unwrap(), scan, model_path)
+            })
+            .collect();
+        Scaled { _dir: dir, fits }
+    })
+}
+
+/// A clean 160x120 fixture of the small scene at `scale`, 12 frames, 2 held-out views.
+fn bin_fixture(dir: &Path, name: &str, scale: &str) -> PathBuf {
+    let out = dir.join(name);
+    let o = bin()
+        .args(["fixture", "--scene", "small", "--width", "160", "--height", "120", "--frames", "12", "--holdout", "2", "--clean"])
+        .args(["--scale", scale, "--layout", "nerfstudio"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "fixture: {}", String::from_utf8_lossy(&o.stderr));
+    out
 }
 
 #[test]
 fn tiny_and_huge_scene_scales_fit_without_nan_and_agree() {
-    let dir = tempfile::tempdir().unwrap();
-    let small = scaled_relative_depth_error(dir.path(), "0.01");
-    let large = scaled_relative_depth_error(dir.path(), "100");
-    eprintln!("relative depth MAE: scale 0.01 {small:.5}, scale 100 {large:.5}");
+    let mut relative = Vec::new();
+    for (scale, scan, model_path) in &scaled_fits().fits {
+        let model = Model::load(model_path).unwrap();
+        assert_model_finite(&model, &format!("scale {scale}"));
+        assert_report_finite(&scan.join("fit_report.json"), &format!("scale {scale}"));
+        let score = score_holdout(&model, scan).unwrap();
+        eprintln!("scale {scale}: {score:?}");
+        assert!(score.psnr.is_finite() && score.depth_mae_m.is_finite(), "scale {scale}: {score:?}");
+        relative.push(score.depth_mae_m / scale);
+    }
+    let (small, large) = (relative[0], relative[1]);
+    eprintln!("relative depth MAE: scale 0.01 {small:.6}, scale 100 {large:.6}");
     // Bounds, steps and loss widths follow the scale: the same scene gives the
-    // same error relative to its size (60 steps is far from converged, so the
-    // error itself is large; only the agreement is tested).
-    // Measured: 1.82557 and 1.82555 (the fit is scale-invariant up to rounding).
+    // same error relative to its size (the fit is scale-invariant up to rounding).
     let (lo, hi) = (small.min(large), small.max(large));
     assert!(hi <= 1.02 * lo, "relative depth MAE differs: 0.01 -> {small}, 100 -> {large}");
+    assert!(hi < 0.05, "150 steps must place the surface within 5 % of the scene size: {hi}");
+}
+
+#[test]
+fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut runs = Vec::new();
+    for (scale, scan, model_path) in &scaled_fits().fits {
+        // The generator writes boxes.json in the scaled world frame.
+        let boxes = nerflabel::boxes::read_boxes(&scan.join("boxes.json")).unwrap();
+        let masks = label_masks(scan, model_path, &scan.join("boxes.json"), &dir.path().join(format!("labels{scale}")));
+        let truth = scores_against_truth(scan, &masks, 160);
+        eprintln!("scale {scale}: per object {:?}, mean {:.3}", truth.per_object(), truth.mean_object_iou());
+        runs.push((boxes, masks, truth));
+    }
+    let (b0, b1) = (&runs[0].0.boxes, &runs[1].0.boxes);
+    for (a, b) in b0.iter().zip(b1) {
+        assert!((b.center - a.center * 1e4).length() <= 1e-9 * b.center.length().max(1.0), "box {} centre not scaled", a.instance_id);
+        assert!((b.size - a.size * 1e4).length() <= 1e-9 * b.size.length(), "box {} size not scaled", a.instance_id);
+    }
+    // The masks of the two scales, compared with each other.
+    let mut agreement = MaskScores::default();
+    let mut labelled = 0;
+    assert_eq!(runs[0].1.len(), runs[1].1.len());
+    for ((n0, m0), (n1, m1)) in runs[0].1.iter().zip(&runs[1].1) {
+        assert_eq!(n0, n1);
+        agreement.add(m1, m0, 160);
+        labelled += m0.iter().filter(|&&v| v != 0).count();
+    }
+    let objects = agreement.per_object();
+    eprintln!("scale 100 against scale 0.01: per object {objects:?}; {labelled} labelled pixels");
+    assert!(labelled > 12 * 160 * 120 / 50, "masks must not be (nearly) empty: {labelled} pixels");
+    for (id, iou) in &objects {
+        assert!(*iou >= 0.97, "instance {id}: masks at scales 0.01 and 100 differ (IoU {iou})");
+    }
+    // Both are real labels, not the same garbage.
+    for (_, _, truth) in &runs {
+        assert!(truth.mean_object_iou() > 0.5, "IoU against the ground truth {}", truth.mean_object_iou());
+    }
+}
+
+/// Photometric geometry needs many more steps than depth-supervised:
+/// measured mean object IoU 0.0004 after 300 steps, 0.30 after 600, 0.44
+/// after 1000 (box 0.67, ball 0.07, can 0.58), hence ignored in the suite.
+#[test]
+#[ignore = "1000 training steps; run with --release"]
+fn scan_without_any_depth_still_labels() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    let o = bin().args(["fixture", "--scene", "small", "--width", "160", "--height", "120", "--frames", "24", "--holdout", "0", "--clean"]).arg(&scan).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::remove_dir_all(scan.join("depth")).unwrap();
+    let model_path = dir.path().join("model.nlf");
+    let o = bin()
+        .arg("fit")
+        .arg(&scan)
+        .args(["--steps", "1000", "--preset", "fast", "--holdout", "0", "--seed", "1", "--model"])
+        .arg(&model_path)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_model_finite(&Model::load(&model_path).unwrap(), "no depth");
+    let masks = label_masks(&scan, &model_path, &scan.join("boxes.json"), &dir.path().join("labels"));
+    assert_eq!(masks.len(), 24);
+    let s = scores_against_truth(&scan, &masks, 160);
+    eprintln!("no depth: per object {:?}, mean {:.3}, frame mIoU {:.3}", s.per_object(), s.mean_object_iou(), s.mean_frame_iou());
+    // A broken model (no surface, or floaters in front of everything) scores near 0.
+    assert!(s.mean_object_iou() > 0.3, "no-depth labels IoU {}", s.mean_object_iou());
+    assert!(s.per_object().values().filter(|&&v| v > 0.4).count() >= 2, "{:?}", s.per_object());
 }
 
 /// A real model file, fitted for a few steps.
@@ -315,6 +464,8 @@ fn truncated_or_bit_flipped_model_is_rejected_naming_the_file() {
 fn failed_fit_leaves_the_existing_model_untouched() {
     let dir = tempfile::tempdir().unwrap();
     let (model_path, before) = small_model(dir.path());
+    let checkpoint = model_path.with_extension("checkpoint");
+    let checkpoint_before = std::fs::read(&checkpoint).unwrap();
     // A scan that fails to load: a pose file that is not a matrix.
     let broken = fixture(dir.path(), "broken", 4, &[]);
     std::fs::write(frame_files(&broken.join("pose"))[1].as_path(), "not a pose\n").unwrap();
@@ -329,7 +480,11 @@ fn failed_fit_leaves_the_existing_model_untouched() {
     let o = fit(&bad_k, &model_path, 5);
     assert!(!o.status.success(), "zero focal length fitted");
     assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
+    assert!(std::fs::read(&checkpoint).unwrap() == checkpoint_before, "the old checkpoint changed");
     // No temp files left beside the model.
-    let leftovers: Vec<_> = frame_files(dir.path()).into_iter().filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json")).collect();
+    let leftovers: Vec<_> = frame_files(dir.path())
+        .into_iter()
+        .filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint"))
+        .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }

@@ -242,14 +242,16 @@ fn stage(
 }
 
 /// Replace the owned entries of `out` by those in `staging`: old ones are
-/// moved aside first (and deleted after), `coco.json` comes in last.
+/// moved aside first (and deleted after). `coco.json` goes aside first and
+/// comes in last, so whenever `out/coco.json` exists the folder holds one
+/// complete run, old or new, even if the process is killed mid-swap.
 fn swap_in(out: &Path, staging: &Path) -> Result<(), LabelError> {
     let old = out.join(format!(".replaced-{}", std::process::id()));
     if old.exists() {
         fs::remove_dir_all(&old).map_err(io_err(&old))?;
     }
     fs::create_dir_all(&old).map_err(io_err(&old))?;
-    for name in OWNED {
+    for name in OWNED.iter().rev() {
         let p = out.join(name);
         if p.exists() {
             fs::rename(&p, old.join(name)).map_err(io_err(&p))?;

@@ -4,12 +4,10 @@ use super::common::{load_scan, model_path, progress_bar, stop_flag};
 use super::FitArgs;
 use anyhow::{bail, Context};
 use nerflabel::nerf::config::Preset;
-use nerflabel::nerf::fit::{fit, FitEvent, FitOptions, DEFAULT_TIME_S};
+use nerflabel::nerf::checkpoint::{checkpoint_path, Checkpoint};
+use nerflabel::nerf::fit::{fit, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
-    if args.resume {
-        bail!("--resume needs a checkpoint written by this version; none is supported yet");
-    }
     if let Some(t) = args.time {
         if !(t.is_finite() && t > 0.0) {
             bail!("--time must be a positive number of seconds, got {t}");
@@ -18,10 +16,17 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     if args.steps == Some(0) {
         bail!("--steps must be at least 1");
     }
+    if let Some(lr) = args.learning_rate {
+        if !(lr.is_finite() && lr > 0.0) {
+            bail!("--learning-rate must be a positive number, got {lr}");
+        }
+    }
     let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
-    let scan = load_scan(&args.scan)?;
     let model_path = model_path(&args.scan.scan, args.model.as_ref());
     let report_path = model_path.with_file_name("fit_report.json");
+    let checkpoint = checkpoint_path(&model_path);
+    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
+    let scan = load_scan(&args.scan)?;
     let options = FitOptions {
         time: args.time,
         steps: args.steps,
@@ -29,9 +34,19 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         preset,
         holdout_every: args.holdout,
         lambda_depth: args.lambda_depth,
+        learning_rate: args.learning_rate,
+        checkpoint: Some(checkpoint.clone()),
         ..FitOptions::default()
     };
-    let budget = match (args.time, args.steps) {
+    let (time, steps) = match &from {
+        Some(c) if args.time.is_none() && args.steps.is_none() => (c.header.identity.time, c.header.identity.steps),
+        _ => (args.time, args.steps),
+    };
+    if let Some(c) = &from {
+        let p = &c.header.progress;
+        eprintln!("resuming from step {} ({:.1} s trained) saved in {}", c.steps(), p.train_seconds, checkpoint.display());
+    }
+    let budget = match (time, steps) {
         (Some(t), Some(s)) => format!("{t} s or {s} steps"),
         (Some(t), None) => format!("{t} s"),
         (None, Some(s)) => format!("{s} steps"),
@@ -41,7 +56,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     let bar = progress_bar(1000, "{spinner} [{elapsed_precise}] [{bar:30}] {msg} (ETA {eta})");
     let stop = stop_flag();
     let mut last_eval = String::new();
-    let outcome = fit(&scan, &options, stop, &mut |event| match event {
+    let mut on_event = |event: FitEvent| match event {
         FitEvent::Prepared { train_views, holdout_views, param_count, occupied_fraction } => {
             bar.suspend(|| eprintln!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
@@ -62,14 +77,20 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
                 p.samples_per_s / 1e3
             );
         }
-    })?;
+        FitEvent::CheckpointSaved { .. } => {}
+        FitEvent::CheckpointFailed(e) => bar.suspend(|| eprintln!("warning: {e}")),
+    };
+    let outcome = match from {
+        Some(c) => resume(&scan, &options, c, stop, &mut on_event)?,
+        None => fit(&scan, &options, stop, &mut on_event)?,
+    };
     bar.finish_and_clear();
     outcome.model.save(&model_path)?;
     let json = serde_json::to_vec_pretty(&outcome.report).context("cannot serialise the fit report")?;
     nerflabel::atomic::write_file(&report_path, &json).with_context(|| format!("cannot write {}", report_path.display()))?;
     let r = &outcome.report;
     if r.interrupted {
-        eprintln!("interrupted: saved the model trained so far");
+        eprintln!("interrupted: saved the model trained so far (`nerflabel fit --resume` continues)");
     }
     println!(
         "trained {} steps in {:.1} s ({} batches skipped); model: {}",

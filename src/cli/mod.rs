@@ -177,7 +177,16 @@ pub struct FitArgs {
     /// Weight of the depth loss.
     #[arg(long)]
     pub lambda_depth: Option<f32>,
-    /// Continue from the last checkpoint of this model.
+    /// Adam learning rate (default 0.01).
+    #[arg(long)]
+    pub learning_rate: Option<f32>,
+    /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
+    ///
+    /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.
+    /// --steps and --time count what was already trained; without them the original budget
+    /// applies. So an interrupted fit finishes where it would have, and a finished one is
+    /// extended by a larger budget. The scan, --seed, --preset, --holdout, --lambda-depth and
+    /// --learning-rate must be the same. Delete the checkpoint to reclaim its disk space.
     #[arg(long)]
     pub resume: bool,
 }

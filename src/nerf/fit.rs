@@ -1,9 +1,11 @@
 //! `fit`: normalise the scene, build views, seed the occupancy grid from
 //! sensor depth, train within a time or step budget while measuring
 //! held-out accuracy against training time, and produce the model and the
-//! fit report. Reports progress through a callback; never prints.
+//! fit report. Writes a resumable checkpoint when asked ([`resume`]
+//! continues from one). Reports progress through a callback; never prints.
 
-use super::config::{settings_for_scene, Preset};
+use super::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
+use super::config::{settings_for_scene, NerfSettings, Preset};
 use super::dataset::{self, Dataset};
 use super::evaluate::{evaluate, EvalResult};
 use super::field::Field;
@@ -15,6 +17,7 @@ use crate::poses::{normalize, scene_bounds, BoundsOptions, GeometryError, Normal
 use crate::rng::Rng;
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -30,10 +33,14 @@ pub struct FitOptions {
     /// Hold out every K-th frame (0 = none).
     pub holdout_every: usize,
     pub lambda_depth: Option<f32>,
-    /// Training seconds between held-out evaluations.
+    /// Adam learning rate instead of the settings' (1e-2).
+    pub learning_rate: Option<f32>,
+    /// Training seconds between held-out evaluations (and checkpoints).
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
     pub eval_max_side: u32,
+    /// Write a resumable checkpoint here at every evaluation point and at the end.
+    pub checkpoint: Option<PathBuf>,
 }
 
 impl Default for FitOptions {
@@ -45,8 +52,10 @@ impl Default for FitOptions {
             preset: Preset::Default,
             holdout_every: 10,
             lambda_depth: None,
+            learning_rate: None,
             eval_interval_s: 10.0,
             eval_max_side: 160,
+            checkpoint: None,
         }
     }
 }
@@ -82,6 +91,9 @@ pub struct Timings {
     pub occupancy_seed_s: f64,
     pub train_s: f64,
     pub eval_s: f64,
+    /// Writing checkpoints.
+    #[serde(default)]
+    pub checkpoint_s: f64,
 }
 
 /// Contents of `fit_report.json`.
@@ -101,6 +113,9 @@ pub struct FitReport {
     pub timings: Timings,
     pub counters: TrainCounters,
     pub interrupted: bool,
+    /// Steps at which this fit was resumed from its checkpoint.
+    #[serde(default)]
+    pub resumed_from: Vec<u64>,
     pub occupied_fraction: f64,
     pub curve: Vec<CurvePoint>,
 }
@@ -113,6 +128,10 @@ pub enum FitEvent<'a> {
     Step { step: u64, stats: &'a StepStats, train_seconds: f64, progress: f64 },
     /// A held-out evaluation finished.
     Eval(&'a CurvePoint),
+    /// A checkpoint was written after this step.
+    CheckpointSaved { step: u64 },
+    /// Writing a checkpoint failed; training goes on.
+    CheckpointFailed(&'a CheckpointError),
 }
 
 /// A trained model and its report.
@@ -128,6 +147,8 @@ pub enum FitError {
     Geometry(#[from] GeometryError),
     #[error("the scan has no frame left for training")]
     NoTrainingFrames,
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
 }
 
 /// Render settings stored with a model.
@@ -167,8 +188,23 @@ pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
     distance / focal.max(1e-9)
 }
 
-/// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable model.
-pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
+/// Everything a fit sets up before training: views, settings and a trainer at step 0.
+pub struct Prepared {
+    pub data: Dataset,
+    pub settings: NerfSettings,
+    pub transform: SceneTransform,
+    pub metres_per_unit: f64,
+    pub trainer: Trainer,
+    pub timings: Timings,
+}
+
+/// Normalise the scene, build the views, seed the occupancy grid from
+/// sensor depth and build the trainer, as [`fit`] does before training.
+pub fn prepare(scan: &Scan, opts: &FitOptions) -> Result<Prepared, FitError> {
+    prepare_with(scan, opts, true)
+}
+
+fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<Prepared, FitError> {
     let mut timings = Timings::default();
     let t = Instant::now();
     let bounds = scene_bounds(scan, &BoundsOptions::default())?;
@@ -185,20 +221,69 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
     timings.views_s = t.elapsed().as_secs_f64();
 
     let footprint = pixel_footprint(scan, &bounds);
-    let settings = settings_for_scene(metres_per_unit, footprint, opts.preset, opts.seed, opts.lambda_depth);
+    let mut settings = settings_for_scene(metres_per_unit, footprint, opts.preset, opts.seed, opts.lambda_depth);
+    if let Some(lr) = opts.learning_rate {
+        settings.train.learning_rate = lr;
+    }
     let t = Instant::now();
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
-    let rays = dataset::depth_rays(&data.train, 4);
-    if !rays.is_empty() {
-        occupancy.seed_from_depth(&rays);
+    if seed_occupancy {
+        let rays = dataset::depth_rays(&data.train, 4);
+        if !rays.is_empty() {
+            occupancy.seed_from_depth(&rays);
+        }
     }
-    drop(rays);
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();
 
     let mut rng = Rng::new(opts.seed, 0);
     let field = Field::new(settings.field.clone(), &mut rng);
-    let param_count = field.param_count();
-    let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    let trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
+}
+
+/// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable model.
+pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
+    run(scan, opts, None, stop, on_event)
+}
+
+/// Continue the fit saved in `from`: same scan and settings (checked), the
+/// budget counts the steps and seconds already trained (without one in
+/// `opts`, the checkpoint's budget), and the curve goes on.
+pub fn resume(
+    scan: &Scan,
+    opts: &FitOptions,
+    from: Checkpoint,
+    stop: &AtomicBool,
+    on_event: &mut dyn FnMut(FitEvent),
+) -> Result<FitOutcome, FitError> {
+    run(scan, opts, Some(from), stop, on_event)
+}
+
+fn run(
+    scan: &Scan,
+    opts: &FitOptions,
+    from: Option<Checkpoint>,
+    stop: &AtomicBool,
+    on_event: &mut dyn FnMut(FitEvent),
+) -> Result<FitOutcome, FitError> {
+    let Prepared { data, settings, transform, metres_per_unit, mut trainer, timings } = prepare_with(scan, opts, from.is_none())?;
+    let mut identity = FitIdentity::new(scan, opts, &settings);
+    let mut state = match from {
+        None => FitProgress { timings, ..FitProgress::default() },
+        Some(ckpt) => {
+            ckpt.check(&identity)?;
+            if opts.time.is_none() && opts.steps.is_none() {
+                (identity.time, identity.steps) = (ckpt.header.identity.time, ckpt.header.identity.steps);
+            }
+            let mut state = ckpt.restore(&mut trainer)?;
+            state.resumed_from.push(trainer.counters.steps);
+            state.interrupted = false;
+            state.timings.bounds_s += timings.bounds_s;
+            state.timings.views_s += timings.views_s;
+            state
+        }
+    };
+    let param_count = trainer.field.param_count();
     on_event(FitEvent::Prepared {
         train_views: data.train.len(),
         holdout_views: data.holdout.len(),
@@ -206,47 +291,55 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         occupied_fraction: trainer.occupancy.occupied_fraction(),
     });
 
-    let time_budget = match (opts.time, opts.steps) {
+    let time_budget = match (identity.time, identity.steps) {
         (None, None) => Some(DEFAULT_TIME_S),
         (time, _) => time,
     };
+    let step_budget = identity.steps;
     let render_opts = RenderOptions {
         color: true,
         rule: settings.render_step.into(),
         max_samples_per_ray: 4096,
         background: data.background,
     };
-    let mut curve = Vec::new();
-    let mut train_seconds = 0.0f64;
-    let mut next_eval = opts.eval_interval_s;
-    let mut last_point = (0.0f64, 0u64);
-    let mut interrupted = false;
-    let evaluate_now = |trainer: &mut Trainer, train_seconds: f64, timings: &mut Timings, curve: &mut Vec<CurvePoint>, last: &mut (f64, u64)| -> Option<CurvePoint> {
+    let interval = if opts.eval_interval_s.is_finite() { opts.eval_interval_s.max(1e-3) } else { DEFAULT_TIME_S };
+    let mut next_eval = ((state.train_seconds / interval).floor() + 1.0) * interval;
+    let evaluate_now = |trainer: &mut Trainer, state: &mut FitProgress| -> Option<CurvePoint> {
         if data.holdout.is_empty() {
             return None;
         }
         let t = Instant::now();
         let grid = trainer.rendering_occupancy();
         let r: EvalResult = evaluate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
-        timings.eval_s += t.elapsed().as_secs_f64();
+        state.timings.eval_s += t.elapsed().as_secs_f64();
         let samples = trainer.counters.samples;
-        let dt = (train_seconds - last.0).max(1e-9);
+        let dt = (state.train_seconds - state.last_point.0).max(1e-9);
         let point = CurvePoint {
-            seconds: train_seconds,
+            seconds: state.train_seconds,
             step: trainer.counters.steps,
             psnr: r.psnr,
             ssim: r.ssim,
             depth_mae_m: r.depth_mae_m,
-            samples_per_s: (samples - last.1) as f64 / dt,
+            samples_per_s: samples.saturating_sub(state.last_point.1) as f64 / dt,
         };
-        *last = (train_seconds, samples);
-        curve.push(point);
+        state.last_point = (state.train_seconds, samples);
+        state.curve.push(point);
         Some(point)
     };
+    let save_checkpoint = |trainer: &Trainer, state: &mut FitProgress, on_event: &mut dyn FnMut(FitEvent)| {
+        let Some(path) = &opts.checkpoint else { return };
+        let t = Instant::now();
+        let result = checkpoint::save(path, &identity, state, trainer);
+        state.timings.checkpoint_s += t.elapsed().as_secs_f64();
+        match result {
+            Ok(()) => on_event(FitEvent::CheckpointSaved { step: trainer.counters.steps }),
+            Err(e) => on_event(FitEvent::CheckpointFailed(&e)),
+        }
+    };
     loop {
-        let progress = match (time_budget, opts.steps) {
-            (Some(limit), Some(steps)) => (train_seconds / limit).max(trainer.counters.steps as f64 / steps as f64),
-            (Some(limit), None) => train_seconds / limit,
+        let progress = match (time_budget, step_budget) {
+            (Some(limit), Some(steps)) => (state.train_seconds / limit).max(trainer.counters.steps as f64 / steps as f64),
+            (Some(limit), None) => state.train_seconds / limit,
             (None, Some(steps)) => trainer.counters.steps as f64 / steps.max(1) as f64,
             (None, None) => 1.0,
         };
@@ -254,34 +347,36 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
             break;
         }
         if stop.load(Ordering::Relaxed) {
-            interrupted = true;
+            state.interrupted = true;
             break;
         }
         let t = Instant::now();
         let stats = trainer.step(&data.train, progress as f32);
-        train_seconds += t.elapsed().as_secs_f64();
-        on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds, progress });
-        if train_seconds >= next_eval {
-            let eval_s_before = timings.eval_s;
-            if let Some(point) = evaluate_now(&mut trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+        state.train_seconds += t.elapsed().as_secs_f64();
+        on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds: state.train_seconds, progress });
+        if state.train_seconds >= next_eval {
+            let eval_s_before = state.timings.eval_s;
+            if let Some(point) = evaluate_now(&mut trainer, &mut state) {
                 on_event(FitEvent::Eval(&point));
             }
+            save_checkpoint(&trainer, &mut state, &mut *on_event);
             // Evaluation must not dominate a fit: the next one comes after
             // at least four times the last one's cost in training time.
-            let last_cost = timings.eval_s - eval_s_before;
-            let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * opts.eval_interval_s);
-            next_eval = (next_eval + opts.eval_interval_s).max(train_seconds + spacing);
-            while next_eval <= train_seconds {
-                next_eval += opts.eval_interval_s;
+            let last_cost = state.timings.eval_s - eval_s_before;
+            let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * interval);
+            next_eval = (next_eval + interval).max(state.train_seconds + spacing);
+            while next_eval <= state.train_seconds {
+                next_eval += interval;
             }
         }
     }
-    if curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
-        if let Some(point) = evaluate_now(&mut trainer, train_seconds, &mut timings, &mut curve, &mut last_point) {
+    if state.curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
+        if let Some(point) = evaluate_now(&mut trainer, &mut state) {
             on_event(FitEvent::Eval(&point));
         }
     }
-    timings.train_s = train_seconds;
+    state.timings.train_s = state.train_seconds;
+    save_checkpoint(&trainer, &mut state, &mut *on_event);
 
     let header = ModelHeader {
         nerflabel_version: env!("CARGO_PKG_VERSION").to_string(),
@@ -297,6 +392,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         scan: scan.root.display().to_string(),
         sections: [0; 5],
     };
+    let occupancy = trainer.rendering_occupancy();
     let report = FitReport {
         nerflabel_version: header.nerflabel_version.clone(),
         scan: header.scan.clone(),
@@ -309,15 +405,13 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
         param_count,
         field: settings.field,
         train: settings.train,
-        timings,
+        timings: state.timings,
         counters: trainer.counters,
-        interrupted,
-        occupied_fraction: 0.0,
-        curve,
+        interrupted: state.interrupted,
+        resumed_from: state.resumed_from,
+        occupied_fraction: occupancy.occupied_fraction(),
+        curve: state.curve,
     };
-    let occupancy = trainer.rendering_occupancy();
-    let mut report = report;
-    report.occupied_fraction = occupancy.occupied_fraction();
     let model = Model { header, field: trainer.field, occupancy };
     Ok(FitOutcome { model, report })
 }

@@ -3,6 +3,7 @@
 //! the model file. Knows nothing of boxes, COCO or Parquet.
 
 pub mod adam;
+pub mod checkpoint;
 pub mod composite;
 pub mod hash_grid;
 pub mod march;

@@ -310,6 +310,16 @@ impl OccupancyGrid {
         &self.density
     }
 
+    /// Which interleaved subset of cells the next refresh evaluates (for checkpoints).
+    pub fn refresh_phase(&self) -> usize {
+        self.refresh_phase
+    }
+
+    /// Continue refreshing from a saved phase (taken modulo the number of subsets).
+    pub fn set_refresh_phase(&mut self, phase: usize) {
+        self.refresh_phase = phase % REFRESH_PARTS;
+    }
+
     /// Rebuild a grid from saved density estimates and carved mask.
     pub fn from_saved(res: usize, density: Vec<f32>, carved: Vec<u64>) -> Option<Self> {
         let mut grid = OccupancyGrid::full(res);

@@ -309,6 +309,19 @@ pub fn density_batched(field: &Field, positions: &[[f32; 3]], sigmas: &mut [f32]
     });
 }
 
+/// Optimiser state that checkpoints save and restore (`checkpoint.rs`).
+impl Trainer {
+    /// Adam state of the grid, density MLP and colour MLP; step-size scale; loss average.
+    pub(crate) fn optimiser(&self) -> ([&Adam; 3], f32, f64) {
+        ([&self.adam_grid, &self.adam_density, &self.adam_color], self.lr_scale, self.loss_ema)
+    }
+
+    /// The same state, mutable, to restore a checkpoint.
+    pub(crate) fn optimiser_mut(&mut self) -> ([&mut Adam; 3], &mut f32, &mut f64) {
+        ([&mut self.adam_grid, &mut self.adam_density, &mut self.adam_color], &mut self.lr_scale, &mut self.loss_ema)
+    }
+}
+
 struct StepContext<'a> {
     field: &'a Field,
     occupancy: &'a OccupancyGrid,

@@ -1,0 +1,677 @@
+//! Resumable training state, written beside the model (`model.checkpoint`
+//! for `model.nlf`) during every fit: field parameters, Adam moments and
+//! step counts, trainer counters, step-size scale and loss average, the
+//! training occupancy grid, seconds trained, the curve so far, the fit
+//! settings and a fingerprint of the scan, so resuming another scan or other
+//! settings is a clear error. Same container as the model file (magic,
+//! version, JSON header, little-endian sections, CRC32), written atomically.
+
+use super::config::{NerfSettings, Preset};
+use super::field::{Field, FieldConfig};
+use super::fit::{CurvePoint, FitOptions, Timings};
+use super::occupancy::OccupancyGrid;
+use super::train::{TrainCounters, Trainer};
+use crate::scan::Scan;
+use serde::{Deserialize, Serialize};
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+/// First bytes of every checkpoint file.
+pub const MAGIC: &[u8; 8] = b"NLFCKPT\0";
+/// Format version written by this build.
+pub const VERSION: u32 = 1;
+/// Header JSON larger than this is rejected (the curve grows by one point per evaluation).
+const MAX_HEADER: usize = 64 << 20;
+/// Checkpoint files larger than this are rejected (16 GiB).
+const MAX_FILE: u64 = 1 << 34;
+/// Sections: grid, density MLP, colour MLP, occupancy densities (f32),
+/// carved mask (u64), then Adam first and second moments of grid, density
+/// MLP and colour MLP (f32).
+const SECTIONS: usize = 11;
+
+/// Where the checkpoint of a model lives: `model.nlf` -> `model.checkpoint`.
+pub fn checkpoint_path(model: &Path) -> PathBuf {
+    if model.extension().is_some_and(|e| e == "checkpoint") {
+        // Never the model path itself.
+        let name = model
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        return model.with_file_name(format!("{name}.checkpoint"));
+    }
+    model.with_extension("checkpoint")
+}
+
+/// The fit options that shape training; a resumed fit must use the same.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitSettings {
+    pub seed: u64,
+    pub preset: Preset,
+    pub holdout_every: usize,
+    pub lambda_depth: Option<f32>,
+    pub learning_rate: Option<f32>,
+}
+
+/// What a checkpoint must match to be resumed: scan, settings and budget.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitIdentity {
+    /// Hash of frame names, sizes, intrinsics, poses and depth presence.
+    pub scan_fingerprint: u64,
+    pub frames: usize,
+    pub settings: FitSettings,
+    /// Hash of the network and training configuration derived from the scan.
+    pub settings_fingerprint: u64,
+    /// Budget the fit was started with (a resume without one keeps it).
+    pub time: Option<f64>,
+    pub steps: Option<u64>,
+}
+
+impl FitIdentity {
+    /// Identity of a fit of `scan` with `opts` and the derived `settings`.
+    pub fn new(scan: &Scan, opts: &FitOptions, settings: &NerfSettings) -> FitIdentity {
+        let derived = serde_json::to_string(&(
+            &settings.field,
+            &settings.train,
+            settings.occupancy_resolution,
+            &settings.render_step,
+        ))
+        .unwrap_or_default();
+        let mut h = Fnv::new();
+        h.bytes(derived.as_bytes());
+        FitIdentity {
+            scan_fingerprint: scan_fingerprint(scan),
+            frames: scan.frames.len(),
+            settings: FitSettings {
+                seed: opts.seed,
+                preset: opts.preset,
+                holdout_every: opts.holdout_every,
+                lambda_depth: opts.lambda_depth,
+                learning_rate: opts.learning_rate,
+            },
+            settings_fingerprint: h.finish(),
+            time: opts.time,
+            steps: opts.steps,
+        }
+    }
+}
+
+/// 64-bit FNV-1a: a stable hash (std's hasher may change between releases).
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Fnv {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 = (self.0 ^ x as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+    fn u64(&mut self, v: u64) {
+        self.bytes(&v.to_le_bytes());
+    }
+    fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+/// Fingerprint of a scan's geometry: frame count, names, sizes, intrinsics,
+/// poses and which frames have depth (not the pixels).
+pub fn scan_fingerprint(scan: &Scan) -> u64 {
+    let mut h = Fnv::new();
+    h.u64(scan.frames.len() as u64);
+    for f in &scan.frames {
+        h.u64(f.name.len() as u64);
+        h.bytes(f.name.as_bytes());
+        let (w, hgt) = f.size();
+        h.u64(((w as u64) << 32) | hgt as u64);
+        let k = f.intrinsics;
+        for v in [k.fx, k.fy, k.cx, k.cy]
+            .into_iter()
+            .chain(f.camera_to_world.to_cols_array())
+        {
+            h.u64(v.to_bits());
+        }
+        h.u64(f.depth.is_some() as u64);
+    }
+    h.finish()
+}
+
+/// Progress of a fit kept outside the trainer, saved with it.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct FitProgress {
+    /// Training wall time so far (evaluation and checkpoints excluded).
+    pub train_seconds: f64,
+    /// Training seconds and samples at the last curve point.
+    pub last_point: (f64, u64),
+    pub timings: Timings,
+    pub curve: Vec<CurvePoint>,
+    /// Steps at which the fit was resumed.
+    pub resumed_from: Vec<u64>,
+    /// Whether training stopped on request before its budget.
+    pub interrupted: bool,
+}
+
+/// Everything in a checkpoint besides the arrays.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CheckpointHeader {
+    pub nerflabel_version: String,
+    pub identity: FitIdentity,
+    pub progress: FitProgress,
+    pub field: FieldConfig,
+    pub counters: TrainCounters,
+    pub occupancy_resolution: usize,
+    pub refresh_phase: usize,
+    /// Updates applied by the grid, density and colour optimisers.
+    pub adam_steps: [u64; 3],
+    /// Bits of the f32 step-size scale and f64 loss average (exact round trip).
+    pub lr_scale_bits: u32,
+    pub loss_ema_bits: u64,
+    /// Lengths of the sections (see `SECTIONS`).
+    pub sections: [usize; SECTIONS],
+}
+
+/// A checkpoint read from disk.
+pub struct Checkpoint {
+    pub path: PathBuf,
+    pub header: CheckpointHeader,
+    field: Field,
+    occupancy: OccupancyGrid,
+    /// Adam (first, second) moments of grid, density MLP and colour MLP.
+    moments: [(Vec<f32>, Vec<f32>); 3],
+}
+
+/// Why a checkpoint could not be written, read or resumed.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{0}: no checkpoint to resume from (every fit writes one beside its model; run `nerflabel fit` without --resume first)")]
+    Missing(PathBuf),
+    #[error("{path}: cannot read the checkpoint: {source}")]
+    Read { path: PathBuf, source: io::Error },
+    #[error("{path}: cannot write the checkpoint: {source}")]
+    Write { path: PathBuf, source: io::Error },
+    #[error("{0}: not a nerflabel checkpoint (wrong magic bytes)")]
+    Magic(PathBuf),
+    #[error("{path}: checkpoint format version {found} is not supported (this build reads version {VERSION})")]
+    Version { path: PathBuf, found: u32 },
+    #[error("{0}: checkpoint is corrupted (checksum mismatch)")]
+    Checksum(PathBuf),
+    #[error("{path}: checkpoint is damaged: {what}")]
+    Damaged { path: PathBuf, what: String },
+    #[error("{path}: the checkpoint belongs to another scan ({what}); fit without --resume to start over")]
+    OtherScan { path: PathBuf, what: String },
+    #[error("{path}: the checkpoint was written with {what}; resume with the same settings or fit without --resume to start over")]
+    OtherSettings { path: PathBuf, what: String },
+}
+
+/// Writer that keeps a CRC32 of everything written.
+struct CrcWriter<'a, W: Write> {
+    inner: &'a mut W,
+    crc: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for CrcWriter<'_, W> {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.crc.update(&buf[..n]);
+        Ok(n)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+fn write_f32s<W: Write>(w: &mut W, values: &[f32]) -> io::Result<()> {
+    let mut buf = Vec::with_capacity(4 * 16384);
+    for chunk in values.chunks(16384) {
+        buf.clear();
+        chunk.iter().for_each(|v| buf.extend_from_slice(&v.to_le_bytes()));
+        w.write_all(&buf)?;
+    }
+    Ok(())
+}
+
+/// Save the state of `trainer` and `progress` to `path` atomically.
+pub fn save(
+    path: &Path,
+    identity: &FitIdentity,
+    progress: &FitProgress,
+    trainer: &Trainer,
+) -> Result<(), CheckpointError> {
+    let (adams, lr_scale, loss_ema) = trainer.optimiser();
+    let field = &trainer.field;
+    let moments = adams.map(|a| a.moments());
+    let floats: [&[f32]; 3] = [&field.grid.params, &field.density.params, &field.color.params];
+    let occupancy = trainer.occupancy.densities();
+    let carved = trainer.occupancy.carved_words();
+    let header = CheckpointHeader {
+        nerflabel_version: env!("CARGO_PKG_VERSION").to_string(),
+        identity: identity.clone(),
+        progress: progress.clone(),
+        field: field.config.clone(),
+        counters: trainer.counters,
+        occupancy_resolution: trainer.occupancy.resolution(),
+        refresh_phase: trainer.occupancy.refresh_phase(),
+        adam_steps: adams.map(|a| a.steps()),
+        lr_scale_bits: lr_scale.to_bits(),
+        loss_ema_bits: loss_ema.to_bits(),
+        sections: [
+            floats[0].len(),
+            floats[1].len(),
+            floats[2].len(),
+            occupancy.len(),
+            carved.len(),
+            moments[0].0.len(),
+            moments[0].1.len(),
+            moments[1].0.len(),
+            moments[1].1.len(),
+            moments[2].0.len(),
+            moments[2].1.len(),
+        ],
+    };
+    let json = serde_json::to_vec(&header).map_err(|e| CheckpointError::Write {
+        path: path.to_path_buf(),
+        source: e.into(),
+    })?;
+    crate::atomic::write_with(path, |file| {
+        let mut w = CrcWriter {
+            inner: file,
+            crc: crc32fast::Hasher::new(),
+        };
+        w.write_all(MAGIC)?;
+        w.write_all(&VERSION.to_le_bytes())?;
+        w.write_all(&(json.len() as u32).to_le_bytes())?;
+        w.write_all(&json)?;
+        for s in floats.into_iter().chain([occupancy]) {
+            write_f32s(&mut w, s)?;
+        }
+        let mut buf = Vec::with_capacity(8 * carved.len());
+        carved.iter().for_each(|c| buf.extend_from_slice(&c.to_le_bytes()));
+        w.write_all(&buf)?;
+        for (m, v) in moments {
+            write_f32s(&mut w, m)?;
+            write_f32s(&mut w, v)?;
+        }
+        let crc = w.crc.finalize();
+        file.write_all(&crc.to_le_bytes())
+    })
+    .map_err(|source| CheckpointError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+fn damaged(path: &Path, what: impl Into<String>) -> CheckpointError {
+    CheckpointError::Damaged {
+        path: path.to_path_buf(),
+        what: what.into(),
+    }
+}
+
+impl Checkpoint {
+    /// Read and verify a checkpoint file.
+    pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
+        let meta = match std::fs::metadata(path) {
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(CheckpointError::Missing(path.to_path_buf())),
+            other => other.map_err(|source| CheckpointError::Read {
+                path: path.to_path_buf(),
+                source,
+            })?,
+        };
+        if meta.len() > MAX_FILE {
+            return Err(damaged(
+                path,
+                format!("{} bytes is larger than any checkpoint", meta.len()),
+            ));
+        }
+        let bytes = std::fs::read(path).map_err(|source| CheckpointError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Checkpoint::from_bytes(&bytes, path)
+    }
+
+    /// Parse bytes; `path` names the source in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
+        if bytes.len() < 8 || &bytes[..8] != MAGIC {
+            return Err(CheckpointError::Magic(path.to_path_buf()));
+        }
+        if bytes.len() < 20 {
+            return Err(damaged(path, "truncated header"));
+        }
+        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+        if version != VERSION {
+            return Err(CheckpointError::Version {
+                path: path.to_path_buf(),
+                found: version,
+            });
+        }
+        let (body, crc_bytes) = bytes.split_at(bytes.len() - 4);
+        let stored = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
+        if crc32fast::hash(body) != stored {
+            return Err(CheckpointError::Checksum(path.to_path_buf()));
+        }
+        let header_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
+        if header_len > MAX_HEADER || 16 + header_len > body.len() {
+            return Err(damaged(
+                path,
+                format!("header length {header_len} does not fit the file"),
+            ));
+        }
+        let header: CheckpointHeader = serde_json::from_slice(&body[16..16 + header_len])
+            .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
+        let s = header.sections;
+        let words = s[4];
+        let floats = s
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| i != 4)
+            .try_fold(0usize, |acc, (_, &n)| acc.checked_add(n));
+        let needed = floats
+            .and_then(|f| f.checked_mul(4))
+            .and_then(|f| words.checked_mul(8).and_then(|w| w.checked_add(f)))
+            .ok_or_else(|| damaged(path, "section sizes overflow"))?;
+        let mut data = &body[16 + header_len..];
+        if needed != data.len() {
+            return Err(damaged(
+                path,
+                format!("expected {needed} bytes of arrays, found {}", data.len()),
+            ));
+        }
+        let mut take_f32 = |n: usize| -> Vec<f32> {
+            let (head, tail) = data.split_at(4 * n);
+            data = tail;
+            head.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        };
+        let (grid, density, color, occ) = (take_f32(s[0]), take_f32(s[1]), take_f32(s[2]), take_f32(s[3]));
+        let (carved_bytes, rest) = data.split_at(8 * words);
+        data = rest;
+        let carved: Vec<u64> = carved_bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+            .collect();
+        let mut take_f32 = |n: usize| -> Vec<f32> {
+            let (head, tail) = data.split_at(4 * n);
+            data = tail;
+            head.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        };
+        let moments = [
+            (take_f32(s[5]), take_f32(s[6])),
+            (take_f32(s[7]), take_f32(s[8])),
+            (take_f32(s[9]), take_f32(s[10])),
+        ];
+        let lengths = [grid.len(), density.len(), color.len()];
+        if moments
+            .iter()
+            .zip(lengths)
+            .any(|((m, v), n)| m.len() != n || v.len() != n)
+        {
+            return Err(damaged(path, "optimiser moments do not match the parameter counts"));
+        }
+        let field = Field::from_params(header.field.clone(), grid, density, color)
+            .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration"))?;
+        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occ, carved)
+            .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution"))?;
+        occupancy.set_refresh_phase(header.refresh_phase);
+        Ok(Checkpoint {
+            path: path.to_path_buf(),
+            header,
+            field,
+            occupancy,
+            moments,
+        })
+    }
+
+    /// Steps trained so far.
+    pub fn steps(&self) -> u64 {
+        self.header.counters.steps
+    }
+
+    /// Whether this checkpoint continues a fit of `identity`'s scan and
+    /// settings (the budget may differ); the error names what differs.
+    pub fn check(&self, identity: &FitIdentity) -> Result<(), CheckpointError> {
+        let saved = &self.header.identity;
+        if saved.frames != identity.frames {
+            return Err(CheckpointError::OtherScan {
+                path: self.path.clone(),
+                what: format!("written for {} frames, this scan has {}", saved.frames, identity.frames),
+            });
+        }
+        if saved.scan_fingerprint != identity.scan_fingerprint {
+            return Err(CheckpointError::OtherScan {
+                path: self.path.clone(),
+                what: format!(
+                    "same {} frames, but other poses, intrinsics, image sizes or frame names",
+                    saved.frames
+                ),
+            });
+        }
+        let (a, b) = (&saved.settings, &identity.settings);
+        let opt = |v: Option<f32>| v.map_or_else(|| "default".to_string(), |x| x.to_string());
+        let close = |x: Option<f32>, y: Option<f32>| match (x, y) {
+            (Some(x), Some(y)) => (x - y).abs() <= 1e-6 * x.abs().max(y.abs()),
+            (x, y) => x.is_none() && y.is_none(),
+        };
+        let mut diffs = Vec::new();
+        if a.seed != b.seed {
+            diffs.push(format!("--seed {} (this run: {})", a.seed, b.seed));
+        }
+        if a.preset != b.preset {
+            diffs.push(format!("--preset {:?} (this run: {:?})", a.preset, b.preset).to_lowercase());
+        }
+        if a.holdout_every != b.holdout_every {
+            diffs.push(format!("--holdout {} (this run: {})", a.holdout_every, b.holdout_every));
+        }
+        if !close(a.lambda_depth, b.lambda_depth) {
+            diffs.push(format!(
+                "--lambda-depth {} (this run: {})",
+                opt(a.lambda_depth),
+                opt(b.lambda_depth)
+            ));
+        }
+        if !close(a.learning_rate, b.learning_rate) {
+            diffs.push(format!(
+                "--learning-rate {} (this run: {})",
+                opt(a.learning_rate),
+                opt(b.learning_rate)
+            ));
+        }
+        if !diffs.is_empty() {
+            return Err(CheckpointError::OtherSettings {
+                path: self.path.clone(),
+                what: diffs.join(", "),
+            });
+        }
+        if saved.settings_fingerprint != identity.settings_fingerprint {
+            return Err(CheckpointError::OtherSettings {
+                path: self.path.clone(),
+                what: format!(
+                    "network and training settings of nerflabel {} that this build derives differently",
+                    self.header.nerflabel_version
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Move the saved state into `trainer` (built for the same settings) and
+    /// return the fit's progress.
+    pub fn restore(self, trainer: &mut Trainer) -> Result<FitProgress, CheckpointError> {
+        let path = self.path;
+        if self.field.config != trainer.field.config || self.occupancy.resolution() != trainer.occupancy.resolution() {
+            return Err(damaged(&path, "network or occupancy sizes differ from this fit's"));
+        }
+        let h = self.header;
+        let (adams, lr_scale, loss_ema) = trainer.optimiser_mut();
+        for ((adam, (m, v)), steps) in adams.into_iter().zip(self.moments).zip(h.adam_steps) {
+            if !adam.restore(m, v, steps) {
+                return Err(damaged(&path, "optimiser moments do not match the parameter counts"));
+            }
+        }
+        *lr_scale = f32::from_bits(h.lr_scale_bits);
+        *loss_ema = f64::from_bits(h.loss_ema_bits);
+        trainer.field = self.field;
+        trainer.occupancy = self.occupancy;
+        trainer.counters = h.counters;
+        Ok(h.progress)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::train::tests::{plane_views, small_config};
+    use crate::rng::Rng;
+
+    fn trained(steps: usize) -> Trainer {
+        let (field_cfg, train) = small_config(9);
+        let field = Field::new(field_cfg, &mut Rng::new(9, 0));
+        let mut t = Trainer::new(field, OccupancyGrid::full(16), train, [0.5; 3]);
+        let views = plane_views(3, 16, true);
+        for s in 0..steps {
+            t.step(&views, s as f32 / 70.0);
+        }
+        t
+    }
+
+    fn identity() -> FitIdentity {
+        FitIdentity {
+            scan_fingerprint: 7,
+            frames: 3,
+            settings: FitSettings {
+                seed: 9,
+                preset: Preset::Fast,
+                holdout_every: 0,
+                lambda_depth: Some(0.3),
+                learning_rate: None,
+            },
+            settings_fingerprint: 11,
+            time: None,
+            steps: Some(40),
+        }
+    }
+
+    #[test]
+    fn save_then_restore_continues_bit_for_bit() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("model.checkpoint");
+        let views = plane_views(3, 16, true);
+        // Past warm-up (32) and two occupancy refreshes, so the refresh phase matters.
+        let mut a = trained(50);
+        let progress = FitProgress {
+            train_seconds: 1.5,
+            last_point: (1.0, 99),
+            ..FitProgress::default()
+        };
+        save(&path, &identity(), &progress, &a).unwrap();
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temp file left");
+        let ckpt = Checkpoint::load(&path).unwrap();
+        assert_eq!(ckpt.steps(), 50);
+        assert_ne!(ckpt.header.refresh_phase, 0);
+        ckpt.check(&identity()).unwrap();
+        // A fresh trainer (other initial weights) takes over the saved state.
+        let (field_cfg, train) = small_config(9);
+        let mut b = Trainer::new(
+            Field::new(field_cfg, &mut Rng::new(1, 0)),
+            OccupancyGrid::full(16),
+            train,
+            [0.5; 3],
+        );
+        let back = ckpt.restore(&mut b).unwrap();
+        assert_eq!((back.train_seconds, back.last_point), (1.5, (1.0, 99)));
+        for s in 50..70 {
+            a.step(&views, s as f32 / 70.0);
+            b.step(&views, s as f32 / 70.0);
+        }
+        assert_eq!(a.field.grid.params, b.field.grid.params);
+        assert_eq!(a.field.density.params, b.field.density.params);
+        assert_eq!(a.field.color.params, b.field.color.params);
+        assert_eq!(a.occupancy.densities(), b.occupancy.densities());
+        assert_eq!(a.counters.steps, 70);
+        assert!(a.counters.occupancy_refreshes >= 3);
+        assert_eq!(b.counters.samples, a.counters.samples);
+    }
+
+    #[test]
+    fn mismatches_and_damage_are_clear_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.checkpoint");
+        save(&path, &identity(), &FitProgress::default(), &trained(2)).unwrap();
+        let ckpt = Checkpoint::load(&path).unwrap();
+        let msg = |id: FitIdentity| ckpt.check(&id).unwrap_err().to_string();
+        let m = msg(FitIdentity {
+            frames: 4,
+            ..identity()
+        });
+        assert!(
+            m.contains("another scan") && m.contains("3 frames") && m.contains("has 4"),
+            "{m}"
+        );
+        let m = msg(FitIdentity {
+            scan_fingerprint: 8,
+            ..identity()
+        });
+        assert!(m.contains("other poses"), "{m}");
+        let mut other = identity();
+        other.settings.seed = 1;
+        other.settings.learning_rate = Some(10.0);
+        let m = msg(other);
+        assert!(
+            m.contains("--seed 9 (this run: 1)") && m.contains("--learning-rate default (this run: 10)"),
+            "{m}"
+        );
+        let m = msg(FitIdentity {
+            settings_fingerprint: 12,
+            ..identity()
+        });
+        assert!(m.contains("derives differently"), "{m}");
+        // A larger budget is fine.
+        ckpt.check(&FitIdentity {
+            steps: Some(400),
+            time: Some(3.0),
+            ..identity()
+        })
+        .unwrap();
+
+        let bytes = std::fs::read(&path).unwrap();
+        for cut in [0usize, 8, 19, 100, bytes.len() / 2, bytes.len() - 1] {
+            let m = Checkpoint::from_bytes(&bytes[..cut], &path).err().unwrap().to_string();
+            assert!(
+                m.starts_with(&path.display().to_string()) && !m.contains('\n'),
+                "cut {cut}: {m}"
+            );
+        }
+        let mut flipped = bytes.clone();
+        flipped[bytes.len() / 2] ^= 4;
+        assert!(Checkpoint::from_bytes(&flipped, &path)
+            .err()
+            .unwrap()
+            .to_string()
+            .contains("corrupted"));
+        let missing = Checkpoint::load(&dir.path().join("none.checkpoint"))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            missing.contains("none.checkpoint") && missing.contains("without --resume"),
+            "{missing}"
+        );
+    }
+
+    #[test]
+    fn checkpoint_path_sits_beside_the_model_and_never_on_it() {
+        assert_eq!(
+            checkpoint_path(Path::new("s/nerflabel/model.nlf")),
+            Path::new("s/nerflabel/model.checkpoint")
+        );
+        assert_eq!(checkpoint_path(Path::new("m")), Path::new("m.checkpoint"));
+        assert_eq!(
+            checkpoint_path(Path::new("a.checkpoint")),
+            Path::new("a.checkpoint.checkpoint")
+        );
+    }
+}

@@ -1,0 +1,339 @@
+//! Issue 6, training: a fit interrupted and resumed from its checkpoint
+//! equals the uninterrupted fit byte for byte; a learning rate far too high
+//! never gives NaN (and an absurd one is caught by the guard, with the
+//! skipped batches in the report); long runs keep every parameter finite,
+//! the norms bounded and the occupancy grid non-empty.
+//!
+//! The long run is ignored in the normal suite (steps from
+//! `NERFLABEL_LONG_STEPS`, default 20 000):
+//!
+//! `cargo test --release --test robustness_training -- --ignored`
+
+use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
+use nerflabel::nerf::checkpoint::Checkpoint;
+use nerflabel::nerf::config::Preset;
+use nerflabel::nerf::field::Field;
+use nerflabel::nerf::fit::{fit, prepare, resume, FitError, FitEvent, FitOptions, Prepared};
+use nerflabel::nerf::model_file::Model;
+use nerflabel::scan::{load, LoadOptions, Scan};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+fn small_fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small")
+}
+
+fn small_scan() -> Scan {
+    load(&small_fixture(), &LoadOptions::default()).unwrap()
+}
+
+/// Every parameter and occupancy density of the model is finite.
+fn assert_model_finite(model: &Model, what: &str) {
+    let f = &model.field;
+    for (name, params) in [
+        ("grid", &f.grid.params),
+        ("density MLP", &f.density.params),
+        ("colour MLP", &f.color.params),
+    ] {
+        if let Some(bad) = params.iter().find(|v| !v.is_finite()) {
+            panic!("{what}: {name} holds {bad}");
+        }
+    }
+    assert!(
+        model.occupancy.densities().iter().all(|d| d.is_finite()),
+        "{what}: occupancy holds a non-finite density"
+    );
+}
+
+#[test]
+fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
+    let scan = small_scan();
+    let dir = tempfile::tempdir().unwrap();
+    let opts = |name: &str| FitOptions {
+        steps: Some(40),
+        preset: Preset::Fast,
+        holdout_every: 12,
+        seed: 2,
+        checkpoint: Some(dir.path().join(name)),
+        ..FitOptions::default()
+    };
+    let whole = fit(&scan, &opts("whole.checkpoint"), &AtomicBool::new(false), &mut |_| {}).unwrap();
+
+    // Stop after step 15 of 40, as Ctrl-C does.
+    let stop = AtomicBool::new(false);
+    let mut saved = Vec::new();
+    let first = fit(&scan, &opts("part.checkpoint"), &stop, &mut |e| match e {
+        FitEvent::Step { step: 15, .. } => stop.store(true, Ordering::Relaxed),
+        FitEvent::CheckpointSaved { step } => saved.push(step),
+        FitEvent::CheckpointFailed(e) => panic!("{e}"),
+        _ => {}
+    })
+    .unwrap();
+    assert!(first.report.interrupted);
+    assert_eq!(first.report.counters.steps, 15);
+    assert_eq!(saved.last(), Some(&15), "the checkpoint is written when training stops");
+    assert_model_finite(&first.model, "interrupted");
+
+    let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
+    assert_eq!(ckpt.steps(), 15);
+    // Other settings or another scan are refused, naming what differs.
+    let err = resume(
+        &scan,
+        &FitOptions {
+            seed: 3,
+            ..opts("x.checkpoint")
+        },
+        ckpt,
+        &stop,
+        &mut |_| {},
+    )
+    .err()
+    .unwrap();
+    assert!(
+        matches!(err, FitError::Checkpoint(_)) && err.to_string().contains("--seed 2 (this run: 3)"),
+        "{err}"
+    );
+    let mut fewer = small_scan();
+    fewer.frames.pop();
+    let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
+    let err = resume(&fewer, &opts("x.checkpoint"), ckpt, &stop, &mut |_| {})
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("another scan") && err.contains("24 frames") && err.contains("has 23"),
+        "{err}"
+    );
+
+    let stop = AtomicBool::new(false);
+    let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
+    let rest = resume(&scan, &opts("part.checkpoint"), ckpt, &stop, &mut |_| {}).unwrap();
+    assert!(
+        rest.model.to_bytes() == whole.model.to_bytes(),
+        "resumed model differs from the uninterrupted one"
+    );
+    let (r, w) = (&rest.report, &whole.report);
+    assert!(!r.interrupted);
+    assert_eq!(r.resumed_from, vec![15]);
+    assert_eq!(
+        (r.counters.steps, r.counters.samples, r.counters.rays),
+        (w.counters.steps, w.counters.samples, w.counters.rays)
+    );
+    assert_eq!(
+        (r.counters.skipped_batches, r.counters.occupancy_refreshes),
+        (w.counters.skipped_batches, w.counters.occupancy_refreshes)
+    );
+    // The curve continues: the interrupted run's points, then the resumed ones.
+    let steps: Vec<u64> = r.curve.iter().map(|p| p.step).collect();
+    assert_eq!(steps.first(), Some(&15), "{steps:?}");
+    assert_eq!(steps.last(), Some(&40), "{steps:?}");
+    assert!(
+        r.curve
+            .windows(2)
+            .all(|p| p[0].step < p[1].step && p[0].seconds < p[1].seconds),
+        "{:?}",
+        r.curve
+    );
+    assert_eq!(
+        r.curve.last().map(|p| p.psnr),
+        w.curve.last().map(|p| p.psnr),
+        "same model, same held-out PSNR"
+    );
+    assert!(
+        r.timings.train_s >= first.report.timings.train_s,
+        "training seconds add up"
+    );
+    // The checkpoint now holds the finished fit: resuming it with the same budget trains nothing more.
+    let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
+    assert_eq!(ckpt.steps(), 40);
+}
+
+/// Every number is finite (serde_json writes NaN as null); only a depth
+/// error may be null (no surface rendered at all).
+fn assert_json_finite(v: &serde_json::Value, at: &str, lr: &str) {
+    match v {
+        serde_json::Value::Number(n) => assert!(n.as_f64().is_some_and(f64::is_finite), "lr {lr}: {at} = {n}"),
+        serde_json::Value::Null => assert!(at.ends_with(".depth_mae_m"), "lr {lr}: {at} is null (NaN?)"),
+        serde_json::Value::Array(a) => a
+            .iter()
+            .enumerate()
+            .for_each(|(i, x)| assert_json_finite(x, &format!("{at}[{i}]"), lr)),
+        serde_json::Value::Object(o) => o
+            .iter()
+            .for_each(|(k, x)| assert_json_finite(x, &format!("{at}.{k}"), lr)),
+        _ => {}
+    }
+}
+
+/// Fit `fixtures/small` through the binary with `--learning-rate`; returns
+/// the report and the skipped-batch count printed on stdout.
+fn fit_with_learning_rate(dir: &Path, lr: &str, steps: u32) -> (serde_json::Value, u64) {
+    let model_path = dir.join("model.nlf");
+    let o = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .arg("fit")
+        .arg(small_fixture())
+        .args([
+            "--steps",
+            &steps.to_string(),
+            "--preset",
+            "fast",
+            "--holdout",
+            "12",
+            "--learning-rate",
+            lr,
+            "--model",
+        ])
+        .arg(&model_path)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success() && !stderr.contains("panicked"), "lr {lr}: {stderr}");
+    let model = Model::load(&model_path).unwrap();
+    assert_model_finite(&model, &format!("lr {lr}"));
+    assert_eq!(
+        model.header.train.learning_rate,
+        lr.parse::<f32>().unwrap(),
+        "the override reaches the trainer"
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("fit_report.json")).unwrap()).unwrap();
+    assert_json_finite(&report, "report", lr);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let printed = stdout
+        .split_once(" batches skipped")
+        .and_then(|(head, _)| head.rsplit('(').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no skipped-batch count in {stdout}"));
+    (report, printed)
+}
+
+#[test]
+fn learning_rate_1000x_too_high_keeps_model_and_report_finite() {
+    // 10 is 1000 x the default 0.01. The loss stays bounded (colour in [0, 1],
+    // depth within the scene), so the divergence guard has nothing to catch:
+    // the field collapses to a finite but poor state, never NaN.
+    let dir = tempfile::tempdir().unwrap();
+    let (report, printed) = fit_with_learning_rate(dir.path(), "10", 30);
+    assert_eq!(report["counters"]["steps"], 30);
+    assert_eq!(report["counters"]["skipped_batches"].as_u64(), Some(printed));
+    let psnr = report["curve"].as_array().unwrap().last().unwrap()["psnr"]
+        .as_f64()
+        .unwrap();
+    eprintln!("lr 10: {printed} batches skipped, held-out PSNR {psnr:.2} dB");
+    assert!(psnr.is_finite() && psnr > 0.0);
+}
+
+#[test]
+fn absurd_learning_rate_is_caught_by_the_guard_and_counted_in_the_report() {
+    // 1e8 (1e10 x the default) overflows activations to inf: those batches are
+    // skipped, the step size halves, and the count reaches the report.
+    let dir = tempfile::tempdir().unwrap();
+    let (report, printed) = fit_with_learning_rate(dir.path(), "1e8", 30);
+    let skipped = report["counters"]["skipped_batches"].as_u64().unwrap();
+    eprintln!("lr 1e8: {skipped} of 30 batches skipped");
+    assert_eq!(skipped, printed, "stdout and report agree");
+    assert!(skipped >= 5, "the guard must skip the non-finite batches: {skipped}");
+    assert_eq!(report["counters"]["steps"], 30, "skipped batches still count as steps");
+}
+
+/// Root-mean-square and largest magnitude of each parameter section.
+fn norms(field: &Field) -> [(f64, f64); 3] {
+    [&field.grid.params, &field.density.params, &field.color.params].map(|p| {
+        let sum: f64 = p.iter().map(|&v| v as f64 * v as f64).sum();
+        let max = p.iter().fold(0.0f64, |m, &v| m.max((v as f64).abs()));
+        ((sum / p.len().max(1) as f64).sqrt(), max)
+    })
+}
+
+/// Train `scan` for `steps` at the fast preset, checking every `every` steps
+/// that parameters are finite, the hash grid's (RMS, max) below `grid_caps`,
+/// the MLPs' below (2, 20), and the occupancy grid non-empty.
+fn long_run(scan: &Scan, steps: u64, every: u64, grid_caps: (f64, f64)) {
+    let opts = FitOptions {
+        steps: Some(steps),
+        preset: Preset::Fast,
+        holdout_every: 0,
+        seed: 7,
+        ..FitOptions::default()
+    };
+    let Prepared { data, mut trainer, .. } = prepare(scan, &opts).unwrap();
+    let start = norms(&trainer.field);
+    let (mut first_loss, mut last_loss) = (Vec::new(), Vec::new());
+    let mut worst = [(0.0f64, 0.0f64); 3];
+    let mut min_occupied = 1.0f64;
+    for s in 0..steps {
+        let stats = trainer.step(&data.train, s as f32 / steps as f32);
+        assert!(stats.skipped || stats.loss.is_finite(), "step {s}: loss {}", stats.loss);
+        if s < 50 && !stats.skipped {
+            first_loss.push(stats.loss);
+        }
+        if s + 50 >= steps && !stats.skipped {
+            last_loss.push(stats.loss);
+        }
+        if (s + 1) % every == 0 || s + 1 == steps {
+            let n = norms(&trainer.field);
+            let occupied = trainer.occupancy.occupied_fraction();
+            eprintln!("step {}: loss {:.4}, (RMS, max) grid/density/colour {n:.3?}, occupied {occupied:.4}", s + 1, stats.loss);
+            for (k, ((rms, max), name)) in n.iter().zip(["grid", "density MLP", "colour MLP"]).enumerate() {
+                assert!(
+                    rms.is_finite() && max.is_finite(),
+                    "step {}: {name} is not finite",
+                    s + 1
+                );
+                // MLPs stay below RMS 0.5, max 3.5 over 20 k steps (measured, see
+                // docs/robustness.md); a runaway goes far beyond.
+                let (rms_bound, max_bound) = if k == 0 { grid_caps } else { (2.0, 20.0) };
+                assert!(
+                    *rms < rms_bound && *max < max_bound,
+                    "step {}: {name} RMS {rms}, max {max}",
+                    s + 1
+                );
+                worst[k] = (worst[k].0.max(*rms), worst[k].1.max(*max));
+            }
+            assert!(occupied >= 1e-3, "step {}: occupancy grid emptied ({occupied})", s + 1);
+            min_occupied = min_occupied.min(occupied);
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let (l0, l1) = (mean(&first_loss), mean(&last_loss));
+    let rendering = trainer.rendering_occupancy();
+    eprintln!(
+        "{steps} steps: loss {l0:.4} -> {l1:.4}, {} skipped; norms at start {start:?}, worst (RMS, max) {worst:?}; \
+         occupied fraction min {min_occupied:.4}, rendering grid {:.4}",
+        trainer.counters.skipped_batches,
+        rendering.occupied_fraction()
+    );
+    assert!(l1 < 0.5 * l0, "training made no progress: loss {l0} -> {l1}");
+    assert!(
+        trainer.counters.skipped_batches * 100 <= steps,
+        "{} of {steps} batches skipped",
+        trainer.counters.skipped_batches
+    );
+    assert!(rendering.occupied_fraction() >= 1e-3, "the rendering grid emptied");
+}
+
+#[test]
+fn short_run_on_the_noisy_small_fixture_stays_finite_bounded_and_occupied() {
+    // Measured: grid RMS 0.11, max 0.68 (from 1e-4); MLPs RMS <= 0.34, max <= 1.36.
+    long_run(&small_scan(), 300, 25, (1.0, 10.0));
+}
+
+#[test]
+#[ignore = "long run: 20 000 steps (NERFLABEL_LONG_STEPS); use --release"]
+fn twenty_thousand_steps_on_a_noisy_scene_stay_finite_bounded_and_occupied() {
+    let steps = std::env::var("NERFLABEL_LONG_STEPS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20_000);
+    let dir = tempfile::tempdir().unwrap();
+    // Tabletop with every sensor corruption (depth noise, holes, edge dropout, glass).
+    let mut o = FixtureOptions::new(SceneKind::Tabletop);
+    (o.width, o.height, o.frames, o.holdout, o.seed) = (160, 120, Some(40), Some(0), 11);
+    generate(dir.path(), &o).unwrap();
+    let scan = load(dir.path(), &LoadOptions::default()).unwrap();
+    // The hash grid drifts linearly at constant learning rate: measured RMS ~1
+    // and max ~5 more per 500 steps after step 3000 (docs/robustness.md). The
+    // caps are that envelope with margin; a runaway goes far beyond.
+    long_run(&scan, steps, 500, (40.0, 250.0));
+}

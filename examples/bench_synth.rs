@@ -1,6 +1,6 @@
 //! Speed and quality of `synth` on the generated tabletop fixture.
 //!
-//! `cargo run --release --example bench_synth [-- --time 120 --views 500 --width 320 --height 240 --fixture DIR --reuse]`
+//! `cargo run --release --example bench_synth [-- --time 120 --views 500 --width 320 --height 240 --fixture DIR --reuse --speed-only]`
 //!
 //! Generates the tabletop fixture (320x240, 120 frames, 12 held out) unless
 //! it exists, fits a model for `--time` seconds (or loads the saved one with
@@ -9,7 +9,12 @@
 //!   Parquet (seconds, views/s, rejections, file size);
 //! - quality on the held-out frames rendered through a `--poses` file,
 //!   against the fixture's exact ground truth: PSNR, SSIM, depth MAE and
-//!   mask mIoU; and the mask mIoU of the first 50 sampled views.
+//!   mask mIoU; and the mask mIoU of the first 50 sampled views
+//!   (skipped with `--speed-only`).
+//!
+//! Besides wall-clock seconds it prints the CPU seconds the process used
+//! (user + system, from /proc/self/stat) and the load average, since the
+//! machine is shared: compare runs by ratios taken in one session.
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float64Type, Int32Type};
@@ -23,7 +28,7 @@ use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, Intrinsics, LoadOptions};
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::nerf::fit::render_options;
-use nerflabel::nerf::render::render_pixels;
+use nerflabel::nerf::render::render_image;
 use nerflabel::nerf::view::ViewRenderer;
 use nerflabel::synth::render::instance_mask;
 use nerflabel::synth::{png, read_poses, synthesize, Instances, SynthOptions, SynthProgress, SynthSummary, ViewSpec};
@@ -40,6 +45,7 @@ struct Args {
     width: u32,
     height: u32,
     reuse: bool,
+    speed_only: bool,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -50,6 +56,7 @@ fn parse_args() -> Result<Args, String> {
         width: 320,
         height: 240,
         reuse: false,
+        speed_only: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -61,6 +68,7 @@ fn parse_args() -> Result<Args, String> {
             "--width" => a.width = value()?.parse().map_err(|e| format!("--width: {e}"))?,
             "--height" => a.height = value()?.parse().map_err(|e| format!("--height: {e}"))?,
             "--reuse" => a.reuse = true,
+            "--speed-only" => a.speed_only = true,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -137,6 +145,21 @@ fn mean_iou(counts: &IouCounts) -> f64 {
     ious.iter().sum::<f64>() / ious.len().max(1) as f64
 }
 
+/// CPU seconds (user + system) used by this process so far; 0 where /proc is missing.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { return 0.0 };
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// The 1-minute load average.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg").ok().and_then(|l| l.split_whitespace().next().map(str::to_string)).unwrap_or_default()
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args = parse_args()?;
     let scan_dir = &args.fixture;
@@ -175,6 +198,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         model_checksum: checksum,
         ..SynthOptions::default()
     };
+    let load_before = load_average();
+    let cpu = cpu_seconds();
     let t = Instant::now();
     let prepared = std::sync::Mutex::new(0.0);
     let on_progress = |p: SynthProgress| {
@@ -186,6 +211,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let speed: SynthSummary = synthesize(&scan, &model, Some(&boxes), &opts, &sampled_path, &on_progress, &stop)?;
     let prepare_s = prepared.into_inner().unwrap_or(0.0);
+    let cpu_s = cpu_seconds() - cpu;
+    let load_after = load_average();
+    println!("| synth on the tabletop fixture ({} frames, model {:.0} s) | value |", scan.frames.len(), args.time);
+    println!("|---|---|");
+    println!("| sampled views {}x{} | {} |", args.width, args.height, speed.views);
+    println!("| seconds (incl. cloud, k-d tree, probes) | {:.1} |", speed.seconds);
+    println!("| views/s | {:.2} |", speed.views_per_s);
+    println!("| CPU seconds (user + system) | {cpu_s:.1} ({:.2} per view) |", cpu_s / speed.views.max(1) as f64);
+    println!("| load average before / after | {load_before} / {load_after} |");
+    println!("| of which set-up (cloud, k-d tree, clearance) | {prepare_s:.1} s |");
+    println!("| candidates / rejected | {} / {} ({}) |", speed.attempts, speed.rejections.total(), speed.rejections);
+    println!("| clearance | {:.3} m |", speed.clearance_m.unwrap_or(0.0));
+    println!("| file size | {:.1} MB |", speed.bytes as f64 / 1e6);
+    if args.speed_only {
+        return Ok(());
+    }
 
     // Quality: held-out frames through a poses file.
     let meta = read_meta(scan_dir)?;
@@ -248,22 +289,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t_png += t.elapsed().as_secs_f64();
         rays += view.depth_m.len();
         let camera = renderer.local_camera(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height);
-        let pixels: Vec<(f32, f32)> = (0..spec.height).flat_map(|v| (0..spec.width).map(move |u| (u as f32, v as f32))).collect();
-        let out = render_pixels(&model.field, &model.occupancy, &render_options(&model, true), &camera, &pixels);
+        let out = render_image(&model.field, &model.occupancy, &render_options(&model, true), &camera);
         samples += out.iter().map(|o| u64::from(o.samples)).sum::<u64>();
         opaque += view.opacity.iter().filter(|&&a| a > 0.5).count();
     }
     let per = 1.0 / sampled.len().clamp(1, 16) as f64;
 
-    println!("| synth on the tabletop fixture ({} frames, model {:.0} s) | value |", scan.frames.len(), args.time);
-    println!("|---|---|");
-    println!("| sampled views {}x{} | {} |", args.width, args.height, speed.views);
-    println!("| seconds (incl. cloud, k-d tree, probes) | {:.1} |", speed.seconds);
-    println!("| views/s | {:.2} |", speed.views_per_s);
-    println!("| of which set-up (cloud, k-d tree, clearance) | {prepare_s:.1} s |");
-    println!("| candidates / rejected | {} / {} ({}) |", speed.attempts, speed.rejections.total(), speed.rejections);
-    println!("| clearance | {:.3} m |", speed.clearance_m.unwrap_or(0.0));
-    println!("| file size | {:.1} MB |", speed.bytes as f64 / 1e6);
     println!("| per view: render (all threads) | {:.0} ms ({:.2} M rays/s, {:.0} % opaque) |", t_render * per * 1e3, rays as f64 / t_render / 1e6, 100.0 * opaque as f64 / rays.max(1) as f64);
     println!("| mean samples per ray | {:.1} |", samples as f64 / rays.max(1) as f64);
     println!("| per view: mask (1 thread) | {:.1} ms |", t_mask * per * 1e3);

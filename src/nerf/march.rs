@@ -64,6 +64,7 @@ pub fn ray_interval(ray: &LocalRay, near: f32) -> Option<(f32, f32)> {
 /// March `ray` over [t0, t1), appending occupied segments to `out`, at most
 /// `max_samples`. `jitter` in [0, 1) offsets the first sample (training).
 /// Returns the t where marching stopped.
+#[allow(clippy::too_many_arguments)]
 pub fn march(
     ray: &LocalRay,
     t0: f32,
@@ -74,7 +75,8 @@ pub fn march(
     max_samples: usize,
     out: &mut Vec<Segment>,
 ) -> f32 {
-    march_until(ray, t0, t1, grid, rule, jitter, max_samples, f32::INFINITY, out)
+    // No optical-depth bound: the grid's density estimates are never read.
+    march_impl::<false>(ray, t0, t1, grid, rule, jitter, max_samples, f32::INFINITY, out)
 }
 
 /// Like [`march`], but also stops once the optical depth estimated from the
@@ -92,28 +94,91 @@ pub fn march_until(
     max_optical_depth: f32,
     out: &mut Vec<Segment>,
 ) -> f32 {
+    march_impl::<true>(ray, t0, t1, grid, rule, jitter, max_samples, max_optical_depth, out)
+}
+
+/// The marching loop; `BOUNDED` reads the grid's density for the optical-depth stop.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn march_impl<const BOUNDED: bool>(
+    ray: &LocalRay,
+    t0: f32,
+    t1: f32,
+    grid: &OccupancyGrid,
+    rule: &StepRule,
+    jitter: f32,
+    max_samples: usize,
+    max_optical_depth: f32,
+    out: &mut Vec<Segment>,
+) -> f32 {
+    let res = grid.resolution();
+    let r = res as f32;
     let mut t = t0 + jitter * rule.at(t0);
     let mut taken = 0;
     let mut optical_depth = 0.0f32;
-    while t < t1 && taken < max_samples && optical_depth < max_optical_depth {
+    while t < t1 && taken < max_samples && (!BOUNDED || optical_depth < max_optical_depth) {
         let dt = rule.at(t);
         let p = ray.at(t + 0.5 * dt);
-        match grid.cell_of(p) {
-            Some(cell) if grid.is_occupied_cell(cell) => {
-                out.push(Segment { t, dt: dt.min(t1 - t) });
-                taken += 1;
+        // The cell of `p`, computed exactly as `OccupancyGrid::cell_of` does.
+        let c = [p[0] * r, p[1] * r, p[2] * r];
+        // Written so NaN fails the test.
+        if !(c[0] >= 0.0 && c[0] < r && c[1] >= 0.0 && c[1] < r && c[2] >= 0.0 && c[2] < r) {
+            t += dt;
+            continue;
+        }
+        let idx = [c[0] as usize, c[1] as usize, c[2] as usize];
+        let cell = (idx[2] * res + idx[1]) * res + idx[0];
+        if grid.is_occupied_cell(cell) {
+            out.push(Segment { t, dt: dt.min(t1 - t) });
+            taken += 1;
+            if BOUNDED {
                 optical_depth += grid.cell_density(cell) * dt;
-                t += dt;
             }
-            Some(_) => {
-                // Skip the empty cell in whole steps so samples stay on the step lattice.
-                let gap = grid.distance_to_cell_exit(p, ray.dir) + 0.5 * dt;
-                t += (gap / dt).ceil().max(1.0) * dt;
-            }
-            None => t += dt,
+            t += dt;
+        } else {
+            // Skip the empty cell in whole steps so samples stay on the step lattice.
+            let gap = cell_exit(p, ray.dir, idx, r) + 0.5 * dt;
+            t += ceil_positive(gap / dt).max(1.0) * dt;
         }
     }
     t
+}
+
+/// `OccupancyGrid::distance_to_cell_exit` for a point inside the cube whose
+/// cell coordinates `idx` are known: the same operations, with the floor of
+/// `p * r` (in [0, r)) taken from `idx` instead of a libm call.
+#[inline(always)]
+fn cell_exit(p: [f32; 3], dir: [f32; 3], idx: [usize; 3], r: f32) -> f32 {
+    let mut best = f32::INFINITY;
+    for a in 0..3 {
+        let d = dir[a];
+        if d == 0.0 {
+            continue;
+        }
+        let c = idx[a] as f32;
+        let boundary = if d > 0.0 { (c + 1.0) / r } else { c / r };
+        let t = (boundary - p[a]) / d;
+        if t < best {
+            best = t;
+        }
+    }
+    best.max(0.0)
+}
+
+/// `x.ceil()` for `x >= 0` (or NaN) without a libm call.
+#[inline(always)]
+fn ceil_positive(x: f32) -> f32 {
+    if x < 8_388_608.0 {
+        // Below 2^23 the truncation is exact; NaN falls through to 0 like `max(1.0)` expects.
+        let i = x as u32 as f32;
+        if i < x {
+            i + 1.0
+        } else {
+            i
+        }
+    } else {
+        x.ceil()
+    }
 }
 
 #[cfg(test)]
@@ -157,6 +222,65 @@ mod tests {
         march(&ray, t0, t1, &grid, &rule(), 0.3, 10_000, &mut out);
         assert!(out.len() < 256 / 2, "half the ray is carved: {}", out.len());
         assert!(out.iter().any(|s| (s.mid() - 1.3).abs() < 0.02), "surface at local z = 0.8 is sampled");
+    }
+
+    /// The marcher as first written, on the grid's own cell queries.
+    fn march_reference(ray: &LocalRay, t0: f32, t1: f32, grid: &OccupancyGrid, rule: &StepRule, out: &mut Vec<Segment>) {
+        let mut t = t0;
+        while t < t1 {
+            let dt = rule.at(t);
+            let p = ray.at(t + 0.5 * dt);
+            match grid.cell_of(p) {
+                Some(cell) if grid.is_occupied_cell(cell) => {
+                    out.push(Segment { t, dt: dt.min(t1 - t) });
+                    t += dt;
+                }
+                Some(_) => {
+                    let gap = grid.distance_to_cell_exit(p, ray.dir) + 0.5 * dt;
+                    t += (gap / dt).ceil().max(1.0) * dt;
+                }
+                None => t += dt,
+            }
+        }
+    }
+
+    #[test]
+    fn marching_gives_bit_identical_samples_to_the_grids_cell_queries() {
+        // Carve a seeded grid with random depth rays, then march random rays through it.
+        let mut rng = crate::rng::Rng::new(17, 0);
+        let mut grid = OccupancyGrid::full(32);
+        let depth_rays: Vec<DepthRay> = (0..20_000)
+            .map(|_| {
+                let origin = [rng.f32(), rng.f32(), 0.0];
+                let d = [rng.f32() - 0.5, rng.f32() - 0.5, 1.0];
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                DepthRay { origin, dir: d.map(|v| v / n), t_hit: 0.3 + 0.5 * rng.f32() }
+            })
+            .collect();
+        grid.seed_from_depth(&depth_rays);
+        assert!(grid.occupied_fraction() < 0.8, "{}", grid.occupied_fraction());
+        let rule = StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 1.0 / 128.0 };
+        let full = OccupancyGrid::full(32);
+        let mut skipped_some = 0;
+        for i in 0..500 {
+            let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32];
+            // Axis-aligned directions now and then (a zero component is skipped in the exit test).
+            let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
+            if i % 7 == 0 {
+                d[i % 3] = 0.0;
+            }
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let ray = LocalRay { origin, dir: d.map(|v| v / n) };
+            let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
+            let (mut fast, mut slow) = (Vec::new(), Vec::new());
+            march(&ray, t0, t1, &grid, &rule, 0.0, usize::MAX, &mut fast);
+            march_reference(&ray, t0, t1, &grid, &rule, &mut slow);
+            assert_eq!(fast, slow, "ray {i}");
+            let mut all = Vec::new();
+            march(&ray, t0, t1, &full, &rule, 0.0, usize::MAX, &mut all);
+            skipped_some += usize::from(fast.len() < all.len());
+        }
+        assert!(skipped_some > 30, "few rays crossed carved space: {skipped_some}");
     }
 
     #[test]

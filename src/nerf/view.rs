@@ -4,7 +4,7 @@
 use super::camera::LocalCamera;
 use super::fit::{model_transform, render_options};
 use super::model_file::Model;
-use super::render::render_pixels;
+use super::render::{render_image, render_pixels, RayOutput};
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
 use glam::DMat4;
@@ -28,6 +28,12 @@ pub struct ViewRenderer<'a> {
     pub transform: SceneTransform,
 }
 
+/// An 8-bit channel of a colour in [0, 1].
+#[inline]
+fn to_u8(c: f32) -> u8 {
+    (c * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
 impl<'a> ViewRenderer<'a> {
     /// Renderer for `model` (fails if its stored transform is invalid).
     pub fn new(model: &'a Model) -> Result<Self, GeometryError> {
@@ -39,31 +45,46 @@ impl<'a> ViewRenderer<'a> {
         LocalCamera::new(&self.transform.world_to_local_pose(camera_to_world), k, width, height)
     }
 
+    /// Z-depth in metres of a ray's surface through pixel (u, v), 0 = none.
+    #[inline]
+    fn depth_m(&self, camera: &LocalCamera, o: &RayOutput, u: f32, v: f32) -> f32 {
+        let metres_per_unit = 1.0 / self.transform.scale as f32;
+        let t_per_z = camera.ray(u, v).1;
+        o.depth_median.map(|t| t / t_per_z * metres_per_unit).filter(|z| z.is_finite() && *z > 0.0).unwrap_or(0.0)
+    }
+
     /// Render the listed pixels (integer = pixel centre) of a camera.
-    pub fn render_pixels(&self, camera: &LocalCamera, pixels: &[(f32, f32)], color: bool) -> (Vec<[u8; 3]>, Vec<f32>, Vec<f32>) {
+    pub fn render_pixels(
+        &self,
+        camera: &LocalCamera,
+        pixels: &[(f32, f32)],
+        color: bool,
+    ) -> (Vec<[u8; 3]>, Vec<f32>, Vec<f32>) {
         let opts = render_options(self.model, color);
         let out = render_pixels(&self.model.field, &self.model.occupancy, &opts, camera, pixels);
-        let metres_per_unit = 1.0 / self.transform.scale as f32;
-        let mut rgb = Vec::with_capacity(if color { out.len() } else { 0 });
-        let mut depth = Vec::with_capacity(out.len());
-        let mut opacity = Vec::with_capacity(out.len());
-        for (o, &(u, v)) in out.iter().zip(pixels) {
-            if color {
-                rgb.push(o.rgb.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8));
-            }
-            let t_per_z = camera.ray(u, v).1;
-            depth.push(o.depth_median.map(|t| t / t_per_z * metres_per_unit).filter(|z| z.is_finite() && *z > 0.0).unwrap_or(0.0));
-            opacity.push(o.opacity);
-        }
+        let rgb = if color { out.iter().map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
+        let depth = out.iter().zip(pixels).map(|(o, &(u, v))| self.depth_m(camera, o, u, v)).collect();
+        let opacity = out.iter().map(|o| o.opacity).collect();
         (rgb, depth, opacity)
     }
 
     /// Render every pixel of a view.
-    pub fn render_view(&self, camera_to_world: &DMat4, k: &Intrinsics, width: u32, height: u32, color: bool) -> ViewRender {
+    pub fn render_view(
+        &self,
+        camera_to_world: &DMat4,
+        k: &Intrinsics,
+        width: u32,
+        height: u32,
+        color: bool,
+    ) -> ViewRender {
         let camera = self.local_camera(camera_to_world, k, width, height);
-        let pixels: Vec<(f32, f32)> =
-            (0..height).flat_map(|v| (0..width).map(move |u| (u as f32, v as f32))).collect();
-        let (rgb, depth_m, opacity) = self.render_pixels(&camera, &pixels, color);
-        ViewRender { width, height, rgb: rgb.into_iter().flatten().collect(), depth_m, opacity }
+        let opts = render_options(self.model, color);
+        let out = render_image(&self.model.field, &self.model.occupancy, &opts, &camera);
+        let w = width.max(1) as usize;
+        let rgb = if color { out.iter().flat_map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
+        let depth_m =
+            out.iter().enumerate().map(|(i, o)| self.depth_m(&camera, o, (i % w) as f32, (i / w) as f32)).collect();
+        let opacity = out.iter().map(|o| o.opacity).collect();
+        ViewRender { width, height, rgb, depth_m, opacity }
     }
 }

@@ -7,6 +7,7 @@
 use nerflabel::evaluate::score_holdout;
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
 use nerflabel::nerf::config::Preset;
+use nerflabel::nerf::dataset::is_holdout;
 use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
 use nerflabel::scan::{load, LoadOptions};
 use std::path::PathBuf;
@@ -84,5 +85,29 @@ fn main() -> anyhow::Result<()> {
         100.0 * c.rays_without_depth as f64 / c.rays.max(1) as f64,
         c.samples_without_depth as f64 / c.rays_without_depth.max(1) as f64
     );
+    if let Some(floor) = sensor_noise_floor(&scan, &dir, options.holdout_every)? {
+        println!("sensor depth vs exact depth on the same held-out frames (the floor of the depth MAE above): {:.1} mm", floor * 1e3);
+    }
     Ok(())
+}
+
+/// Mean absolute difference between the held-out frames' sensor depth and the
+/// fixture's exact depth where both exist: a perfect model still shows this
+/// error when scored against the sensor.
+fn sensor_noise_floor(scan: &nerflabel::scan::Scan, dir: &std::path::Path, every: usize) -> anyhow::Result<Option<f64>> {
+    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("gt/meta.json"))?)?;
+    let Some(unit) = meta["gt_depth_unit_m"].as_f64() else { return Ok(None) };
+    let (mut sum, mut n) = (0.0, 0usize);
+    for (_, frame) in scan.frames.iter().enumerate().filter(|(i, _)| is_holdout(*i, every)) {
+        let Some(sensor) = &frame.depth else { continue };
+        let exact = image::open(dir.join("gt/depth").join(format!("{}.png", frame.name)))?.into_luma16();
+        for (x, y, t) in exact.enumerate_pixels() {
+            let (t, s) = (t.0[0] as f64 * unit, sensor.get(x, y) as f64);
+            if t > 0.0 && s > 0.0 {
+                sum += (s - t).abs();
+                n += 1;
+            }
+        }
+    }
+    Ok((n > 0).then(|| sum / n as f64))
 }

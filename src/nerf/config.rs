@@ -37,7 +37,7 @@ impl Preset {
         match self {
             Preset::Fast => 12.0,
             Preset::Default => 3.0,
-            Preset::Quality => 4.0,
+            Preset::Quality => 2.0,
         }
     }
 
@@ -108,5 +108,25 @@ pub fn settings_for_scene(
         train,
         occupancy_resolution: DEFAULT_RESOLUTION,
         render_step: step,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_order_from_coarse_and_cheap_to_fine_and_costly() {
+        // Tabletop-like (6 m cube, 2 mm pixels) and room-like (20 m, 8 mm) scenes.
+        for (metres, footprint) in [(6.0, 0.002), (20.0, 0.008)] {
+            let [fast, default, quality] = [Preset::Fast, Preset::Default, Preset::Quality]
+                .map(|p| settings_for_scene(metres, footprint, p, 0, None));
+            let finest = |s: &NerfSettings| s.field.grid.finest_resolution;
+            assert!(finest(&fast) < finest(&default) && finest(&default) < finest(&quality), "{metres} m");
+            assert!(fast.train.samples_per_step <= default.train.samples_per_step);
+            assert!(default.train.samples_per_step <= quality.train.samples_per_step);
+            // The step follows the finest cell.
+            assert!(quality.train.step.min_step < default.train.step.min_step);
+        }
     }
 }

@@ -158,11 +158,14 @@ impl OccupancyGrid {
             // A stray flying pixel cannot carve an object: need a clear majority.
             seen_free[i] = surface == 0 && free >= 2 || free > 3 * surface + 2;
         }
-        // Erode by one cell: a free cell next to space that is not seen free
-        // may still hold part of an object the sensor missed (glass, holes),
-        // which carving would make unlearnable.
+        // Erode by one cell next to unexplained space: a free cell beside
+        // space that is neither seen free nor near a measured surface may
+        // still hold part of an object the sensor missed (glass), which
+        // carving would make unlearnable. Beside measured surfaces carving
+        // stays tight, else silhouettes grow a fringe of haze.
+        let explained = |n: usize| seen_free[n] || surface_votes[n] > 0;
         for i in 0..cells {
-            if seen_free[i] && all_neighbours(i, res, |n| seen_free[n]) {
+            if seen_free[i] && all_neighbours(i, res, explained) {
                 self.density[i] = 0.0;
                 self.carved[i >> 6] |= 1 << (i & 63);
             }
@@ -408,6 +411,27 @@ mod tests {
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
         assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
         assert!(grid.occupied_fraction() > 0.5 && grid.occupied_fraction() < 1.0);
+    }
+
+    #[test]
+    fn free_space_beside_a_measured_surface_is_carved_tight() {
+        let mut grid = OccupancyGrid::full(32);
+        // A wall inside cell 16 seen along +z: cells 15..=17 hold the surface
+        // neighbourhood, cells up to 14 were crossed well before it.
+        let mut rays = Vec::new();
+        for i in 8..24 {
+            for j in 8..24 {
+                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                for _ in 0..3 {
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.53 });
+                }
+            }
+        }
+        grid.seed_from_depth(&rays);
+        let at = |z_cell: f32| [0.5, 0.5, (z_cell + 0.5) / 32.0];
+        // No haze layer in front of a measured surface (it would fringe silhouettes).
+        assert!(!grid.is_occupied(at(14.0)), "the free cell touching the surface neighbourhood is carved");
+        assert!(grid.is_occupied(at(15.0)) && grid.is_occupied(at(16.0)), "the surface neighbourhood stays");
     }
 
     #[test]

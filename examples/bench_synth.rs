@@ -30,7 +30,7 @@ use nerflabel::boxes::BoxClassifier;
 use nerflabel::nerf::fit::render_options;
 use nerflabel::nerf::render::render_image;
 use nerflabel::nerf::view::ViewRenderer;
-use nerflabel::synth::render::instance_mask;
+use nerflabel::synth::render::{clean_instances, instance_mask};
 use nerflabel::synth::{png, read_poses, synthesize, Instances, SynthOptions, SynthProgress, SynthSummary, ViewSpec};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::collections::BTreeMap;
@@ -269,7 +269,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     // Where the time of one view goes, on the first sampled poses (one thread each stage).
-    let renderer = ViewRenderer::new(&model)?;
+    let t = Instant::now();
+    let renderer = ViewRenderer::pruned(&model)?;
+    let t_prune = t.elapsed().as_secs_f64();
     let classifier = BoxClassifier::new(&boxes);
     let instances =
         Instances { classify: &|p| classifier.classify(p), labels: boxes.boxes.iter().map(|b| b.label.clone()).collect() };
@@ -280,7 +282,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height, true);
         t_render += t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, spec.width, instances.classify);
+        let mut mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, spec.width, instances.classify);
+        clean_instances(&mut mask, spec.width, spec.height);
         t_mask += t.elapsed().as_secs_f64();
         let t = Instant::now();
         png::encode_rgb(&view.rgb, spec.width, spec.height)?;
@@ -289,7 +292,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t_png += t.elapsed().as_secs_f64();
         rays += view.depth_m.len();
         let camera = renderer.local_camera(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height);
-        let out = render_image(&model.field, &model.occupancy, &render_options(&model, true), &camera);
+        let out = render_image(&model.field, renderer.grid(), &render_options(&model, true), &camera);
         samples += out.iter().map(|o| u64::from(o.samples)).sum::<u64>();
         opaque += view.opacity.iter().filter(|&&a| a > 0.5).count();
     }
@@ -297,6 +300,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     println!("| per view: render (all threads) | {:.0} ms ({:.2} M rays/s, {:.0} % opaque) |", t_render * per * 1e3, rays as f64 / t_render / 1e6, 100.0 * opaque as f64 / rays.max(1) as f64);
     println!("| mean samples per ray | {:.1} |", samples as f64 / rays.max(1) as f64);
+    println!("| set-up: pruned grid (all threads) | {t_prune:.1} s |");
     println!("| per view: mask (1 thread) | {:.1} ms |", t_mask * per * 1e3);
     println!("| per view: 3 PNGs (1 thread) | {:.1} ms |", t_png * per * 1e3);
     println!("| held-out views via --poses | {} ({:.1} s) |", held.views, held.seconds);
@@ -304,6 +308,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("| SSIM | {:.3} |", s / n);
     println!("| depth MAE | {:.1} mm |", mae / f64::from(mae_n.max(1)) * 1e3);
     println!("| mask mIoU (held-out) | {:.3} |", mean_iou(&held_iou));
+    for (id, &(i, p, g)) in &held_iou {
+        let label = boxes.boxes.get(usize::from(*id).saturating_sub(1)).map_or("?", |b| b.label.as_str());
+        println!("| mask IoU (held-out) of {id} ({label}) | {:.3} |", i as f64 / (p + g - i).max(1) as f64);
+    }
     println!("| mask mIoU (first {} sampled views) | {:.3} |", sampled.len(), mean_iou(&sampled_iou));
     Ok(())
 }

@@ -16,6 +16,7 @@ pub mod field;
 pub mod metrics;
 pub mod model_file;
 pub mod render;
+pub mod render_grid;
 pub mod train;
 pub mod config;
 pub mod dataset;

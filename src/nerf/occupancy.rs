@@ -35,7 +35,7 @@ pub struct OccupancyGrid {
 const REFRESH_PARTS: usize = 8;
 /// Rendering skips cells whose estimated optical depth across one cell is
 /// below this (at most 1 % of the light lost per skipped cell).
-const RENDER_MIN_CELL_OPTICAL_DEPTH: f32 = 0.01;
+pub(crate) const RENDER_MIN_CELL_OPTICAL_DEPTH: f32 = 0.01;
 /// Never let fewer than this fraction of cells stay occupied.
 const MIN_OCCUPIED_FRACTION: f64 = 1e-3;
 

@@ -1,10 +1,15 @@
 //! Render whole views of a trained model in the scan's metric world frame:
 //! colour (optional), metric z-depth and opacity per pixel.
+//!
+//! For many views of one model, [`ViewRenderer::pruned`] first re-estimates
+//! from the field which cells hold density ([`super::render_grid`]).
 
 use super::camera::LocalCamera;
 use super::fit::{model_transform, render_options};
 use super::model_file::Model;
+use super::occupancy::OccupancyGrid;
 use super::render::{render_image, render_pixels, RayOutput};
+use super::render_grid::lattice_pruned;
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
 use glam::DMat4;
@@ -26,6 +31,8 @@ pub struct ViewRender {
 pub struct ViewRenderer<'a> {
     pub model: &'a Model,
     pub transform: SceneTransform,
+    /// The grid rays are marched through, when not the model's own.
+    pruned: Option<OccupancyGrid>,
 }
 
 /// An 8-bit channel of a colour in [0, 1].
@@ -37,7 +44,20 @@ fn to_u8(c: f32) -> u8 {
 impl<'a> ViewRenderer<'a> {
     /// Renderer for `model` (fails if its stored transform is invalid).
     pub fn new(model: &'a Model) -> Result<Self, GeometryError> {
-        Ok(ViewRenderer { model, transform: model_transform(model)? })
+        Ok(ViewRenderer { model, transform: model_transform(model)?, pruned: None })
+    }
+
+    /// Renderer for `model` through [`lattice_pruned`]'s grid (worth it for
+    /// many views: the set-up costs about as much as rendering five 320x240
+    /// views with the model's own grid).
+    pub fn pruned(model: &'a Model) -> Result<Self, GeometryError> {
+        let transform = model_transform(model)?;
+        Ok(ViewRenderer { model, transform, pruned: Some(lattice_pruned(&model.field, &model.occupancy)) })
+    }
+
+    /// The occupancy grid rays are marched through.
+    pub fn grid(&self) -> &OccupancyGrid {
+        self.pruned.as_ref().unwrap_or(&self.model.occupancy)
     }
 
     /// The camera in the model's local frame.
@@ -61,7 +81,7 @@ impl<'a> ViewRenderer<'a> {
         color: bool,
     ) -> (Vec<[u8; 3]>, Vec<f32>, Vec<f32>) {
         let opts = render_options(self.model, color);
-        let out = render_pixels(&self.model.field, &self.model.occupancy, &opts, camera, pixels);
+        let out = render_pixels(&self.model.field, self.grid(), &opts, camera, pixels);
         let rgb = if color { out.iter().map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
         let depth = out.iter().zip(pixels).map(|(o, &(u, v))| self.depth_m(camera, o, u, v)).collect();
         let opacity = out.iter().map(|o| o.opacity).collect();
@@ -79,7 +99,7 @@ impl<'a> ViewRenderer<'a> {
     ) -> ViewRender {
         let camera = self.local_camera(camera_to_world, k, width, height);
         let opts = render_options(self.model, color);
-        let out = render_image(&self.model.field, &self.model.occupancy, &opts, &camera);
+        let out = render_image(&self.model.field, self.grid(), &opts, &camera);
         let w = width.max(1) as usize;
         let rgb = if color { out.iter().flat_map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
         let depth_m =

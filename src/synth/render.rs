@@ -1,9 +1,12 @@
 //! One synthetic view: colour and depth rendered with the model, the
-//! instance mask from back-projecting each pixel's depth into the 3D boxes,
-//! tight 2D boxes per visible instance, and the three PNG blobs.
+//! instance mask from back-projecting each pixel's depth into the 3D boxes
+//! (cleaned of small holes and specks as `label` does), tight 2D boxes per
+//! visible instance, and the three PNG blobs.
 
 use super::error::SynthError;
 use super::png::{encode_depth_mm, encode_mask, encode_rgb};
+use crate::boxes::cleanup::clean_mask;
+use crate::boxes::LabelOptions;
 use super::poses_file::ViewSpec;
 use crate::nerf::view::ViewRenderer;
 use crate::scan::Intrinsics;
@@ -87,6 +90,18 @@ pub fn instance_mask(
         .collect()
 }
 
+/// Fill small holes in and drop small specks of each instance, with the
+/// fraction `label` uses by default; returns the pixels changed.
+pub fn clean_instances(mask: &mut [u32], width: u32, height: u32) -> usize {
+    // Ids fit in 16 bits: parsing caps the box count at 65535.
+    let mut ids: Vec<u16> = mask.iter().map(|&id| id.min(65_535) as u16).collect();
+    let changed = clean_mask(&mut ids, width, height, LabelOptions::default().cleanup_fraction);
+    for (m, &id) in mask.iter_mut().zip(&ids) {
+        *m = u32::from(id);
+    }
+    changed
+}
+
 /// Tight pixel boxes of every id in `1..=max_id` present in `mask`.
 pub fn tight_boxes(mask: &[u32], width: u32, instances: &Instances) -> Vec<Box2d> {
     let w = width.max(1) as usize;
@@ -126,7 +141,8 @@ pub fn render_view(
 ) -> Result<SynthView, SynthError> {
     let (w, h) = (spec.width, spec.height);
     let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, w, h, true);
-    let mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, w, instances.classify);
+    let mut mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, w, instances.classify);
+    clean_instances(&mut mask, w, h);
     let png = |what| move |source| SynthError::Png { view: index, what, source };
     Ok(SynthView {
         spec: *spec,
@@ -157,6 +173,24 @@ mod tests {
         let mask = instance_mask(&depth, &c2w, &k, 3, &classify);
         // Pixel (u, v) at depth 2 maps to world (2, -(u - 1) / 2, -(v - 1) / 2): inside the box.
         assert_eq!(mask, vec![1, 1, 1, 0, 1, 0, 1, 1, 0]);
+    }
+
+    #[test]
+    fn cleaning_fills_an_enclosed_hole_and_drops_a_detached_speck() {
+        let (w, h) = (40u32, 30u32);
+        let mut mask = vec![0u32; (w * h) as usize];
+        for y in 5..25 {
+            for x in 5..25 {
+                mask[y * w as usize + x] = 2;
+            }
+        }
+        mask[15 * w as usize + 15] = 0; // a one-pixel hole inside instance 2
+        mask[2 * w as usize + 35] = 2; // a one-pixel speck far from it
+        let changed = clean_instances(&mut mask, w, h);
+        assert_eq!(changed, 2);
+        assert_eq!(mask[15 * w as usize + 15], 2);
+        assert_eq!(mask[2 * w as usize + 35], 0);
+        assert_eq!(mask.iter().filter(|&&m| m == 2).count(), 400);
     }
 
     #[test]

@@ -173,7 +173,8 @@ pub fn synthesize_objects(
     stop: &AtomicBool,
 ) -> Result<SynthSummary, SynthError> {
     let start = Instant::now();
-    let renderer = ViewRenderer::new(model)?;
+    // Many views of one model: skip the cells the model left empty.
+    let renderer = ViewRenderer::pruned(model)?;
     let first = scan.frames.first().ok_or(SynthError::NoFrames)?;
     let (total, group) = match &options.poses {
         Some(p) => (p.len(), group_views(p.iter().map(|v| pixels(v.width, v.height)).max().unwrap_or(1))),
@@ -215,7 +216,11 @@ pub fn synthesize_objects(
         (None, None) => return Err(SynthError::Options("internal: sampling without a cloud".into())),
     };
     let clearance_m = sampling.as_ref().map(|s| s.clearance);
-    progress(SynthProgress::Prepared { views: total, clearance_m, cloud_points: sampling.as_ref().map_or(0, |s| s.points) });
+    progress(SynthProgress::Prepared {
+        views: total,
+        clearance_m,
+        cloud_points: sampling.as_ref().map_or(0, |s| s.points),
+    });
 
     let metadata = [
         ("nerflabel_version", env!("CARGO_PKG_VERSION").to_string()),

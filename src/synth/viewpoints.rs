@@ -74,8 +74,9 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
     let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
     let pixels: Vec<(f32, f32)> = (0..ph).flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32))).collect();
     let model = renderer.model;
+    let out = render_pixels(&model.field, renderer.grid(), &render_options(model, false), &camera, &pixels);
+    // Observed space is what the sensor saw free: the model's own grid.
     let grid = &model.occupancy;
-    let out = render_pixels(&model.field, grid, &render_options(model, false), &camera, &pixels);
     // Without any carved cell (a scan without depth) opacity is all there is to go by.
     let carved = grid.carved_words().iter().any(|&w| w != 0);
     let margin = OBSERVED_MARGIN_CELLS / grid.resolution() as f32;

@@ -222,6 +222,11 @@ fn too_high_learning_rate_is_caught_and_trains(lr: &str) {
     assert_eq!(skipped, printed, "stdout and report agree");
     assert_eq!(report["counters"]["steps"], 150, "skipped batches still count as steps");
     assert!((1..=30).contains(&skipped), "the guard must fire, then let training go on: {skipped} skipped");
+    assert_eq!(
+        report["lr_scale"].as_f64(),
+        Some(0.5f64.powi(skipped as i32)),
+        "the step size halves at every skipped batch, for good"
+    );
     // The normal learning rate (0.01) gives 22.05 dB and 16.7 mm after these
     // 150 steps; the collapsed field the unguarded run gave scores 17.3 dB
     // (1000x, no surface rendered) and 16.5 dB / 433 mm (100x).
@@ -256,6 +261,7 @@ fn absurd_learning_rate_is_caught_by_the_guard_and_counted_in_the_report() {
     eprintln!("lr 1e8: {skipped} of 30 batches skipped");
     assert_eq!(skipped, printed, "stdout and report agree");
     assert!(skipped >= 5, "the guard must skip the non-finite batches: {skipped}");
+    assert_eq!(report["lr_scale"].as_f64(), Some(1e-4), "backed off to the floor");
     assert_eq!(report["counters"]["steps"], 30, "skipped batches still count as steps");
 }
 

@@ -376,8 +376,9 @@ fn twenty_thousand_steps_on_a_noisy_scene_stay_finite_bounded_and_occupied() {
     generate(dir.path(), &o).unwrap();
     let scan = load(dir.path(), &LoadOptions::default()).unwrap();
     // With the L2 prior on touched entries the hash grid settles: measured
-    // over 5000 steps RMS 0.287 and max 3.17 half-way, 0.281 and 3.12 at the
-    // end (without it: 0.65 / 7.4 -> 1.32 / 12.4, and 18.5 / 99.6 at 20 000).
-    // Caps: about 3x the measured values; settled: within 25 % of half-way.
-    long_run(&scan, steps, 500, (1.0, 10.0), Some(1.25));
+    // over 20 000 steps RMS 0.471 and max 7.64 half-way (the end of the full
+    // learning rate), 0.465 and 7.55 at the end, peak 7.67; over 5000 steps
+    // 0.287 / 3.17 -> 0.281 / 3.12 (without the prior: 18.5 / 99.6 at 20 000).
+    // Caps: 2x the measured values; settled: within 25 % of half-way.
+    long_run(&scan, steps, 500, (1.0, 15.0), Some(1.25));
 }

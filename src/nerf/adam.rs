@@ -59,15 +59,41 @@ impl Adam {
         }
     }
 
+    /// RMS over all parameters of the step the next [`Adam::step_dense`]
+    /// would take at learning rate 1, without changing any state.
+    pub fn dense_step_rms(&self, params: &[f32], grads: &[f32], weight_decay: f32) -> f32 {
+        let t = (self.steps + 1).min(1_000_000) as i32;
+        let (c1, c2) = (1.0 - self.beta1.powi(t), 1.0 - self.beta2.powi(t));
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let mut sum = 0.0f64;
+        for i in 0..params.len() {
+            let g = clamp_gradient(grads[i] + weight_decay * params[i]);
+            let m = b1 * self.m[i] + (1.0 - b1) * g;
+            let v = b2 * self.v[i] + (1.0 - b2) * g * g;
+            let step = (m / c1) / ((v / c2).sqrt() + eps);
+            sum += step as f64 * step as f64;
+        }
+        (sum / params.len().max(1) as f64).sqrt() as f32
+    }
+
     /// Update only the listed parameters (ascending, unique indices).
     pub fn step_sparse<I>(&mut self, params: &mut [f32], grads: &[f32], touched: I, lr: f32)
+    where
+        I: IntoIterator<Item = usize>,
+    {
+        self.step_sparse_decayed(params, grads, touched, lr, 0.0);
+    }
+
+    /// [`Adam::step_sparse`] with an L2 pull to zero on the listed parameters
+    /// only: an entry decays when it is touched, never while unused.
+    pub fn step_sparse_decayed<I>(&mut self, params: &mut [f32], grads: &[f32], touched: I, lr: f32, weight_decay: f32)
     where
         I: IntoIterator<Item = usize>,
     {
         let (c1, c2) = self.corrections();
         let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
         for i in touched {
-            let g = clamp_gradient(grads[i]);
+            let g = clamp_gradient(grads[i] + weight_decay * params[i]);
             let m = b1 * self.m[i] + (1.0 - b1) * g;
             let v = b2 * self.v[i] + (1.0 - b2) * g * g;
             self.m[i] = m;
@@ -108,6 +134,47 @@ mod tests {
                 assert!((x[0] - 3.0).abs() < 0.05 && (x[1] + 2.0).abs() < 0.05, "{x:?}");
             }
         }
+    }
+
+    #[test]
+    fn dense_step_rms_is_the_step_taken_and_changes_nothing() {
+        let mut rng = crate::rng::Rng::new(3, 0);
+        let mut x: Vec<f32> = (0..50).map(|_| rng.normal() as f32).collect();
+        let mut adam = Adam::new(x.len());
+        for step in 0..5 {
+            let g: Vec<f32> = (0..x.len()).map(|i| ((i + step) as f32).sin()).collect();
+            let before = x.clone();
+            let predicted = adam.dense_step_rms(&x, &g, 1e-3);
+            assert_eq!(adam.steps(), step as u64, "the dry run applies nothing");
+            adam.step_dense(&mut x, &g, 0.5, 1e-3);
+            let taken: f32 = before.iter().zip(&x).map(|(a, b)| (a - b) * (a - b)).sum::<f32>() / x.len() as f32;
+            let taken = taken.sqrt() / 0.5;
+            assert!((taken - predicted).abs() < 1e-4 * predicted, "step {step}: predicted {predicted}, taken {taken}");
+        }
+    }
+
+    #[test]
+    fn tiny_same_sign_gradients_drift_without_the_prior_and_settle_with_it() {
+        // The long-run hash-grid drift: a gradient of 1e-10 that never changes
+        // sign moves an entry by the learning rate at every step (eps 1e-15).
+        let (lr, steps) = (1e-2f32, 20_000);
+        let mut free = vec![0.0f32];
+        let mut held = vec![0.0f32];
+        let (mut a, mut b) = (Adam::new(1), Adam::new(1));
+        for _ in 0..steps {
+            a.step_sparse(&mut free, &[1e-10], [0usize], lr);
+            b.step_sparse_decayed(&mut held, &[1e-10], [0usize], lr, 1e-8);
+        }
+        assert!(free[0] < -0.9 * lr * steps as f32, "no prior: {}", free[0]);
+        // With the prior the entry settles near -gradient / decay = -0.01.
+        assert!((held[0] + 0.01).abs() < 0.005, "with the prior: {}", held[0]);
+        // A real gradient still moves it: 1e-6 against the same prior reaches -10 within 2000 steps.
+        let mut x = vec![0.0f32];
+        let mut c = Adam::new(1);
+        for _ in 0..2000 {
+            c.step_sparse_decayed(&mut x, &[1e-6], [0usize], lr, 1e-8);
+        }
+        assert!(x[0] < -10.0, "{}", x[0]);
     }
 
     #[test]

@@ -112,12 +112,20 @@ pub struct FitReport {
     pub train: super::train::TrainConfig,
     pub timings: Timings,
     pub counters: TrainCounters,
+    /// Step-size scale the divergence guard left: 1 when it never backed
+    /// off, halved for every skipped batch (`counters.skipped_batches`).
+    #[serde(default = "one")]
+    pub lr_scale: f32,
     pub interrupted: bool,
     /// Steps at which this fit was resumed from its checkpoint.
     #[serde(default)]
     pub resumed_from: Vec<u64>,
     pub occupied_fraction: f64,
     pub curve: Vec<CurvePoint>,
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 /// What the caller hears during a fit.
@@ -407,6 +415,7 @@ fn run(
         train: settings.train,
         timings: state.timings,
         counters: trainer.counters,
+        lr_scale: trainer.optimiser().1,
         interrupted: state.interrupted,
         resumed_from: state.resumed_from,
         occupied_fraction: occupancy.occupied_fraction(),

@@ -393,7 +393,7 @@ fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
 /// measured mean object IoU 0.0004 after 300 steps, 0.30 after 600, 0.44
 /// after 1000 (box 0.67, ball 0.07, can 0.58), hence ignored in the suite.
 #[test]
-#[ignore = "1000 training steps; run with --release"]
+#[ignore = "1000 training steps (~25 s with --release)"]
 fn scan_without_any_depth_still_labels() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
@@ -415,8 +415,10 @@ fn scan_without_any_depth_still_labels() {
     let s = scores_against_truth(&scan, &masks, 160);
     eprintln!("no depth: per object {:?}, mean {:.3}, frame mIoU {:.3}", s.per_object(), s.mean_object_iou(), s.mean_frame_iou());
     // A broken model (no surface, or floaters in front of everything) scores near 0.
-    assert!(s.mean_object_iou() > 0.3, "no-depth labels IoU {}", s.mean_object_iou());
-    assert!(s.per_object().values().filter(|&&v| v > 0.4).count() >= 2, "{:?}", s.per_object());
+    // Measured 0.49 (box 0.66, ball 0.18, can 0.64); coarse, capped rays
+    // without depth (right for the few holes of a scan with depth) gave 0.19.
+    assert!(s.mean_object_iou() > 0.4, "no-depth labels IoU {}", s.mean_object_iou());
+    assert!(s.per_object().values().filter(|&&v| v > 0.5).count() >= 2, "{:?}", s.per_object());
 }
 
 /// A real model file, fitted for a few steps.

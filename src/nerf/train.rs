@@ -25,6 +25,11 @@ const SPARSE_STEP_FACTOR: f32 = 8.0;
 /// Step of rays without measured depth, in minimum steps: they carry only
 /// colour, and at the base step they would cost most of a batch's samples.
 const COLOUR_ONLY_STEP_FACTOR: f32 = 4.0;
+/// Depth coverage of the training pixels below which rays without depth are
+/// the scan's main signal: they then march at the base step with the full
+/// sample cap (coarse, capped rays would stop short of the scene when
+/// nothing is carved).
+const COLOUR_ONLY_COARSE_MIN_COVERAGE: f32 = 0.5;
 /// Samples of whole rays processed together by the field.
 const SUB_BATCH: usize = 4096;
 /// Largest step of an MLP, as RMS over its parameters relative to their RMS
@@ -166,6 +171,8 @@ pub struct Trainer {
     mlp_scale: [f32; 2],
     occupancy_positions: Vec<[f32; 3]>,
     occupancy_sigmas: Vec<f32>,
+    /// Fraction of training pixels with measured depth, found at the first step.
+    depth_coverage: Option<f32>,
 }
 
 impl Trainer {
@@ -206,6 +213,7 @@ impl Trainer {
             mlp_scale,
             occupancy_positions: Vec::new(),
             occupancy_sigmas: Vec::new(),
+            depth_coverage: None,
         }
     }
 
@@ -230,12 +238,21 @@ impl Trainer {
         self.maybe_refresh_occupancy(step_index);
         let threads = self.chunks.len();
         let budget = (self.config.samples_per_step / threads).max(64);
+        let coverage = *self.depth_coverage.get_or_insert_with(|| depth_coverage(views));
+        let rule: StepRule = self.config.step.into();
+        let (colour_only, colour_only_cap) = if coverage >= COLOUR_ONLY_COARSE_MIN_COVERAGE {
+            (coarser(&rule, COLOUR_ONLY_STEP_FACTOR), self.config.max_samples_per_ray / 16)
+        } else {
+            (rule, self.config.max_samples_per_ray)
+        };
         let ctx = StepContext {
             field: &self.field,
             occupancy: &self.occupancy,
             views,
             config: &self.config,
-            rule: self.config.step.into(),
+            rule,
+            colour_only,
+            colour_only_cap,
             background: self.background,
         };
         let seed = self.config.seed;
@@ -392,7 +409,20 @@ struct StepContext<'a> {
     views: &'a [View],
     config: &'a TrainConfig,
     rule: StepRule,
+    /// Marching of rays without measured depth, and their sample cap.
+    colour_only: StepRule,
+    colour_only_cap: usize,
     background: [f32; 3],
+}
+
+/// Fraction of the pixels of `views` with measured depth.
+fn depth_coverage(views: &[View]) -> f32 {
+    let (mut with, mut all) = (0usize, 0usize);
+    for v in views {
+        all += v.rgb.len() / 3;
+        with += v.depth.as_ref().map_or(0, |d| d.iter().filter(|&&z| z > 0.0 && z.is_finite()).count());
+    }
+    with as f32 / all.max(1) as f32
 }
 
 fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) -> ChunkStats {
@@ -429,8 +459,6 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     // In front of the surface window only sparse samples: enough to push
     // free space empty and to find occluders the sensor missed.
     let sparse = coarser(&ctx.rule, SPARSE_STEP_FACTOR);
-    // Rays without depth only see colour: coarser, and capped.
-    let colour_only = coarser(&ctx.rule, COLOUR_ONLY_STEP_FACTOR);
     let mut attempts = 0usize;
     // Bounded attempts: views that see nothing must not hang the step.
     while chunk.segments.len() < budget && attempts < 4 * budget {
@@ -461,7 +489,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 w1
             }
             // Without depth: stop where the grid says the ray is surely absorbed.
-            _ => march_until(&ray, t0, t1, ctx.occupancy, &colour_only, jitter, max / 16, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
+            _ => march_until(&ray, t0, t1, ctx.occupancy, &ctx.colour_only, jitter, ctx.colour_only_cap, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
                 .min(t1),
         };
         let count = chunk.segments.len() - first;

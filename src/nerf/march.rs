@@ -332,10 +332,8 @@ mod tests {
         }
     }
 
-    #[test]
-    fn marching_gives_bit_identical_samples_to_the_grids_cell_queries() {
-        // Carve a seeded grid with random depth rays, then march random rays through it.
-        let mut rng = crate::rng::Rng::new(17, 0);
+    /// A 32^3 grid carved by 20 000 random depth rays cast along +z from z = 0.
+    fn randomly_carved_grid(rng: &mut crate::rng::Rng) -> OccupancyGrid {
         let mut grid = OccupancyGrid::full(32);
         let depth_rays: Vec<DepthRay> = (0..20_000)
             .map(|_| {
@@ -346,19 +344,32 @@ mod tests {
             })
             .collect();
         grid.seed_from_depth(&depth_rays);
+        grid
+    }
+
+    /// Ray number `i` from a random origin around the unit cube; every 7th
+    /// has a zero direction component (skipped in the exit test).
+    fn random_ray(rng: &mut crate::rng::Rng, i: usize) -> LocalRay {
+        let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32];
+        let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
+        if i % 7 == 0 {
+            d[i % 3] = 0.0;
+        }
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        LocalRay { origin, dir: d.map(|v| v / n) }
+    }
+
+    #[test]
+    fn marching_gives_bit_identical_samples_to_the_grids_cell_queries() {
+        // Carve a seeded grid with random depth rays, then march random rays through it.
+        let mut rng = crate::rng::Rng::new(17, 0);
+        let grid = randomly_carved_grid(&mut rng);
         assert!(grid.occupied_fraction() < 0.9, "{}", grid.occupied_fraction());
         let rule = StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 1.0 / 128.0 };
         let full = OccupancyGrid::full(32);
         let mut skipped_some = 0;
         for i in 0..500 {
-            let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32];
-            // Axis-aligned directions now and then (a zero component is skipped in the exit test).
-            let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
-            if i % 7 == 0 {
-                d[i % 3] = 0.0;
-            }
-            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            let ray = LocalRay { origin, dir: d.map(|v| v / n) };
+            let ray = random_ray(&mut rng, i);
             let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
             let (mut fast, mut slow) = (Vec::new(), Vec::new());
             march(&ray, t0, t1, &grid, &rule, 0.0, usize::MAX, &mut fast);
@@ -396,16 +407,7 @@ mod tests {
     fn skipping_runs_of_empty_cells_takes_the_same_samples_on_full_grids_and_misses_no_occupied_cell() {
         let mut rng = crate::rng::Rng::new(23, 0);
         let full = OccupancyGrid::full(32);
-        let mut carved = OccupancyGrid::full(32);
-        let depth_rays: Vec<DepthRay> = (0..20_000)
-            .map(|_| {
-                let origin = [rng.f32(), rng.f32(), 0.0];
-                let d = [rng.f32() - 0.5, rng.f32() - 0.5, 1.0];
-                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                DepthRay { origin, dir: d.map(|v| v / n), t_hit: 0.3 + 0.5 * rng.f32() }
-            })
-            .collect();
-        carved.seed_from_depth(&depth_rays);
+        let carved = randomly_carved_grid(&mut rng);
         let (mut fast_total, mut slow_total, mut differing) = (0, 0, 0);
         for (k, rule) in [
             StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 0.0 },
@@ -415,13 +417,7 @@ mod tests {
         .enumerate()
         {
             for i in 0..400 {
-                let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32];
-                let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
-                if i % 7 == 0 {
-                    d[i % 3] = 0.0;
-                }
-                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                let ray = LocalRay { origin, dir: d.map(|v| v / n) };
+                let ray = random_ray(&mut rng, i);
                 let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
                 let (mut a, mut b) = (Vec::new(), Vec::new());
                 march_skipping(&ray, t0, t1, &full, rule, usize::MAX, &mut a);

@@ -392,20 +392,26 @@ pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
 mod tests {
     use super::*;
 
+    /// Three depth rays along +z through the centre of each cell column
+    /// (x, y) in 8..24 of a 32^3 grid whose x passes `seen`, hitting at `t_hit`.
+    fn wall_rays(t_hit: f32, seen: impl Fn(usize) -> bool) -> Vec<DepthRay> {
+        let mut rays = Vec::new();
+        for i in (8..24).filter(|&i| seen(i)) {
+            for j in 8..24 {
+                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
+                for _ in 0..3 {
+                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit });
+                }
+            }
+        }
+        rays
+    }
+
     #[test]
     fn carving_empties_seen_free_space_and_keeps_surfaces_and_unseen_cells() {
         let mut grid = OccupancyGrid::full(32);
         // Rays along +z through cell centres of the middle, hitting a wall at z = 0.5.
-        let mut rays = Vec::new();
-        for i in 8..24 {
-            for j in 8..24 {
-                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
-                for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
-                }
-            }
-        }
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&wall_rays(0.5, |_| true));
         assert!(!grid.is_occupied([0.5, 0.5, 0.2]), "free space before the wall is carved");
         assert!(grid.is_occupied([0.5, 0.5, 0.5]), "surface stays");
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
@@ -418,16 +424,7 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // A wall inside cell 16 seen along +z: cells 15..=17 hold the surface
         // neighbourhood, cells up to 14 were crossed well before it.
-        let mut rays = Vec::new();
-        for i in 8..24 {
-            for j in 8..24 {
-                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
-                for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.53 });
-                }
-            }
-        }
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&wall_rays(0.53, |_| true));
         let at = |z_cell: f32| [0.5, 0.5, (z_cell + 0.5) / 32.0];
         // No haze layer in front of a measured surface (it would fringe silhouettes).
         assert!(!grid.is_occupied(at(14.0)), "the free cell touching the surface neighbourhood is carved");
@@ -439,16 +436,7 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // A wall at z = 0.5 seen along +z, except a column x in cells 14..18
         // where the sensor returned nothing (a glass object stands there).
-        let mut rays = Vec::new();
-        for i in (8..24).filter(|i| !(14..18).contains(i)) {
-            for j in 8..24 {
-                let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
-                for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 });
-                }
-            }
-        }
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&wall_rays(0.5, |i| !(14..18).contains(&i)));
         let at = |cell_x: f32| [(cell_x + 0.5) / 32.0, 16.5 / 32.0, 0.2];
         assert!(!grid.is_occupied(at(10.0)), "free space well away from the column is carved");
         assert!(grid.is_occupied(at(15.0)), "the column itself was never seen free");

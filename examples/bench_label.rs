@@ -8,6 +8,7 @@
 //! `--model PATH` (load if present, else fit and save there),
 //! `--cabinet [SCAN]` (real scan; default ../shared/data/scans/cabinet),
 //! `--fused-cells C` (fused agreement tolerance in finest grid cells),
+//! `--box-cells C` (surface points this many cells in front of a box the ray enters count for it),
 //! `--clean` (generate the fixture without sensor corruptions),
 //! `--cleanup F` (mask clean-up fraction, 0 = off),
 //! `--opacity A` (accumulated opacity that marks the rendered surface),
@@ -37,6 +38,7 @@ struct Args {
     model: Option<PathBuf>,
     cabinet: Option<PathBuf>,
     fused_cells: f64,
+    box_cells: f64,
     clean: bool,
     dump: Option<PathBuf>,
     depth_errors: bool,
@@ -60,6 +62,7 @@ fn parse_args() -> Result<Args, Error> {
         model: None,
         cabinet: None,
         fused_cells: LabelOptions::default().fused_tolerance_cells,
+        box_cells: LabelOptions::default().box_tolerance_cells,
         clean: false,
         dump: None,
         depth_errors: false,
@@ -80,6 +83,7 @@ fn parse_args() -> Result<Args, Error> {
             "--depth-errors" => args.depth_errors = true,
             "--dump" => args.dump = Some(value("--dump")?.into()),
             "--fused-cells" => args.fused_cells = value("--fused-cells")?.parse()?,
+            "--box-cells" => args.box_cells = value("--box-cells")?.parse()?,
             "--size" => {
                 let v = value("--size")?;
                 let (w, h) = v.split_once('x').ok_or("--size WxH")?;
@@ -256,7 +260,7 @@ fn main() -> Result<(), Error> {
         depth_errors(&args.dir, &boxes, &model, &frames, &truth, args.opacity)?;
     }
     for source in DepthSource::ALL {
-        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, ..LabelOptions::default() };
+        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, box_tolerance_cells: args.box_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, ..LabelOptions::default() };
         let labeler = Labeler::new(&boxes, Some(&model), opts)?;
         if source == DepthSource::Fused {
             eprintln!("fused tolerance {:.1} mm", labeler.fused_tolerance_m() * 1000.0);

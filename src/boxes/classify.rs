@@ -101,6 +101,21 @@ impl BoxClassifier {
         self.boxes.iter().find(|b| b.contains(p)).map_or(0, |b| b.instance_id)
     }
 
+    /// Instance id for the surface point at `t` along the unit ray: the
+    /// smallest box holding it, else the smallest box the ray enters within
+    /// `tolerance` behind it (a surface resolved only to about that much,
+    /// met just in front of a box, belongs to what is in the box); 0 = none.
+    pub fn classify_on_ray(&self, origin: DVec3, dir: DVec3, t: f64, tolerance: f64) -> u32 {
+        let id = self.classify(origin + dir * t);
+        if id != 0 || !(tolerance > 0.0) {
+            return id;
+        }
+        self.boxes
+            .iter()
+            .find(|b| b.ray(origin, dir).is_some_and(|(t0, t1)| t0 > t && t0 <= t + tolerance && t1 >= t0))
+            .map_or(0, |b| b.instance_id)
+    }
+
     /// Hull [t0, t1] (t0 >= 0) of the intervals of `origin + t * dir` through
     /// all boxes; `None` when the ray meets no box in front of the origin.
     pub fn ray_interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
@@ -201,6 +216,44 @@ mod tests {
         }
         assert!(hits > 5_000, "test points must hit boxes often: {hits}");
         assert!(inside_several > 500, "overlaps must be exercised: {inside_several}");
+    }
+
+    #[test]
+    fn surface_points_just_in_front_of_a_box_go_to_the_box_the_ray_enters() {
+        let mut rng = Rng::new(17, 0);
+        let (mut inside, mut in_front, mut outside) = (0, 0, 0);
+        for _ in 0..20 {
+            let set = random_set(&mut rng, 6);
+            let c = BoxClassifier::new(&set);
+            for _ in 0..300 {
+                let origin = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
+                let dir = (DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)) - origin).normalize();
+                let (t, tolerance) = (rng.range(0.0, 5.0), rng.range(0.0, 0.5));
+                // Reference by sampling: the point's own box, else the smallest
+                // box holding a sample within the tolerance behind it.
+                let step = 1e-4;
+                let entries: Vec<f64> = set.boxes.iter().filter_map(|b| c.boxes.iter().find(|p| p.instance_id == b.instance_id)?.ray(origin, dir)).map(|(t0, _)| t0).collect();
+                if entries.iter().any(|&t0| (t0 - t).abs() < 2.0 * step || (t0 - t - tolerance).abs() < 2.0 * step) {
+                    continue;
+                }
+                let own = brute_force(&set, origin + dir * t);
+                let want = if own != 0 {
+                    inside += 1;
+                    own
+                } else {
+                    let ahead: Vec<&Box3> = set
+                        .boxes
+                        .iter()
+                        .filter(|b| (1..=(tolerance / step) as usize).any(|k| b.contains(origin + dir * (t + k as f64 * step))))
+                        .collect();
+                    let best = ahead.iter().min_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)));
+                    best.map_or_else(|| { outside += 1; 0 }, |b| { in_front += 1; b.instance_id })
+                };
+                assert_eq!(c.classify_on_ray(origin, dir, t, tolerance), want, "t {t} tolerance {tolerance}");
+                assert_eq!(c.classify_on_ray(origin, dir, t, 0.0), own);
+            }
+        }
+        assert!(inside > 100 && in_front > 100 && outside > 100, "{inside} inside, {in_front} in front, {outside} outside");
     }
 
     #[test]

@@ -78,22 +78,27 @@ pub struct Labeler<'a> {
     render: Option<RenderOptions>,
     /// Fused source: largest sensor/rendered disagreement that keeps the sensor depth, metres.
     fused_tolerance_m: f64,
+    /// A surface point this far (metres) in front of a box the ray then
+    /// enters belongs to that box (0 for the sensor source).
+    box_tolerance_m: f64,
 }
 
 impl<'a> Labeler<'a> {
     /// Prepare labelling; `model` is required by the nerf and fused sources.
     pub fn new(boxes: &'a BoxSet, model: Option<&'a Model>, options: LabelOptions) -> Result<Self, LabelError> {
-        let (renderer, render, fused_tolerance_m) = match (options.source.needs_model(), model) {
+        let (renderer, render, cell_m) = match (options.source.needs_model(), model) {
             (true, None) => return Err(LabelError::MissingModel(options.source)),
             (false, _) => (None, None, 0.0),
             (true, Some(m)) => {
                 let r = ViewRenderer::new(m)?;
                 let cell_local = 1.0 / m.header.field.grid.finest_resolution.max(1) as f64;
-                let tol = options.fused_tolerance_cells * r.transform.local_to_world_distance(cell_local);
-                (Some(r), Some(render_options(m, false)), tol)
+                let cell_m = r.transform.local_to_world_distance(cell_local);
+                (Some(r), Some(render_options(m, false)), cell_m)
             }
         };
-        Ok(Labeler { boxes, classifier: BoxClassifier::new(boxes), options, renderer, render, fused_tolerance_m })
+        let fused_tolerance_m = options.fused_tolerance_cells * cell_m;
+        let box_tolerance_m = options.box_tolerance_cells * cell_m;
+        Ok(Labeler { boxes, classifier: BoxClassifier::new(boxes), options, renderer, render, fused_tolerance_m, box_tolerance_m })
     }
 
     /// The options in use.
@@ -177,9 +182,10 @@ impl<'a> Labeler<'a> {
                 d[index] = z as f32;
             }
             if z > 0.0 && j.box_far.is_some() {
-                let p = origin + rot * (k.unproject(j.x as f64, j.y as f64) * z);
+                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let len = ray.length();
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
-                mask[index] = self.classifier.classify(p) as u16;
+                mask[index] = self.classifier.classify_on_ray(origin, ray / len, z * len, self.box_tolerance_m) as u16;
             }
         }
         if self.options.cleanup_fraction > 0.0 {

@@ -180,6 +180,13 @@ pub struct FitArgs {
     /// Adam learning rate (default 0.01).
     #[arg(long)]
     pub learning_rate: Option<f32>,
+    /// The scan has objects its depth sensor cannot see (glass, some black
+    /// plastics): read wide regions without depth, enclosed by measured
+    /// depth, as such objects and keep the model from looking through them.
+    /// Off by default: on scans whose depth drops out on ordinary surfaces
+    /// it can grow haze in front of them.
+    #[arg(long)]
+    pub unseen_objects: bool,
     /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
     ///
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.

@@ -70,4 +70,8 @@ pub struct View {
     pub rgb: Vec<u8>,
     /// Z-depth in local units per pixel, 0 = no measurement.
     pub depth: Option<Vec<f32>>,
+    /// Pixels where the sensor returned nothing, away from any measured
+    /// pixel (not a speck or an edge dropout): something the sensor cannot
+    /// see may be there. `None` when the view's missing depth says nothing.
+    pub no_return: Option<Vec<bool>>,
 }

@@ -50,6 +50,8 @@ pub struct FitSettings {
     pub holdout_every: usize,
     pub lambda_depth: Option<f32>,
     pub learning_rate: Option<f32>,
+    #[serde(default)]
+    pub unseen_objects: bool,
 }
 
 /// What a checkpoint must match to be resumed: scan, settings and budget.
@@ -87,6 +89,7 @@ impl FitIdentity {
                 holdout_every: opts.holdout_every,
                 lambda_depth: opts.lambda_depth,
                 learning_rate: opts.learning_rate,
+                unseen_objects: opts.unseen_objects,
             },
             settings_fingerprint: h.finish(),
             time: opts.time,
@@ -480,6 +483,10 @@ impl Checkpoint {
                 opt(b.learning_rate)
             ));
         }
+        if a.unseen_objects != b.unseen_objects {
+            let flag = |on: bool| if on { "with --unseen-objects" } else { "without --unseen-objects" };
+            diffs.push(format!("{} (this run: {})", flag(a.unseen_objects), flag(b.unseen_objects)));
+        }
         if !diffs.is_empty() {
             return Err(CheckpointError::OtherSettings {
                 path: self.path.clone(),
@@ -548,6 +555,7 @@ mod tests {
                 holdout_every: 0,
                 lambda_depth: Some(0.3),
                 learning_rate: None,
+                unseen_objects: false,
             },
             settings_fingerprint: 11,
             time: None,
@@ -624,6 +632,10 @@ mod tests {
             m.contains("--seed 9 (this run: 1)") && m.contains("--learning-rate default (this run: 10)"),
             "{m}"
         );
+        let mut other = identity();
+        other.settings.unseen_objects = true;
+        let m = msg(other);
+        assert!(m.contains("without --unseen-objects (this run: with --unseen-objects)"), "{m}");
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

@@ -69,6 +69,10 @@ pub struct NerfSettings {
     pub render_step: StepSpec,
 }
 
+/// Weight of the no-return term when `fit --unseen-objects` asks for it
+/// (the line-of-sight weight: no return counts as much as free space seen).
+pub const NO_RETURN_WEIGHT: f32 = 0.1;
+
 /// Most finest-level cells across the unit cube.
 const FINEST_CELLS: f64 = 2048.0;
 
@@ -98,6 +102,7 @@ pub fn settings_for_scene(
         lambda_depth: lambda_depth.unwrap_or(0.1),
         lambda_line_of_sight: 0.1,
         surface_window: 1.5 / finest,
+        lambda_no_return: 0.0,
         step,
         occupancy_every: 16,
         occupancy_decay: 0.95,

@@ -4,7 +4,7 @@
 use super::camera::{LocalCamera, View};
 use super::occupancy::DepthRay;
 use crate::poses::SceneTransform;
-use crate::scan::Scan;
+use crate::scan::{dilate_mask, Frame, Scan};
 use rayon::prelude::*;
 
 /// Views of a scan split into training and held-out sets.
@@ -38,11 +38,13 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
         .frames
         .par_iter()
         .map(|frame| {
-            let depth = frame.depth.as_ref().map(|d| {
+            let depth: Option<Vec<f32>> = frame.depth.as_ref().map(|d| {
                 let scale = transform.scale as f32;
                 d.metres.iter().map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 }).collect()
             });
-            View { camera: local_camera(frame, transform), rgb: frame.rgb.as_raw().clone(), depth }
+            let (w, h) = frame.size();
+            let no_return = depth.as_deref().and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
+            View { camera: local_camera(frame, transform), rgb: frame.rgb.as_raw().clone(), depth, no_return }
         })
         .collect();
     let mut data = Dataset { train: Vec::new(), holdout: Vec::new(), train_frames: Vec::new(), holdout_frames: Vec::new(), background: [0.5; 3] };
@@ -59,6 +61,53 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
     }
     data.background = mean_colour(&data.train);
     data
+}
+
+/// A view's depth is evidence of absence only when most of it was measured
+/// (a sensor that failed on the whole frame says nothing about any pixel).
+const NO_RETURN_MIN_COVERAGE: f64 = 0.2;
+
+/// Colour pixels per pixel of the frame's depth image (as stored).
+fn depth_pixel_ratio(frame: &Frame) -> f64 {
+    let (w, _) = frame.size();
+    frame.depth_size.map_or(1.0, |(dw, _)| w as f64 / dw.max(1) as f64)
+}
+
+/// Pixels without depth that are more than two depth pixels (`ratio`
+/// colour pixels each) from any measured one, in a region without depth
+/// that does not reach the image border (see [`View::no_return`]). Regions
+/// open to the border are the depth camera's field of view or range
+/// running out, not an object it cannot see.
+pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<bool>> {
+    let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0 && z.is_finite()).collect();
+    let measured = valid.iter().filter(|&&v| v).count();
+    if (measured as f64) < NO_RETURN_MIN_COVERAGE * valid.len() as f64 {
+        return None;
+    }
+    let radius = (2.0 * ratio).round().max(2.0) as usize;
+    let near_measured = dilate_mask(&valid, w, h, radius);
+    let open = reaches_border(&valid, w as usize, h as usize);
+    Some(near_measured.iter().zip(&open).map(|(&near, &open)| !near && !open).collect())
+}
+
+/// Pixels connected to the image border through pixels without depth (4-neighbours).
+fn reaches_border(valid: &[bool], w: usize, h: usize) -> Vec<bool> {
+    let mut open = vec![false; w * h];
+    let mut stack: Vec<usize> = (0..w * h).filter(|&i| (i % w == 0 || i % w == w - 1 || i / w == 0 || i / w == h - 1) && !valid[i]).collect();
+    for &i in &stack {
+        open[i] = true;
+    }
+    while let Some(i) = stack.pop() {
+        let (x, y) = (i % w, i / w);
+        let neighbours = [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (y > 0).then(|| i - w), (y + 1 < h).then(|| i + w)];
+        for n in neighbours.into_iter().flatten() {
+            if !valid[n] && !open[n] {
+                open[n] = true;
+                stack.push(n);
+            }
+        }
+    }
+    open
 }
 
 fn mean_colour(views: &[View]) -> [f32; 3] {
@@ -100,4 +149,40 @@ pub fn depth_rays(views: &[View], stride: usize) -> Vec<DepthRay> {
             })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn no_return_marks_only_wide_regions_without_depth() {
+        let (w, h) = (64u32, 48u32);
+        let mut depth = vec![1.5f32; (w * h) as usize];
+        let mut clear = |x0: u32, x1: u32, y0: u32, y1: u32| {
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    depth[(y * w + x) as usize] = 0.0;
+                }
+            }
+        };
+        clear(10, 30, 10, 30); // an object the sensor cannot see
+        clear(45, 47, 5, 7); // a speck
+        clear(50, 51, 2, 46); // a one-pixel dropout line
+        clear(0, 8, 30, 48); // the depth camera's field of view ending
+        let mask = no_return_mask(&depth, w, h, 1.0).expect("mostly measured");
+        let at = |x: u32, y: u32| mask[(y * w + x) as usize];
+        // Two pixels from the measured ones at native resolution.
+        assert!(at(12, 12) && at(20, 20) && at(27, 27));
+        assert!(!at(11, 20) && !at(28, 20) && !at(5, 5));
+        assert!(!at(45, 5) && !at(46, 6) && !at(50, 20));
+        assert!(!at(3, 40) && !at(5, 45), "regions open to the border are not evidence");
+        assert_eq!(mask.iter().filter(|&&m| m).count(), 16 * 16);
+        // Depth 2.5x coarser than the colour: five colour pixels.
+        let coarse = no_return_mask(&depth, w, h, 2.5).unwrap();
+        assert_eq!(coarse.iter().filter(|&&m| m).count(), 10 * 10);
+        // A frame the sensor mostly failed on says nothing.
+        let failed: Vec<f32> = (0..w * h).map(|i| if i % 10 == 0 { 1.0 } else { 0.0 }).collect();
+        assert!(no_return_mask(&failed, w, h, 1.0).is_none());
+    }
 }

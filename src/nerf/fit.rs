@@ -5,10 +5,11 @@
 //! continues from one). Reports progress through a callback; never prints.
 
 use super::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
-use super::config::{settings_for_scene, NerfSettings, Preset};
+use super::config::{settings_for_scene, NerfSettings, Preset, NO_RETURN_WEIGHT};
 use super::dataset::{self, Dataset};
 use super::evaluate::{evaluate, EvalResult};
 use super::field::Field;
+use super::measured::MeasuredSurfaces;
 use super::model_file::{Model, ModelHeader};
 use super::occupancy::OccupancyGrid;
 use super::render::RenderOptions;
@@ -35,6 +36,9 @@ pub struct FitOptions {
     pub lambda_depth: Option<f32>,
     /// Adam learning rate instead of the settings' (1e-2).
     pub learning_rate: Option<f32>,
+    /// Read wide regions without depth, enclosed by measured depth, as
+    /// objects the sensor cannot see (the no-return term, `train.rs`).
+    pub unseen_objects: bool,
     /// Training seconds between held-out evaluations (and checkpoints).
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
@@ -53,6 +57,7 @@ impl Default for FitOptions {
             holdout_every: 10,
             lambda_depth: None,
             learning_rate: None,
+            unseen_objects: false,
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,
@@ -233,6 +238,9 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     if let Some(lr) = opts.learning_rate {
         settings.train.learning_rate = lr;
     }
+    if opts.unseen_objects {
+        settings.train.lambda_no_return = NO_RETURN_WEIGHT;
+    }
     let t = Instant::now();
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     if seed_occupancy {
@@ -245,7 +253,12 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
 
     let mut rng = Rng::new(opts.seed, 0);
     let field = Field::new(settings.field.clone(), &mut rng);
-    let trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    let measured = if opts.unseen_objects { dataset::depth_rays(&data.train, 2) } else { Vec::new() };
+    if !measured.is_empty() {
+        let res = settings.field.grid.finest_resolution as usize / 2;
+        trainer.set_measured_surfaces(MeasuredSurfaces::from_depth_rays(&measured, res));
+    }
     Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
 }
 

@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod composite;
 pub mod hash_grid;
 pub mod march;
+pub mod measured;
 pub mod mlp;
 pub mod occupancy;
 pub mod sh;

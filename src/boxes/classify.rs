@@ -107,7 +107,7 @@ impl BoxClassifier {
     /// met just in front of a box, belongs to what is in the box); 0 = none.
     pub fn classify_on_ray(&self, origin: DVec3, dir: DVec3, t: f64, tolerance: f64) -> u32 {
         let id = self.classify(origin + dir * t);
-        if id != 0 || !(tolerance > 0.0) {
+        if id != 0 || tolerance.is_nan() || tolerance <= 0.0 {
             return id;
         }
         self.boxes

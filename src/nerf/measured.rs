@@ -5,7 +5,7 @@
 //! that would end on a surface the sensor measured from elsewhere most
 //! likely ends earlier, on something the sensor cannot see (glass).
 
-use super::occupancy::DepthRay;
+use super::occupancy::{cell_index, DepthRay};
 
 /// Cells per axis at most (512^3 bits = 16 MiB).
 pub const MAX_RESOLUTION: usize = 512;
@@ -51,17 +51,7 @@ impl MeasuredSurfaces {
 
     #[inline]
     fn cell_of(&self, p: [f32; 3]) -> Option<usize> {
-        let r = self.res as f32;
-        let mut idx = [0usize; 3];
-        for a in 0..3 {
-            let c = p[a] * r;
-            // Written so NaN fails the test.
-            if !(c >= 0.0 && c < r) {
-                return None;
-            }
-            idx[a] = c as usize;
-        }
-        Some((idx[2] * self.res + idx[1]) * self.res + idx[0])
+        cell_index(p, self.res)
     }
 
     /// Grow the marked cells by one along each axis in turn (3x3x3 overall).

@@ -18,6 +18,23 @@ pub struct DepthRay {
     pub t_hit: f32,
 }
 
+/// Index (x fastest) of the cell holding `p` in a grid of `res`^3 cells
+/// over the unit cube, `None` outside it or for NaN.
+#[inline]
+pub(crate) fn cell_index(p: [f32; 3], res: usize) -> Option<usize> {
+    let r = res as f32;
+    let mut idx = [0usize; 3];
+    for a in 0..3 {
+        let c = p[a] * r;
+        // Written so NaN fails the test.
+        if !(c >= 0.0 && c < r) {
+            return None;
+        }
+        idx[a] = c as usize;
+    }
+    Some((idx[2] * res + idx[1]) * res + idx[0])
+}
+
 /// Bit grid of possibly occupied cells plus the density estimate behind it.
 #[derive(Clone, Debug)]
 pub struct OccupancyGrid {
@@ -73,17 +90,7 @@ impl OccupancyGrid {
     /// Index of the cell holding `p`, `None` outside the unit cube or NaN.
     #[inline]
     pub fn cell_of(&self, p: [f32; 3]) -> Option<usize> {
-        let r = self.res as f32;
-        let mut idx = [0usize; 3];
-        for a in 0..3 {
-            let c = p[a] * r;
-            // Written so NaN fails the test.
-            if !(c >= 0.0 && c < r) {
-                return None;
-            }
-            idx[a] = c as usize;
-        }
-        Some((idx[2] * self.res + idx[1]) * self.res + idx[0])
+        cell_index(p, self.res)
     }
 
     /// Whether the cell with this index may hold density.

@@ -16,4 +16,5 @@ pub mod poses;
 pub mod scan;
 pub mod synth;
 pub mod atomic;
+pub mod mask;
 pub mod rng;

@@ -112,7 +112,7 @@ impl BoxClassifier {
         }
         self.boxes
             .iter()
-            .find(|b| b.ray(origin, dir).is_some_and(|(t0, t1)| t0 > t && t0 <= t + tolerance && t1 >= t0))
+            .find(|b| b.ray(origin, dir).is_some_and(|(t0, _)| t0 > t && t0 <= t + tolerance))
             .map_or(0, |b| b.instance_id)
     }
 

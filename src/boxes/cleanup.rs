@@ -3,57 +3,7 @@
 //! bounded by a size relative to the instance, so real openings and small
 //! objects survive.
 
-/// Connected components (4-neighbourhood) of equal values in a mask:
-/// component index per pixel and, per component, its value, size and
-/// whether it touches the image border.
-struct Components {
-    label: Vec<u32>,
-    value: Vec<u16>,
-    size: Vec<usize>,
-    border: Vec<bool>,
-}
-
-fn components(mask: &[u16], w: usize, h: usize) -> Components {
-    let mut c = Components { label: vec![u32::MAX; mask.len()], value: Vec::new(), size: Vec::new(), border: Vec::new() };
-    let mut stack = Vec::new();
-    for start in 0..mask.len() {
-        if c.label[start] != u32::MAX {
-            continue;
-        }
-        let id = c.value.len() as u32;
-        let v = mask[start];
-        let (mut size, mut border) = (0, false);
-        c.label[start] = id;
-        stack.push(start);
-        while let Some(i) = stack.pop() {
-            size += 1;
-            let (x, y) = (i % w, i / w);
-            border |= x == 0 || y == 0 || x + 1 == w || y + 1 == h;
-            let mut visit = |j: usize| {
-                if c.label[j] == u32::MAX && mask[j] == v {
-                    c.label[j] = id;
-                    stack.push(j);
-                }
-            };
-            if x > 0 {
-                visit(i - 1);
-            }
-            if x + 1 < w {
-                visit(i + 1);
-            }
-            if y > 0 {
-                visit(i - w);
-            }
-            if y + 1 < h {
-                visit(i + w);
-            }
-        }
-        c.value.push(v);
-        c.size.push(size);
-        c.border.push(border);
-    }
-    c
-}
+use crate::mask::components;
 
 /// Fill background holes enclosed by a single instance and smaller than
 /// `fraction` of that instance's pixels; remove instance parts smaller than

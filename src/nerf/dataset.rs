@@ -4,7 +4,8 @@
 use super::camera::{LocalCamera, View};
 use super::occupancy::DepthRay;
 use crate::poses::SceneTransform;
-use crate::scan::{dilate_mask, Frame, Scan};
+use crate::mask::{components, dilate_mask};
+use crate::scan::{Frame, Scan};
 use rayon::prelude::*;
 
 /// Views of a scan split into training and held-out sets.
@@ -38,13 +39,11 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
         .frames
         .par_iter()
         .map(|frame| {
-            let depth: Option<Vec<f32>> = frame.depth.as_ref().map(|d| {
+            let depth = frame.depth.as_ref().map(|d| {
                 let scale = transform.scale as f32;
                 d.metres.iter().map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 }).collect()
             });
-            let (w, h) = frame.size();
-            let no_return = depth.as_deref().and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
-            View { camera: local_camera(frame, transform), rgb: frame.rgb.as_raw().clone(), depth, no_return }
+            View { camera: local_camera(frame, transform), rgb: frame.rgb.as_raw().clone(), depth, no_return: None }
         })
         .collect();
     let mut data = Dataset { train: Vec::new(), holdout: Vec::new(), train_frames: Vec::new(), holdout_frames: Vec::new(), background: [0.5; 3] };
@@ -61,6 +60,16 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
     }
     data.background = mean_colour(&data.train);
     data
+}
+
+/// Mark the "no return" pixels of the training views (see
+/// [`View::no_return`]); only the no-return term of training reads them.
+pub fn mark_no_return(data: &mut Dataset, scan: &Scan) {
+    data.train.par_iter_mut().zip(&data.train_frames).for_each(|(view, &i)| {
+        let frame = &scan.frames[i];
+        let (w, h) = frame.size();
+        view.no_return = view.depth.as_deref().and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
+    });
 }
 
 /// A view's depth is evidence of absence only when most of it was measured
@@ -86,28 +95,10 @@ pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<b
     }
     let radius = (2.0 * ratio).round().max(2.0) as usize;
     let near_measured = dilate_mask(&valid, w, h, radius);
-    let open = reaches_border(&valid, w as usize, h as usize);
-    Some(near_measured.iter().zip(&open).map(|(&near, &open)| !near && !open).collect())
-}
-
-/// Pixels connected to the image border through pixels without depth (4-neighbours).
-fn reaches_border(valid: &[bool], w: usize, h: usize) -> Vec<bool> {
-    let mut open = vec![false; w * h];
-    let mut stack: Vec<usize> = (0..w * h).filter(|&i| (i % w == 0 || i % w == w - 1 || i / w == 0 || i / w == h - 1) && !valid[i]).collect();
-    for &i in &stack {
-        open[i] = true;
-    }
-    while let Some(i) = stack.pop() {
-        let (x, y) = (i % w, i / w);
-        let neighbours = [(x > 0).then(|| i - 1), (x + 1 < w).then(|| i + 1), (y > 0).then(|| i - w), (y + 1 < h).then(|| i + w)];
-        for n in neighbours.into_iter().flatten() {
-            if !valid[n] && !open[n] {
-                open[n] = true;
-                stack.push(n);
-            }
-        }
-    }
-    open
+    // Regions without depth (value 0) that touch the border are open.
+    let regions = components(&valid.iter().map(|&v| v as u16).collect::<Vec<_>>(), w as usize, h as usize);
+    let open = |i: usize| regions.border[regions.label[i] as usize];
+    Some(near_measured.iter().enumerate().map(|(i, &near)| !near && !open(i)).collect())
 }
 
 fn mean_colour(views: &[View]) -> [f32; 3] {

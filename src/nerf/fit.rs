@@ -227,7 +227,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     timings.bounds_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let data: Dataset = dataset::build(scan, &transform, opts.holdout_every);
+    let mut data: Dataset = dataset::build(scan, &transform, opts.holdout_every);
+    if opts.unseen_objects {
+        dataset::mark_no_return(&mut data, scan);
+    }
     if data.train.is_empty() {
         return Err(FitError::NoTrainingFrames);
     }

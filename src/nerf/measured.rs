@@ -32,11 +32,6 @@ impl MeasuredSurfaces {
         grid
     }
 
-    /// Cells per axis.
-    pub fn resolution(&self) -> usize {
-        self.res
-    }
-
     /// Whether `p` (local coordinates) lies in a measured cell (false outside the cube).
     #[inline]
     pub fn contains(&self, p: [f32; 3]) -> bool {

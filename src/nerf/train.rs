@@ -818,32 +818,30 @@ pub(crate) mod tests {
             .map(|i| ((i % 48) as f32, (i / 48) as f32))
             .collect();
         assert!(pixels.len() > 40, "{} patch pixels", pixels.len());
-        let mut errors = Vec::new();
-        for lambda in [0.1, 0.0] {
-            let (field_cfg, mut train_cfg) = small_config(5);
-            train_cfg.lambda_no_return = lambda;
-            let mut rng = Rng::new(5, 0);
-            let mut trainer = Trainer::new(Field::new(field_cfg, &mut rng), OccupancyGrid::full(64), train_cfg.clone(), [0.5; 3]);
-            trainer.set_measured_surfaces(measured_plane());
-            for s in 0..200 {
-                trainer.step(&views, s as f32 / 200.0);
-            }
-            let opts = RenderOptions { color: false, rule: train_cfg.step.into(), max_samples_per_ray: 4096, background: [0.5; 3] };
-            let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
-            let mut err: Vec<f32> = out
-                .iter()
-                .zip(&pixels)
-                .map(|(o, &(u, v))| {
-                    let (ray, _) = cam.ray(u, v);
-                    o.depth_median.map_or(1.0, |t| (t - (0.45 - ray.origin[2]) / ray.dir[2]).abs())
-                })
-                .collect();
-            err.sort_by(f32::total_cmp);
-            errors.push(err[err.len() / 2]);
+        // With the no-return term (0.1 in `small_config`); without it this
+        // scene also fits (measured 0.015), so the term itself is tested by
+        // `no_return_term_is_the_light_reaching_the_first_measured_surface`.
+        let (field_cfg, train_cfg) = small_config(5);
+        let mut rng = Rng::new(5, 0);
+        let mut trainer = Trainer::new(Field::new(field_cfg, &mut rng), OccupancyGrid::full(64), train_cfg.clone(), [0.5; 3]);
+        trainer.set_measured_surfaces(measured_plane());
+        for s in 0..200 {
+            trainer.step(&views, s as f32 / 200.0);
         }
-        eprintln!("median depth error on the unseen patch: {} with the no-return term, {} without", errors[0], errors[1]);
-        // The patch is 0.15 in front of the plane behind it.
-        assert!(errors[0] < 0.02, "median depth error {} (local units)", errors[0]);
+        let opts = RenderOptions { color: false, rule: train_cfg.step.into(), max_samples_per_ray: 4096, background: [0.5; 3] };
+        let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
+        let mut err: Vec<f32> = out
+            .iter()
+            .zip(&pixels)
+            .map(|(o, &(u, v))| {
+                let (ray, _) = cam.ray(u, v);
+                o.depth_median.map_or(1.0, |t| (t - (0.45 - ray.origin[2]) / ray.dir[2]).abs())
+            })
+            .collect();
+        err.sort_by(f32::total_cmp);
+        let median = err[err.len() / 2];
+        // The patch is 0.15 in front of the plane behind it; measured 0.0097.
+        assert!(median < 0.02, "median depth error {median} (local units)");
     }
 
     #[test]

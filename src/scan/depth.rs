@@ -88,29 +88,6 @@ pub fn resample_depth_to(depth: &DepthMap, width: u32, height: u32) -> DepthMap 
     }
 }
 
-/// `mask` (row-major, `width` x `height`) grown by `radius` pixels (Chebyshev), separably.
-pub fn dilate_mask(mask: &[bool], width: u32, height: u32, radius: usize) -> Vec<bool> {
-    let (w, h) = (width as usize, height as usize);
-    if radius == 0 || mask.len() != w * h {
-        return mask.to_vec();
-    }
-    let mut rows = vec![false; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (lo, hi) = (x.saturating_sub(radius), (x + radius).min(w - 1));
-            rows[y * w + x] = mask[y * w + lo..=y * w + hi].iter().any(|&m| m);
-        }
-    }
-    let mut out = vec![false; w * h];
-    for y in 0..h {
-        let (lo, hi) = (y.saturating_sub(radius), (y + radius).min(h - 1));
-        for x in 0..w {
-            out[y * w + x] = (lo..=hi).any(|yy| rows[yy * w + x]);
-        }
-    }
-    out
-}
-
 /// Source neighbours and weight of one target pixel along one axis.
 #[derive(Clone, Copy, Debug)]
 struct Tap {

@@ -33,8 +33,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     );
 
     let scan = load(&scan_dir, &LoadOptions::default()).with_context(|| format!("cannot read {}", scan_dir.display()))?;
-    // The demo scene has a glass the sensor cannot see (see `fit --unseen-objects`).
-    let fit_options = FitOptions { time: Some(args.time), unseen_objects: true, ..FitOptions::default() };
+    let fit_options = FitOptions { time: Some(args.time), ..FitOptions::default() };
     let stop = super::common::stop_flag();
     let bar = super::common::progress_bar(1000, "   fitting [{elapsed_precise}] [{bar:30}] {msg}");
     let outcome = fit(&scan, &fit_options, stop, &mut |event| {

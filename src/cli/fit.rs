@@ -35,7 +35,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         holdout_every: args.holdout,
         lambda_depth: args.lambda_depth,
         learning_rate: args.learning_rate,
-        unseen_objects: args.unseen_objects,
+        unseen_objects: !args.no_unseen_objects,
         checkpoint: Some(checkpoint.clone()),
         ..FitOptions::default()
     };

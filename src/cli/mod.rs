@@ -180,13 +180,14 @@ pub struct FitArgs {
     /// Adam learning rate (default 0.01).
     #[arg(long)]
     pub learning_rate: Option<f32>,
-    /// The scan has objects its depth sensor cannot see (glass, some black
-    /// plastics): read wide regions without depth, enclosed by measured
-    /// depth, as such objects and keep the model from looking through them.
-    /// Off by default: on scans whose depth drops out on ordinary surfaces
-    /// it can grow haze in front of them.
+    /// Do not read wide regions without depth as objects the sensor cannot
+    /// see. By default a region without depth that is enclosed by measured
+    /// depth, and is not a projector shadow beside a depth edge, is taken as
+    /// an object (glass, some black plastics) and the model is kept from
+    /// looking through it. Turn it off for a scan whose depth drops out on
+    /// ordinary surfaces in the middle of the frame.
     #[arg(long)]
-    pub unseen_objects: bool,
+    pub no_unseen_objects: bool,
     /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
     ///
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.

@@ -484,7 +484,7 @@ impl Checkpoint {
             ));
         }
         if a.unseen_objects != b.unseen_objects {
-            let flag = |on: bool| if on { "with --unseen-objects" } else { "without --unseen-objects" };
+            let flag = |on: bool| if on { "without --no-unseen-objects" } else { "with --no-unseen-objects" };
             diffs.push(format!("{} (this run: {})", flag(a.unseen_objects), flag(b.unseen_objects)));
         }
         if !diffs.is_empty() {
@@ -635,7 +635,7 @@ mod tests {
         let mut other = identity();
         other.settings.unseen_objects = true;
         let m = msg(other);
-        assert!(m.contains("without --unseen-objects (this run: with --unseen-objects)"), "{m}");
+        assert!(m.contains("with --no-unseen-objects (this run: without --no-unseen-objects)"), "{m}");
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

@@ -69,7 +69,7 @@ pub struct NerfSettings {
     pub render_step: StepSpec,
 }
 
-/// Weight of the no-return term when `fit --unseen-objects` asks for it
+/// Weight of the no-return term (on unless `fit --no-unseen-objects`)
 /// (the line-of-sight weight: no return counts as much as free space seen).
 pub const NO_RETURN_WEIGHT: f32 = 0.1;
 

@@ -84,9 +84,9 @@ fn depth_pixel_ratio(frame: &Frame) -> f64 {
 
 /// Pixels without depth that are more than two depth pixels (`ratio`
 /// colour pixels each) from any measured one, in a region without depth
-/// that does not reach the image border (see [`View::no_return`]). Regions
-/// open to the border are the depth camera's field of view or range
-/// running out, not an object it cannot see.
+/// that does not reach the image border and is not a projector shadow (see
+/// [`View::no_return`]). Regions open to the border are the depth camera's
+/// field of view or range running out, not an object it cannot see.
 pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<bool>> {
     let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0 && z.is_finite()).collect();
     let measured = valid.iter().filter(|&&v| v).count();
@@ -97,8 +97,52 @@ pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<b
     let near_measured = dilate_mask(&valid, w, h, radius);
     // Regions without depth (value 0) that touch the border are open.
     let regions = components(&valid.iter().map(|&v| v as u16).collect::<Vec<_>>(), w as usize, h as usize);
-    let open = |i: usize| regions.border[regions.label[i] as usize];
-    Some(near_measured.iter().enumerate().map(|(i, &near)| !near && !open(i)).collect())
+    let shadow = shadow_regions(depth, &valid, &regions.label, regions.value.len(), w as usize);
+    let evidence = |i: usize| {
+        let region = regions.label[i] as usize;
+        !regions.border[region] && !shadow[region]
+    };
+    Some(near_measured.iter().enumerate().map(|(i, &near)| !near && evidence(i)).collect())
+}
+
+/// Relative depth step across a region without depth above which its row
+/// runs from a near surface to a far one.
+const SHADOW_DEPTH_STEP: f32 = 0.1;
+
+/// Regions without depth that are the shadow of a structured-light
+/// projector: in most of their rows the measured depth just left and just
+/// right of the gap differs by more than [`SHADOW_DEPTH_STEP`] (the gap lies
+/// beside a depth edge, the projector's baseline being horizontal). Rays
+/// there see the far surface, which other views measured; an object the
+/// sensor cannot see sits in front of one surface instead. A shadow whose
+/// step is smaller is narrower than the two-pixel margin anyway.
+fn shadow_regions(depth: &[f32], valid: &[bool], label: &[u32], regions: usize, w: usize) -> Vec<bool> {
+    let (mut rows, mut steps) = (vec![0usize; regions], vec![0usize; regions]);
+    let mut left = vec![0.0f32; w];
+    for (row_depth, (row_valid, row_label)) in depth.chunks_exact(w).zip(valid.chunks_exact(w).zip(label.chunks_exact(w))) {
+        let mut last = 0.0;
+        for x in 0..w {
+            if row_valid[x] {
+                last = row_depth[x];
+            }
+            left[x] = last;
+        }
+        let mut right = 0.0;
+        for x in (0..w).rev() {
+            if row_valid[x] {
+                right = row_depth[x];
+                continue;
+            }
+            if left[x] > 0.0 && right > 0.0 {
+                let region = row_label[x] as usize;
+                rows[region] += 1;
+                if (left[x] - right).abs() > SHADOW_DEPTH_STEP * left[x].min(right) {
+                    steps[region] += 1;
+                }
+            }
+        }
+    }
+    rows.iter().zip(&steps).map(|(&n, &s)| 2 * s > n).collect()
 }
 
 fn mean_colour(views: &[View]) -> [f32; 3] {
@@ -175,5 +219,39 @@ mod tests {
         // A frame the sensor mostly failed on says nothing.
         let failed: Vec<f32> = (0..w * h).map(|i| if i % 10 == 0 { 1.0 } else { 0.0 }).collect();
         assert!(no_return_mask(&failed, w, h, 1.0).is_none());
+    }
+
+    #[test]
+    fn no_return_skips_projector_shadows_beside_depth_edges() {
+        // A near box (1 m) on a far wall (2 m), with the gap a
+        // structured-light projector leaves on its left, and an enclosed
+        // gap in the wall that an unseen object would leave.
+        let (w, h) = (80u32, 60u32);
+        let mut depth = vec![2.0f32; (w * h) as usize];
+        for y in 10..50 {
+            for x in 30..60 {
+                depth[(y * w + x) as usize] = 1.0;
+            }
+            for x in 22..30 {
+                depth[(y * w + x) as usize] = 0.0;
+            }
+        }
+        for y in 20..30 {
+            for x in 5..15 {
+                depth[(y * w + x) as usize] = 0.0;
+            }
+        }
+        let mask = no_return_mask(&depth, w, h, 1.0).unwrap();
+        let at = |x: u32, y: u32| mask[(y * w + x) as usize];
+        assert!((22..30).all(|x| !at(x, 30)), "the shadow is not evidence");
+        assert!(at(9, 24) && at(10, 25), "the enclosed gap in one surface is");
+        // The same gap between surfaces 5 % apart is not a shadow.
+        for y in 10..50 {
+            for x in 30..60 {
+                depth[(y * w + x) as usize] = 1.9;
+            }
+        }
+        let mask = no_return_mask(&depth, w, h, 1.0).unwrap();
+        assert!(mask[(30 * w + 25) as usize]);
     }
 }

@@ -57,7 +57,7 @@ impl Default for FitOptions {
             holdout_every: 10,
             lambda_depth: None,
             learning_rate: None,
-            unseen_objects: false,
+            unseen_objects: true,
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,

@@ -193,8 +193,8 @@ pub struct FitArgs {
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.
     /// --steps and --time count what was already trained; without them the original budget
     /// applies. So an interrupted fit finishes where it would have, and a finished one is
-    /// extended by a larger budget. The scan, --seed, --preset, --holdout, --lambda-depth and
-    /// --learning-rate must be the same. Delete the checkpoint to reclaim its disk space.
+    /// extended by a larger budget. The scan, --seed, --preset, --holdout, --lambda-depth,
+    /// --learning-rate and --no-unseen-objects must be the same. Delete the checkpoint to reclaim its disk space.
     #[arg(long)]
     pub resume: bool,
 }

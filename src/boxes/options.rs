@@ -116,11 +116,12 @@ pub struct LabelOptions {
     pub fused_tolerance_cells: f64,
     /// Accumulated opacity at which a rendered ray has reached its surface.
     pub surface_opacity: f32,
-    /// Rendered surfaces are placed to within about a grid cell (less
-    /// where the sensor measured them, more where only colour did): a
-    /// surface point outside every box but within this many finest cells in
-    /// front of a box the ray enters belongs to that box. Catches the top
-    /// of an object without sensor depth rendered a little above its box.
+    /// Rendered surfaces are placed to within about a grid cell where the
+    /// sensor measured them and about two where only colour did (the
+    /// finest level's trilinear footprint is two cells wide): a surface
+    /// point outside every box but within this many finest cells in front
+    /// of a box the ray enters belongs to that box. Catches the top of an
+    /// object without sensor depth rendered a little above its box.
     pub box_tolerance_cells: f64,
     /// Mask clean-up: fill enclosed holes and drop detached specks smaller
     /// than this fraction of their instance (0 = off).
@@ -134,7 +135,7 @@ impl Default for LabelOptions {
             full_depth: false,
             fused_tolerance_cells: 1.0,
             surface_opacity: 0.5,
-            box_tolerance_cells: 1.0,
+            box_tolerance_cells: 2.0,
             cleanup_fraction: 0.02,
         }
     }

@@ -69,8 +69,8 @@ pub struct NerfSettings {
     pub render_step: StepSpec,
 }
 
-/// Weight of the no-return term (on unless `fit --no-unseen-objects`)
-/// (the line-of-sight weight: no return counts as much as free space seen).
+/// Weight of the no-return term, on unless `fit --no-unseen-objects`: the
+/// line-of-sight weight, so no return counts as much as free space seen.
 pub const NO_RETURN_WEIGHT: f32 = 0.1;
 
 /// Most finest-level cells across the unit cube.

@@ -257,10 +257,12 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let mut rng = Rng::new(opts.seed, 0);
     let field = Field::new(settings.field.clone(), &mut rng);
     let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
-    let measured = if opts.unseen_objects { dataset::depth_rays(&data.train, 2) } else { Vec::new() };
-    if !measured.is_empty() {
-        let res = settings.field.grid.finest_resolution as usize / 2;
-        trainer.set_measured_surfaces(MeasuredSurfaces::from_depth_rays(&measured, res));
+    if opts.unseen_objects {
+        let measured = dataset::depth_rays(&data.train, 2);
+        if !measured.is_empty() {
+            let res = settings.field.grid.finest_resolution as usize / 2;
+            trainer.set_measured_surfaces(MeasuredSurfaces::from_depth_rays(&measured, res));
+        }
     }
     Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
 }

@@ -2,7 +2,7 @@
 //! coordinates, plus the depth rays that seed the occupancy grid.
 
 use super::camera::{LocalCamera, View};
-use super::occupancy::DepthRay;
+use super::occupancy::{CameraSpace, DepthRay};
 use crate::poses::SceneTransform;
 use crate::mask::{components, dilate_mask};
 use crate::scan::{Frame, Scan};
@@ -160,6 +160,24 @@ fn mean_colour(views: &[View]) -> [f32; 3] {
         return [0.5; 3];
     }
     sum.map(|s| (s / n as f64 / 255.0) as f32)
+}
+
+/// Fraction of a view's nearest measured depth within which it vouches
+/// that space is free (margin for flying pixels and depth noise).
+const CAMERA_FREE_FRACTION: f32 = 0.5;
+
+/// Each view's camera and the distance within which it measured nothing.
+pub fn camera_spaces(views: &[View]) -> Vec<CameraSpace> {
+    views
+        .iter()
+        .map(|view| {
+            let nearest = view.depth.as_deref().map_or(f32::INFINITY, |d| {
+                d.iter().copied().filter(|&z| z > 0.0 && z.is_finite()).fold(f32::INFINITY, f32::min)
+            });
+            let free_distance = if nearest.is_finite() { CAMERA_FREE_FRACTION * nearest } else { 0.0 };
+            CameraSpace { origin: view.camera.origin, free_distance }
+        })
+        .collect()
 }
 
 /// Depth rays of the training views (every `stride`-th pixel both ways).

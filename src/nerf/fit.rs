@@ -251,6 +251,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
         if !rays.is_empty() {
             occupancy.seed_from_depth(&rays);
         }
+        occupancy.carve_camera_space(&dataset::camera_spaces(&data.train), &rays);
     }
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();
 

@@ -18,6 +18,14 @@ pub struct DepthRay {
     pub t_hit: f32,
 }
 
+/// A training camera in local coordinates and the distance within which
+/// it measured nothing (0 without depth).
+#[derive(Clone, Copy, Debug)]
+pub struct CameraSpace {
+    pub origin: [f32; 3],
+    pub free_distance: f32,
+}
+
 /// Index (x fastest) of the cell holding `p` in a grid of `res`^3 cells
 /// over the unit cube, `None` outside it or for NaN.
 #[inline]
@@ -118,28 +126,13 @@ impl OccupancyGrid {
         let res = self.res;
         let cells = res * res * res;
         let mut free_votes = vec![0u16; cells];
-        let mut surface_votes = vec![0u16; cells];
+        let surface_votes = self.surface_votes(rays);
         let cell = 1.0 / res as f32;
         let step = 0.25 * cell;
         let margin = 2.0 * cell;
         for ray in rays {
             if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
                 continue;
-            }
-            let hit = along(ray.origin, ray.dir, ray.t_hit);
-            if let Some(c) = self.cell_of(hit) {
-                let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
-                for dz in -1i64..=1 {
-                    for dy in -1i64..=1 {
-                        for dx in -1i64..=1 {
-                            let (nx, ny, nz) = (x as i64 + dx, y as i64 + dy, z as i64 + dz);
-                            if [nx, ny, nz].iter().all(|&v| v >= 0 && v < res as i64) {
-                                let n = ((nz as usize) * res + ny as usize) * res + nx as usize;
-                                surface_votes[n] = surface_votes[n].saturating_add(1);
-                            }
-                        }
-                    }
-                }
             }
             let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
             let t_end = (ray.t_hit - margin).min(t1);
@@ -176,6 +169,65 @@ impl OccupancyGrid {
                 self.density[i] = 0.0;
                 self.carved[i >> 6] |= 1 << (i & 63);
             }
+        }
+        self.rebuild_bits();
+    }
+
+    /// Per cell, the depth rays that ended in it or in one of its 26 neighbours.
+    fn surface_votes(&self, rays: &[DepthRay]) -> Vec<u16> {
+        let res = self.res;
+        let mut votes = vec![0u16; res * res * res];
+        for ray in rays.iter().filter(|r| r.t_hit.is_finite() && r.t_hit > 0.0) {
+            let Some(c) = self.cell_of(along(ray.origin, ray.dir, ray.t_hit)) else { continue };
+            let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
+            let span = |v: usize| v.saturating_sub(1)..=(v + 1).min(res - 1);
+            for nz in span(z) {
+                for ny in span(y) {
+                    for nx in span(x) {
+                        let n = (nz * res + ny) * res + nx;
+                        votes[n] = votes[n].saturating_add(1);
+                    }
+                }
+            }
+        }
+        votes
+    }
+
+    /// Carve the space each training camera vouches for: the cell it stood
+    /// in, and the cells its depth rays cross nearer than its
+    /// `free_distance` (nothing it measured was that near). Cells next to a
+    /// measured surface are kept. Carving elsewhere keeps cells beside
+    /// unobserved space (see [`Self::seed_from_depth`]), and behind a camera
+    /// all space is unobserved; left occupied, the spot every ray of a view
+    /// passes through can grow a floater that blinds that view.
+    pub fn carve_camera_space(&mut self, cameras: &[CameraSpace], rays: &[DepthRay]) {
+        let surface_votes = self.surface_votes(rays);
+        let mut free = vec![false; self.density.len()];
+        let key = |o: [f32; 3]| o.map(f32::to_bits);
+        let mut free_distance = std::collections::HashMap::new();
+        for cam in cameras {
+            if let Some(c) = self.cell_of(cam.origin) {
+                free[c] = true;
+            }
+            if cam.free_distance.is_finite() && cam.free_distance > 0.0 {
+                free_distance.insert(key(cam.origin), cam.free_distance);
+            }
+        }
+        let step = 0.25 / self.res as f32;
+        for ray in rays {
+            let Some(&reach) = free_distance.get(&key(ray.origin)) else { continue };
+            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
+            let mut t = t0;
+            while t < reach.min(t1) {
+                if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
+                    free[c] = true;
+                }
+                t += step;
+            }
+        }
+        for (i, _) in free.iter().enumerate().filter(|&(i, &f)| f && surface_votes[i] == 0) {
+            self.density[i] = 0.0;
+            self.carved[i >> 6] |= 1 << (i & 63);
         }
         self.rebuild_bits();
     }
@@ -526,6 +578,38 @@ mod tests {
         // NaN densities are ignored rather than poisoning the grid.
         grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = f32::NAN));
         assert!(grid.densities().iter().all(|d| d.is_finite()));
+    }
+
+    #[test]
+    fn cameras_carve_where_they_stood_and_what_they_saw_nearer_than_anything() {
+        let mut grid = OccupancyGrid::full(16);
+        let eye = [0.53, 0.53, 0.1];
+        // A fan of rays from the camera to a wall 0.6 ahead.
+        let rays: Vec<DepthRay> = (0..49)
+            .flat_map(|k| {
+                let (a, b) = ((k % 7) as f32 * 0.03 - 0.09, (k / 7) as f32 * 0.03 - 0.09);
+                let n = (a * a + b * b + 1.0).sqrt();
+                (0..3).map(move |_| DepthRay { origin: eye, dir: [a / n, b / n, 1.0 / n], t_hit: 0.6 * n })
+            })
+            .collect();
+        grid.seed_from_depth(&rays);
+        // Behind the camera nothing was seen, so carving alone keeps its cell.
+        assert!(grid.is_occupied(eye));
+        // A camera without depth whose cell holds another view's surface.
+        let beside = [0.2, 0.2, 0.5];
+        let hits = [DepthRay { origin: [0.2, 0.2, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 }; 3];
+        let cameras = [CameraSpace { origin: eye, free_distance: 0.3 }, CameraSpace { origin: beside, free_distance: 0.0 }];
+        let all: Vec<DepthRay> = rays.iter().chain(&hits).copied().collect();
+        grid.carve_camera_space(&cameras, &all);
+        assert!(!grid.is_occupied(eye), "the camera's own cell");
+        assert!(!grid.is_occupied([0.53, 0.53, 0.35]), "nearer than the free distance");
+        assert!(grid.is_occupied([0.53, 0.53, 0.66]), "the wall");
+        assert!(grid.is_occupied(beside), "a measured surface is never carved");
+        // A camera without depth carves only its own cell.
+        let mut bare = OccupancyGrid::full(16);
+        bare.carve_camera_space(&[CameraSpace { origin: eye, free_distance: 0.0 }], &[]);
+        assert_eq!(bare.occupied, 16 * 16 * 16 - 1);
+        assert!(!bare.is_occupied(eye));
     }
 
     #[test]

@@ -252,6 +252,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
             occupancy.seed_from_depth(&rays);
         }
         occupancy.carve_camera_space(&dataset::camera_spaces(&data.train), &rays);
+        occupancy.carve_unseen(&data.train.iter().map(|v| v.camera).collect::<Vec<_>>());
     }
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();
 

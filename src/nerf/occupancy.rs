@@ -3,7 +3,9 @@
 //! depth (unobserved cells stay occupied), refreshed from the model during
 //! training with a decaying maximum of sampled density.
 
+use super::camera::LocalCamera;
 use crate::rng::Rng;
+use rayon::prelude::*;
 
 /// Default cells per axis.
 pub const DEFAULT_RESOLUTION: usize = 128;
@@ -232,6 +234,32 @@ impl OccupancyGrid {
         self.rebuild_bits();
     }
 
+    /// Carve every cell no training camera sees (no part of it projects
+    /// into any of their images): nothing supervises density there, so
+    /// whatever the field holds is noise, and a view from elsewhere (a
+    /// held-out frame, a synthesised pose) would render it as a floater.
+    pub fn carve_unseen(&mut self, cameras: &[LocalCamera]) {
+        if cameras.is_empty() {
+            return;
+        }
+        let res = self.res;
+        let cell = 1.0 / res as f32;
+        // Radius of the sphere around a cell.
+        let radius = 0.5 * 3f32.sqrt() * cell;
+        let seen: Vec<bool> = (0..res * res * res)
+            .into_par_iter()
+            .map(|i| {
+                let centre = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|c| c * cell);
+                cameras.iter().any(|cam| sphere_in_view(cam, centre, radius))
+            })
+            .collect();
+        for (i, _) in seen.iter().enumerate().filter(|&(_, &s)| !s) {
+            self.density[i] = 0.0;
+            self.carved[i >> 6] |= 1 << (i & 63);
+        }
+        self.rebuild_bits();
+    }
+
     /// Re-estimate density in one interleaved subset of the cells from the
     /// model (`density_at` fills sigma for a batch of local points), decaying
     /// the old estimate, and rebuild the bits.
@@ -418,6 +446,33 @@ fn near_cell_centre(p: [f32; 3], res: usize, radius: f32) -> bool {
 #[inline]
 fn along(o: [f32; 3], d: [f32; 3], t: f32) -> [f32; 3] {
     [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]
+}
+
+/// Whether the sphere (`centre`, `radius`) may reach into the camera's view
+/// frustum: it is not wholly behind the camera nor wholly outside one of
+/// the four planes through the camera centre and an image edge
+/// (conservative near the frustum's edges, exact on its faces).
+fn sphere_in_view(cam: &LocalCamera, centre: [f32; 3], radius: f32) -> bool {
+    let d = [centre[0] - cam.origin[0], centre[1] - cam.origin[1], centre[2] - cam.origin[2]];
+    let r = &cam.rotation;
+    // Camera-to-local rotation transposed: local offset -> camera axes.
+    let [x, y, z] = [0, 1, 2].map(|a| r[0][a] * d[0] + r[1][a] * d[1] + r[2][a] * d[2]);
+    if z < -radius {
+        return false;
+    }
+    // u >= -0.5 <=> fx x + (cx + 0.5) z >= 0 in front of the camera; the
+    // other edges alike. Signed distances to those planes.
+    let (w, h) = (cam.width as f32 - 0.5, cam.height as f32 - 0.5);
+    let planes = [
+        [cam.fx, 0.0, cam.cx + 0.5],
+        [-cam.fx, 0.0, w - cam.cx],
+        [0.0, cam.fy, cam.cy + 0.5],
+        [0.0, -cam.fy, h - cam.cy],
+    ];
+    planes.iter().all(|n| {
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        n[0] * x + n[1] * y + n[2] * z >= -radius * len
+    })
 }
 
 /// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
@@ -610,6 +665,38 @@ mod tests {
         bare.carve_camera_space(&[CameraSpace { origin: eye, free_distance: 0.0 }], &[]);
         assert_eq!(bare.occupied, 16 * 16 * 16 - 1);
         assert!(!bare.is_occupied(eye));
+    }
+
+    #[test]
+    fn cells_no_training_camera_sees_are_carved_and_every_cell_it_sees_is_kept() {
+        use crate::scan::Intrinsics;
+        use glam::{DMat4, DVec3};
+        let res = 16;
+        let mut grid = OccupancyGrid::full(res);
+        // At (0.5, 0.5, 0.1) looking +z, 90 degrees wide: tan = 32 / 32.
+        let pose = DMat4::from_translation(DVec3::new(0.5, 0.5, 0.1));
+        let k = Intrinsics { fx: 32.0, fy: 32.0, cx: 31.5, cy: 31.5 };
+        let cam = LocalCamera::new(&pose, &k, 64, 64);
+        grid.carve_unseen(&[cam]);
+        let cell = 1.0 / res as f32;
+        let radius = 0.5 * 3f32.sqrt() * cell;
+        for i in 0..res * res * res {
+            let c = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|v| v * cell);
+            let d = [c[0] - 0.5, c[1] - 0.5, c[2] - 0.1];
+            let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            // Angle off the frustum's side planes (|x| <= z, |y| <= z), in distance.
+            let outside = ((d[0].abs() - d[2]) / 2f32.sqrt()).max((d[1].abs() - d[2]) / 2f32.sqrt());
+            if dist <= radius || (d[2] > radius && outside <= 0.0) {
+                assert!(grid.is_occupied_cell(i), "cell {i} at {c:?} is in view");
+            }
+            if d[2] < -radius || outside > 2.0 * radius {
+                assert!(!grid.is_occupied_cell(i), "cell {i} at {c:?} is out of view");
+            }
+        }
+        // No camera: nothing is known, nothing carved.
+        let mut untouched = OccupancyGrid::full(res);
+        untouched.carve_unseen(&[]);
+        assert_eq!(untouched.occupied, res * res * res);
     }
 
     #[test]

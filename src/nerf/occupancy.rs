@@ -1,7 +1,8 @@
 //! Occupancy grid over the unit cube: which cells may hold density, so the
 //! marcher skips empty space. Seeded by carving free space with the sensor
-//! depth (unobserved cells stay occupied), refreshed from the model during
-//! training with a decaying maximum of sampled density.
+//! depth (unobserved cells stay occupied), the space around each training
+//! camera and the space no training camera sees; refreshed from the model
+//! during training with a decaying maximum of sampled density.
 
 use super::camera::LocalCamera;
 use crate::rng::Rng;
@@ -216,6 +217,7 @@ impl OccupancyGrid {
             }
         }
         let step = 0.25 / self.res as f32;
+        // A depth ray belongs to the camera it starts from (same origin bits).
         for ray in rays {
             let Some(&reach) = free_distance.get(&key(ray.origin)) else { continue };
             let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
@@ -684,7 +686,7 @@ mod tests {
             let c = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|v| v * cell);
             let d = [c[0] - 0.5, c[1] - 0.5, c[2] - 0.1];
             let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            // Angle off the frustum's side planes (|x| <= z, |y| <= z), in distance.
+            // Distance outside the frustum's side planes (|x| <= z, |y| <= z).
             let outside = ((d[0].abs() - d[2]) / 2f32.sqrt()).max((d[1].abs() - d[2]) / 2f32.sqrt());
             if dist <= radius || (d[2] > radius && outside <= 0.0) {
                 assert!(grid.is_occupied_cell(i), "cell {i} at {c:?} is in view");

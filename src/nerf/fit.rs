@@ -248,10 +248,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     if seed_occupancy {
         let rays = dataset::depth_rays(&data.train, 4);
-        if !rays.is_empty() {
-            occupancy.seed_from_depth(&rays);
-        }
-        occupancy.carve_camera_space(&dataset::camera_spaces(&data.train), &rays);
+        occupancy.seed_from_depth(&rays, &dataset::camera_spaces(&data.train));
         occupancy.carve_unseen(&data.train.iter().map(|v| v.camera).collect::<Vec<_>>());
     }
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();

@@ -296,7 +296,7 @@ mod tests {
                 }
             }
         }
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&rays, &[]);
         let ray = LocalRay { origin: [0.5, 0.5, -0.5], dir: [0.0, 0.0, 1.0] };
         let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
         let mut out = Vec::new();
@@ -343,7 +343,7 @@ mod tests {
                 DepthRay { origin, dir: d.map(|v| v / n), t_hit: 0.3 + 0.5 * rng.f32() }
             })
             .collect();
-        grid.seed_from_depth(&depth_rays);
+        grid.seed_from_depth(&depth_rays, &[]);
         grid
     }
 

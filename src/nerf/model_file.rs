@@ -174,7 +174,7 @@ mod tests {
         let mut rng = crate::rng::Rng::new(3, 0);
         let field = Field::new(field_cfg.clone(), &mut rng);
         let mut occupancy = OccupancyGrid::full(16);
-        occupancy.seed_from_depth(&[crate::nerf::occupancy::DepthRay { origin: [0.53, 0.53, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 }; 3]);
+        occupancy.seed_from_depth(&[crate::nerf::occupancy::DepthRay { origin: [0.53, 0.53, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 }; 3], &[]);
         let header = ModelHeader {
             nerflabel_version: "test".into(),
             field: field_cfg,

@@ -124,8 +124,10 @@ impl OccupancyGrid {
 
     /// Carve the free space seen by depth rays: a cell is emptied when rays
     /// passed through it well before their surface clearly more often than
-    /// rays ended in it; cells no ray observed stay occupied.
-    pub fn seed_from_depth(&mut self, rays: &[DepthRay]) {
+    /// rays ended in it; cells no ray observed stay occupied. The space the
+    /// training `cameras` vouch for is carved as well (see
+    /// [`Self::camera_vouched`]).
+    pub fn seed_from_depth(&mut self, rays: &[DepthRay], cameras: &[CameraSpace]) {
         let res = self.res;
         let cells = res * res * res;
         let mut free_votes = vec![0u16; cells];
@@ -166,14 +168,22 @@ impl OccupancyGrid {
         // still hold part of an object the sensor missed (glass), which
         // carving would make unlearnable. Beside measured surfaces carving
         // stays tight, else silhouettes grow a fringe of haze.
+        // Cameras are the exception: behind one all space is unobserved.
         let explained = |n: usize| seen_free[n] || surface_votes[n] > 0;
+        let vouched = self.camera_vouched(cameras, rays);
         for i in 0..cells {
-            if seen_free[i] && all_neighbours(i, res, explained) {
-                self.density[i] = 0.0;
-                self.carved[i >> 6] |= 1 << (i & 63);
+            let eroded = seen_free[i] && all_neighbours(i, res, explained);
+            if eroded || vouched[i] && surface_votes[i] == 0 {
+                self.carve(i);
             }
         }
         self.rebuild_bits();
+    }
+
+    /// Empty `cell` for good.
+    fn carve(&mut self, cell: usize) {
+        self.density[cell] = 0.0;
+        self.carved[cell >> 6] |= 1 << (cell & 63);
     }
 
     /// Per cell, the depth rays that ended in it or in one of its 26 neighbours.
@@ -196,15 +206,12 @@ impl OccupancyGrid {
         votes
     }
 
-    /// Carve the space each training camera vouches for: the cell it stood
+    /// Cells each training camera vouches for as free: the cell it stood
     /// in, and the cells its depth rays cross nearer than its
-    /// `free_distance` (nothing it measured was that near). Cells next to a
-    /// measured surface are kept. Carving elsewhere keeps cells beside
-    /// unobserved space (see [`Self::seed_from_depth`]), and behind a camera
-    /// all space is unobserved; left occupied, the spot every ray of a view
-    /// passes through can grow a floater that blinds that view.
-    pub fn carve_camera_space(&mut self, cameras: &[CameraSpace], rays: &[DepthRay]) {
-        let surface_votes = self.surface_votes(rays);
+    /// `free_distance` (nothing it measured was that near). Left occupied,
+    /// the spot every ray of a view passes through can grow a floater that
+    /// blinds that view.
+    fn camera_vouched(&self, cameras: &[CameraSpace], rays: &[DepthRay]) -> Vec<bool> {
         let mut free = vec![false; self.density.len()];
         let key = |o: [f32; 3]| o.map(f32::to_bits);
         let mut free_distance = std::collections::HashMap::new();
@@ -229,11 +236,7 @@ impl OccupancyGrid {
                 t += step;
             }
         }
-        for (i, _) in free.iter().enumerate().filter(|&(i, &f)| f && surface_votes[i] == 0) {
-            self.density[i] = 0.0;
-            self.carved[i >> 6] |= 1 << (i & 63);
-        }
-        self.rebuild_bits();
+        free
     }
 
     /// Carve every cell no training camera sees (no part of it projects
@@ -248,16 +251,16 @@ impl OccupancyGrid {
         let cell = 1.0 / res as f32;
         // Radius of the sphere around a cell.
         let radius = 0.5 * 3f32.sqrt() * cell;
+        let frusta: Vec<Frustum> = cameras.iter().map(Frustum::new).collect();
         let seen: Vec<bool> = (0..res * res * res)
             .into_par_iter()
             .map(|i| {
                 let centre = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|c| c * cell);
-                cameras.iter().any(|cam| sphere_in_view(cam, centre, radius))
+                frusta.iter().any(|f| f.may_hold_sphere(centre, radius))
             })
             .collect();
         for (i, _) in seen.iter().enumerate().filter(|&(_, &s)| !s) {
-            self.density[i] = 0.0;
-            self.carved[i >> 6] |= 1 << (i & 63);
+            self.carve(i);
         }
         self.rebuild_bits();
     }
@@ -450,31 +453,45 @@ fn along(o: [f32; 3], d: [f32; 3], t: f32) -> [f32; 3] {
     [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]
 }
 
-/// Whether the sphere (`centre`, `radius`) may reach into the camera's view
-/// frustum: it is not wholly behind the camera nor wholly outside one of
-/// the four planes through the camera centre and an image edge
-/// (conservative near the frustum's edges, exact on its faces).
-fn sphere_in_view(cam: &LocalCamera, centre: [f32; 3], radius: f32) -> bool {
-    let d = [centre[0] - cam.origin[0], centre[1] - cam.origin[1], centre[2] - cam.origin[2]];
-    let r = &cam.rotation;
-    // Camera-to-local rotation transposed: local offset -> camera axes.
-    let [x, y, z] = [0, 1, 2].map(|a| r[0][a] * d[0] + r[1][a] * d[1] + r[2][a] * d[2]);
-    if z < -radius {
-        return false;
+/// A camera's view frustum: its centre, its axes and the unit normals of
+/// the four planes through the centre and an image edge (camera axes,
+/// pointing inwards).
+struct Frustum {
+    origin: [f32; 3],
+    /// Camera-to-local rotation, row-major.
+    rotation: [[f32; 3]; 3],
+    planes: [[f32; 3]; 4],
+}
+
+impl Frustum {
+    fn new(cam: &LocalCamera) -> Frustum {
+        // u >= -0.5 <=> fx x + (cx + 0.5) z >= 0 in front of the camera;
+        // the other edges alike.
+        let (w, h) = (cam.width as f32 - 0.5, cam.height as f32 - 0.5);
+        let planes = [
+            [cam.fx, 0.0, cam.cx + 0.5],
+            [-cam.fx, 0.0, w - cam.cx],
+            [0.0, cam.fy, cam.cy + 0.5],
+            [0.0, -cam.fy, h - cam.cy],
+        ]
+        .map(|n| {
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            n.map(|c| c / len)
+        });
+        Frustum { origin: cam.origin, rotation: cam.rotation, planes }
     }
-    // u >= -0.5 <=> fx x + (cx + 0.5) z >= 0 in front of the camera; the
-    // other edges alike. Signed distances to those planes.
-    let (w, h) = (cam.width as f32 - 0.5, cam.height as f32 - 0.5);
-    let planes = [
-        [cam.fx, 0.0, cam.cx + 0.5],
-        [-cam.fx, 0.0, w - cam.cx],
-        [0.0, cam.fy, cam.cy + 0.5],
-        [0.0, -cam.fy, h - cam.cy],
-    ];
-    planes.iter().all(|n| {
-        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-        n[0] * x + n[1] * y + n[2] * z >= -radius * len
-    })
+
+    /// Whether the sphere (`centre`, `radius`) may reach into the frustum:
+    /// it is not wholly behind the camera nor wholly outside one of the four
+    /// planes (conservative near the frustum's edges, exact on its faces).
+    fn may_hold_sphere(&self, centre: [f32; 3], radius: f32) -> bool {
+        let o = self.origin;
+        let d = [centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]];
+        let r = &self.rotation;
+        // Camera-to-local rotation transposed: local offset -> camera axes.
+        let [x, y, z] = [0, 1, 2].map(|a| r[0][a] * d[0] + r[1][a] * d[1] + r[2][a] * d[2]);
+        z >= -radius && self.planes.iter().all(|n| n[0] * x + n[1] * y + n[2] * z >= -radius)
+    }
 }
 
 /// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
@@ -527,7 +544,7 @@ mod tests {
     fn carving_empties_seen_free_space_and_keeps_surfaces_and_unseen_cells() {
         let mut grid = OccupancyGrid::full(32);
         // Rays along +z through cell centres of the middle, hitting a wall at z = 0.5.
-        grid.seed_from_depth(&wall_rays(0.5, |_| true));
+        grid.seed_from_depth(&wall_rays(0.5, |_| true), &[]);
         assert!(!grid.is_occupied([0.5, 0.5, 0.2]), "free space before the wall is carved");
         assert!(grid.is_occupied([0.5, 0.5, 0.5]), "surface stays");
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
@@ -540,7 +557,7 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // A wall inside cell 16 seen along +z: cells 15..=17 hold the surface
         // neighbourhood, cells up to 14 were crossed well before it.
-        grid.seed_from_depth(&wall_rays(0.53, |_| true));
+        grid.seed_from_depth(&wall_rays(0.53, |_| true), &[]);
         let at = |z_cell: f32| [0.5, 0.5, (z_cell + 0.5) / 32.0];
         // No haze layer in front of a measured surface (it would fringe silhouettes).
         assert!(!grid.is_occupied(at(14.0)), "the free cell touching the surface neighbourhood is carved");
@@ -552,7 +569,7 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // A wall at z = 0.5 seen along +z, except a column x in cells 14..18
         // where the sensor returned nothing (a glass object stands there).
-        grid.seed_from_depth(&wall_rays(0.5, |i| !(14..18).contains(&i)));
+        grid.seed_from_depth(&wall_rays(0.5, |i| !(14..18).contains(&i)), &[]);
         let at = |cell_x: f32| [(cell_x + 0.5) / 32.0, 16.5 / 32.0, 0.2];
         assert!(!grid.is_occupied(at(10.0)), "free space well away from the column is carved");
         assert!(grid.is_occupied(at(15.0)), "the column itself was never seen free");
@@ -590,7 +607,7 @@ mod tests {
         let rays: Vec<DepthRay> = (0..10)
             .map(|_| DepthRay { origin: [16.0 / 32.0, 16.0 / 32.0, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 })
             .collect();
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&rays, &[]);
         assert!(grid.is_occupied([16.2 / 32.0, 16.2 / 32.0, 0.3]));
     }
 
@@ -600,7 +617,7 @@ mod tests {
         let mut rays: Vec<DepthRay> =
             (0..5).map(|_| DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.3 }).collect();
         rays.push(DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 });
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&rays, &[]);
         assert!(grid.is_occupied([0.5, 0.5, 0.3]));
     }
 
@@ -614,7 +631,7 @@ mod tests {
                 (0..3).map(move |_| DepthRay { origin: [x, y, -0.5], dir: [0.0, 0.0, 1.0], t_hit: 5.0 })
             })
             .collect();
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&rays, &[]);
         assert!(grid.occupied_fraction() < 0.01);
         assert!(grid.occupied_fraction() > 0.0, "grid must never empty");
         let mut rng = Rng::new(1, 0);
@@ -649,7 +666,7 @@ mod tests {
                 (0..3).map(move |_| DepthRay { origin: eye, dir: [a / n, b / n, 1.0 / n], t_hit: 0.6 * n })
             })
             .collect();
-        grid.seed_from_depth(&rays);
+        grid.seed_from_depth(&rays, &[]);
         // Behind the camera nothing was seen, so carving alone keeps its cell.
         assert!(grid.is_occupied(eye));
         // A camera without depth whose cell holds another view's surface.
@@ -657,14 +674,15 @@ mod tests {
         let hits = [DepthRay { origin: [0.2, 0.2, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 }; 3];
         let cameras = [CameraSpace { origin: eye, free_distance: 0.3 }, CameraSpace { origin: beside, free_distance: 0.0 }];
         let all: Vec<DepthRay> = rays.iter().chain(&hits).copied().collect();
-        grid.carve_camera_space(&cameras, &all);
+        let mut grid = OccupancyGrid::full(16);
+        grid.seed_from_depth(&all, &cameras);
         assert!(!grid.is_occupied(eye), "the camera's own cell");
         assert!(!grid.is_occupied([0.53, 0.53, 0.35]), "nearer than the free distance");
         assert!(grid.is_occupied([0.53, 0.53, 0.66]), "the wall");
         assert!(grid.is_occupied(beside), "a measured surface is never carved");
         // A camera without depth carves only its own cell.
         let mut bare = OccupancyGrid::full(16);
-        bare.carve_camera_space(&[CameraSpace { origin: eye, free_distance: 0.0 }], &[]);
+        bare.seed_from_depth(&[], &[CameraSpace { origin: eye, free_distance: 0.0 }]);
         assert_eq!(bare.occupied, 16 * 16 * 16 - 1);
         assert!(!bare.is_occupied(eye));
     }

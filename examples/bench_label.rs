@@ -10,6 +10,8 @@
 //! `--fused-cells C` (fused agreement tolerance in finest grid cells),
 //! `--box-cells C` (surface points this many cells in front of a box the ray enters count for it),
 //! `--clean` (generate the fixture without sensor corruptions),
+//! `--loose M` (boxes grown by M metres on every side, bottom 2 cm into the support),
+//! `--exact-boxes` (no support or wall plane excluded from the boxes),
 //! `--cleanup F` (mask clean-up fraction, 0 = off),
 //! `--opacity A` (accumulated opacity that marks the rendered surface),
 //! `--depth-errors` (fixture: rendered depth against exact depth inside each object),
@@ -44,6 +46,9 @@ struct Args {
     depth_errors: bool,
     opacity: f32,
     cleanup: f64,
+    /// Grow every box by this margin on each side, bottom 2 cm below the original.
+    loose: Option<f64>,
+    exact_boxes: bool,
 }
 
 fn shared_data() -> PathBuf {
@@ -68,6 +73,8 @@ fn parse_args() -> Result<Args, Error> {
         depth_errors: false,
         opacity: LabelOptions::default().surface_opacity,
         cleanup: LabelOptions::default().cleanup_fraction,
+        loose: None,
+        exact_boxes: false,
     };
     let mut it = std::env::args().skip(1).peekable();
     while let Some(a) = it.next() {
@@ -78,6 +85,8 @@ fn parse_args() -> Result<Args, Error> {
             "--frames" => args.frames = value("--frames")?.parse()?,
             "--model" => args.model = Some(value("--model")?.into()),
             "--clean" => args.clean = true,
+            "--loose" => args.loose = Some(value("--loose")?.parse()?),
+            "--exact-boxes" => args.exact_boxes = true,
             "--cleanup" => args.cleanup = value("--cleanup")?.parse()?,
             "--opacity" => args.opacity = value("--opacity")?.parse()?,
             "--depth-errors" => args.depth_errors = true,
@@ -242,6 +251,24 @@ fn main() -> Result<(), Error> {
         }
     };
     let model = model_for(&scan, &model_path, args.fit_seconds)?;
+    let boxes = match args.loose {
+        // Boxes as users draw them: a margin on every side, the bottom 2 cm into the support (boxes stand upright, z up).
+        Some(margin) => BoxSet::from_boxes(
+            boxes
+                .boxes
+                .iter()
+                .map(|b| {
+                    let bottom = b.center.z - b.size.z / 2.0;
+                    let height = b.size.z + margin + 0.02;
+                    let mut loose = b.clone();
+                    loose.size = glam::DVec3::new(b.size.x + 2.0 * margin, b.size.y + 2.0 * margin, height);
+                    loose.center.z = bottom - 0.02 + height / 2.0;
+                    loose
+                })
+                .collect(),
+        ),
+        None => boxes,
+    };
     let frames: Vec<&Frame> = truth.iter().map(|(i, _)| &scan.frames[*i]).collect();
     let (w, h) = scan.size();
     println!(
@@ -260,8 +287,9 @@ fn main() -> Result<(), Error> {
         depth_errors(&args.dir, &boxes, &model, &frames, &truth, args.opacity)?;
     }
     for source in DepthSource::ALL {
-        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, box_tolerance_cells: args.box_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, ..LabelOptions::default() };
-        let labeler = Labeler::new(&boxes, Some(&model), opts)?;
+        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, box_tolerance_cells: args.box_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
+        let mut labeler = Labeler::new(&boxes, Some(&model), opts)?;
+        labeler.exclude_supports(&scan)?;
         if source == DepthSource::Fused {
             eprintln!("fused tolerance {:.1} mm", labeler.fused_tolerance_m() * 1000.0);
         }
@@ -269,8 +297,11 @@ fn main() -> Result<(), Error> {
         let labels = labeler.label_frames(&frames, &|_| {});
         let secs = t.elapsed().as_secs_f64();
         let mut scores = MaskScores::default();
+        let (mut predicted_px, mut true_px) = (0usize, 0usize);
         for (l, (_, gt)) in labels.iter().zip(&truth) {
             scores.add(&l.mask, gt, l.width as usize);
+            predicted_px += l.mask.iter().filter(|&&m| m != 0).count();
+            true_px += gt.iter().filter(|&&m| m != 0).count();
         }
         if let Some(dir) = &args.dump {
             dump_errors(dir, source, &labels, &truth)?;
@@ -281,7 +312,12 @@ fn main() -> Result<(), Error> {
             line.push_str(&format!(" {:>9.4}", per.get(&(b.instance_id as u16)).copied().unwrap_or(0.0)));
         }
         let rays: usize = labels.iter().map(|l| l.rendered_rays).sum();
-        line.push_str(&format!("   ({:.1} s, {:.1} % of pixels rendered)", secs, 100.0 * rays as f64 / (frames.len() * (w * h) as usize) as f64));
+        line.push_str(&format!(
+            "   ({:.1} s, {:.1} % of pixels rendered, predicted/true pixels {:.3})",
+            secs,
+            100.0 * rays as f64 / (frames.len() * (w * h) as usize) as f64,
+            predicted_px as f64 / true_px.max(1) as f64
+        ));
         println!("{line}");
     }
     Ok(())

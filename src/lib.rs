@@ -17,4 +17,5 @@ pub mod scan;
 pub mod synth;
 pub mod atomic;
 pub mod mask;
+pub mod outputs;
 pub mod rng;

@@ -8,7 +8,8 @@ use std::process::ExitCode;
 fn main() -> ExitCode {
     let args = cli::Cli::parse();
     match cli::run(args) {
-        Ok(()) => ExitCode::SUCCESS,
+        // A run stopped by Ctrl-C or SIGTERM saved its work; its status says it was stopped.
+        Ok(()) => cli::interrupted_status().map_or(ExitCode::SUCCESS, ExitCode::from),
         Err(err) => {
             // One clear message: the outermost context, then each cause.
             eprintln!("error: {err}");

@@ -18,7 +18,7 @@ fn fit_on_the_small_fixture_meets_depth_and_colour_bounds() {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("fit_report.json")).unwrap()).unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
     assert_eq!(report["counters"]["steps"], 250);
     assert_eq!(report["counters"]["skipped_batches"], 0);
     let curve = report["curve"].as_array().unwrap();

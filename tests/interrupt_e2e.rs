@@ -115,24 +115,10 @@ fn assert_only_documented_leftovers(dir: &Path, expected: &[&str], killed: &[u32
     }
 }
 
-#[test]
-fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
-    let dir = tempfile::tempdir().unwrap();
-    let scan = work_scan(dir.path());
-    let out = scan.join("nerflabel");
-    let fit = |extra: &[&str]| {
-        let mut c = bin();
-        c.arg("fit")
-            .arg(&scan)
-            .args(["--preset", "fast", "--holdout", "12", "--seed", "1"])
-            .args(extra);
-        c
-    };
-    let mut child = fit(&["--steps", "100000"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+/// Start a long fit of `scan`, send `signal` once training runs, and
+/// return its exit status and stderr.
+fn fit_until_signal(fit: &mut Command, signal: &str) -> (std::process::ExitStatus, String) {
+    let mut child = fit.args(["--steps", "100000"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
     let stderr = child.stderr.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     let reader = std::thread::spawn(move || {
@@ -147,30 +133,65 @@ fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
     });
     // Training has started once the set-up line is printed; let it run a few steps.
     let deadline = Instant::now() + Duration::from_secs(120);
-    while !rx
-        .recv_timeout(Duration::from_secs(120))
-        .unwrap()
-        .contains("training views")
-    {
+    while !rx.recv_timeout(Duration::from_secs(120)).unwrap().contains("training views") {
         assert!(Instant::now() < deadline, "fit never started training");
     }
     std::thread::sleep(Duration::from_millis(1500));
-    let k = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
+    let k = Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status().unwrap();
     assert!(k.success());
     let status = child.wait().unwrap();
-    let stderr = reader.join().unwrap();
-    assert!(status.success(), "Ctrl-C must end fit cleanly: {status}\n{stderr}");
+    (status, reader.join().unwrap())
+}
+
+/// After a signal: the model, report and checkpoint are all of the stopped
+/// run, at the same step; returns that step.
+fn assert_saved_when_stopped(out: &Path) -> u64 {
+    let model = Model::load(&out.join("model.nlf")).unwrap();
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap()).unwrap();
+    assert_eq!(report["interrupted"], true);
+    let steps = report["counters"]["steps"].as_u64().unwrap();
+    assert!((1..100_000).contains(&steps), "{steps}");
+    assert_eq!(model.header.steps, steps);
+    assert_eq!(Checkpoint::load(&out.join("model.checkpoint")).unwrap().steps(), steps, "checkpoint saved when stopped");
+    steps
+}
+
+#[test]
+fn sigterm_during_fit_saves_like_ctrl_c_and_exits_143() {
+    // Regression: SIGTERM (timeout, Docker, Slurm) killed the run, leaving a
+    // checkpoint of the killed run beside the old model and report.
+    let dir = tempfile::tempdir().unwrap();
+    let scan = work_scan(dir.path());
+    let (status, stderr) = fit_until_signal(bin().arg("fit").arg(&scan).args(["--preset", "fast", "--holdout", "12"]), "TERM");
+    assert_eq!(status.code(), Some(143), "{stderr}");
+    assert!(stderr.contains("interrupted: saved the model"), "{stderr}");
+    assert_saved_when_stopped(&scan.join("nerflabel"));
+}
+
+#[test]
+fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = work_scan(dir.path());
+    let out = scan.join("nerflabel");
+    let fit = |extra: &[&str]| {
+        let mut c = bin();
+        c.arg("fit")
+            .arg(&scan)
+            .args(["--preset", "fast", "--holdout", "12", "--seed", "1"])
+            .args(extra);
+        c
+    };
+    let (status, stderr) = fit_until_signal(&mut fit(&[]), "INT");
+    assert_eq!(status.code(), Some(130), "Ctrl-C saves, then exits 130 so scripts can tell: {stderr}");
     assert!(stderr.contains("interrupted: saved the model"), "{stderr}");
     assert_eq!(
         names(&out),
-        ["fit_report.json", "model.checkpoint", "model.nlf"]
+        [".model.nlf.lock", "model.report.json", "model.checkpoint", "model.nlf"]
             .map(String::from)
             .into(),
         "only the outputs, no temp file"
     );
+    let steps = assert_saved_when_stopped(&out);
 
     let model = Model::load(&out.join("model.nlf")).unwrap();
     assert!(model
@@ -181,20 +202,11 @@ fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
         .chain(&model.field.density.params)
         .all(|v| v.is_finite()));
     let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("fit_report.json")).unwrap()).unwrap();
-    assert_eq!(report["interrupted"], true);
-    let steps = report["counters"]["steps"].as_u64().unwrap();
-    assert!((1..100_000).contains(&steps), "{steps}");
-    assert_eq!(model.header.steps, steps);
+        serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap()).unwrap();
     assert_eq!(
         report["curve"].as_array().unwrap().last().unwrap()["step"].as_u64(),
         Some(steps),
         "evaluated when stopped"
-    );
-    assert_eq!(
-        Checkpoint::load(&out.join("model.checkpoint")).unwrap().steps(),
-        steps,
-        "checkpoint saved when stopped"
     );
 
     // Resuming with another seed is refused and leaves everything alone.
@@ -226,7 +238,7 @@ fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
     let total = steps + 15;
     run_ok(fit(&["--resume", "--steps", &total.to_string()]).stdout(Stdio::null()));
     let resumed: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("fit_report.json")).unwrap()).unwrap();
+        serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap()).unwrap();
     assert_eq!(resumed["interrupted"], false);
     assert_eq!(resumed["counters"]["steps"].as_u64(), Some(total));
     assert_eq!(resumed["resumed_from"], serde_json::json!([steps]));
@@ -276,7 +288,7 @@ fn sigkill_during_fit_leaves_the_previous_or_a_complete_new_model() {
     let watch = [
         ".model.nlf.tmpPID",
         ".model.checkpoint.tmpPID",
-        ".fit_report.json.tmpPID",
+        ".model.report.json.tmpPID",
     ];
     for i in 0..7 {
         let seed = i + 1;
@@ -304,12 +316,12 @@ fn sigkill_during_fit_leaves_the_previous_or_a_complete_new_model() {
         }
         let ckpt = Checkpoint::load(&out.join("model.checkpoint")).unwrap_or_else(|e| panic!("run {i}: {e}"));
         assert_eq!(ckpt.steps(), 8);
-        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("fit_report.json")).unwrap())
-            .unwrap_or_else(|e| panic!("run {i}: fit_report.json: {e}"));
+        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap())
+            .unwrap_or_else(|e| panic!("run {i}: model.report.json: {e}"));
         assert_eq!(report["counters"]["steps"], 8);
         assert_only_documented_leftovers(
             &out,
-            &["model.nlf", "model.checkpoint", "fit_report.json"],
+            &["model.nlf", "model.checkpoint", "model.report.json", ".model.nlf.lock"],
             &killed,
             &watch,
         );
@@ -358,7 +370,8 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
             .stdout(Stdio::null()),
     );
     let out = scan.join("nerflabel/labels");
-    // Each run labels a different number of frames, so old and new are told apart.
+    // Each run relabels a different range of frames (recorded in coco.json's
+    // info), so old and new are told apart; the other frames are kept.
     let label = |frames: usize| {
         let mut c = bin();
         c.arg("label").arg(&scan).arg("--boxes").arg(scan.join("boxes.json"));
@@ -370,9 +383,10 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
     assert_eq!(check_labels(&out), Some(24));
     let mut rng = Rng::new(62, 0);
     let mut killed = Vec::new();
-    let mut complete = Some(24);
+    let mut complete = Some("0..24".to_string());
     for i in 0..7 {
         let frames = 23 - i;
+        let range = format!("0..{frames}");
         let (delay, write) = plan(i, full, &mut rng, 3);
         let mut child = label(frames).spawn().unwrap();
         let trigger = |pid: u32| match write {
@@ -389,12 +403,17 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
         report_run(i, was_killed, delay, write);
         match check_labels(&out) {
             Some(n) => {
+                // A partial run keeps the other frames of a complete labelling; after a
+                // kill between the swap's renames there is none (it sits in .replaced-PID).
+                let expected = if complete.is_some() { 24 } else { frames };
+                assert!(n == 24 || n == expected, "run {i}: {n} images, expected {expected}");
+                let labelled = labelled_range(&out);
                 assert!(
-                    n == frames || Some(n) == complete,
-                    "run {i}: {n} images is neither the old nor the new labelling"
+                    labelled == range || Some(&labelled) == complete.as_ref(),
+                    "run {i}: range {labelled} is neither the old nor the new labelling"
                 );
-                assert!(was_killed || n == frames, "run {i} finished but left the old labels");
-                complete = Some(n);
+                assert!(was_killed || labelled == range, "run {i} finished but left the old labels");
+                complete = Some(labelled);
             }
             None => {
                 // Killed between the renames of the swap: the previous run sits complete beside it.
@@ -410,7 +429,7 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
         }
         assert_only_documented_leftovers(
             &out,
-            &["coco.json", "masks"],
+            &["coco.json", "masks", ".nerflabel-labels"],
             &killed,
             &[".staging-PID", ".replaced-PID"],
         );
@@ -418,6 +437,12 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
     assert!(killed.len() >= 3, "most runs must be killed: {killed:?}");
     run_ok(&mut label(24));
     assert_eq!(check_labels(&out), Some(24));
+}
+
+/// The frame range the last run over a label folder relabelled.
+fn labelled_range(out: &Path) -> String {
+    let coco: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("coco.json")).unwrap()).unwrap();
+    coco["info"]["frames"].as_str().unwrap_or_default().to_string()
 }
 
 /// Rows of a Parquet file, panicking on anything unreadable.
@@ -467,7 +492,8 @@ fn sigkill_during_synth_leaves_the_previous_or_a_complete_new_parquet() {
             .arg("--poses")
             .arg(poses(n))
             .arg("--out")
-            .arg(out.join("views.parquet"));
+            .arg(out.join("views.parquet"))
+            .arg("--overwrite");
         c.stdout(Stdio::null()).stderr(Stdio::null());
         c
     };

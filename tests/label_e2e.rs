@@ -183,18 +183,31 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
     assert_eq!(std::fs::read_to_string(out.join("classes.txt")).unwrap().lines().count(), boxes.categories.len());
     pycocotools_check(&out.join("coco.json"));
 
-    // Re-run on fewer frames without depth or YOLO: nothing stale survives.
+    let listing = |dir: &Path| -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        names
+    };
+    let frames = 6; // labelled above: 1..7
+    // Re-run on frames 2 and 3 without depth or YOLO: the other frames keep
+    // every file; these two lose the depth and YOLO files this run did not rewrite.
     let labeler = Labeler::new(&boxes, None, LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() }).unwrap();
     let output = OutputOptions { frames: Some(FrameRange { start: Some(2), end: Some(4) }), ..OutputOptions::default() };
-    write_labels(&out, &scan, &boxes, &labeler, &output, &|_| {}).unwrap();
-    let mut entries: Vec<String> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    entries.sort();
-    assert_eq!(entries, vec!["coco.json", "masks"]);
-    let mut masks: Vec<String> = std::fs::read_dir(out.join("masks")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    masks.sort();
-    assert_eq!(masks, vec!["000002.png", "000003.png"]);
+    let partial = write_labels(&out, &scan, &boxes, &labeler, &output, &|_| {}).unwrap();
+    assert!(partial.warnings.iter().any(|w| w.contains("depth and labels files were removed")), "{:?}", partial.warnings);
+    assert_eq!(listing(&out), vec![".nerflabel-labels", "classes.txt", "coco.json", "depth", "labels", "masks"]);
+    assert_eq!(listing(&out.join("masks")).len(), frames);
+    let depth = listing(&out.join("depth"));
+    assert_eq!(depth.len(), frames - 2);
+    assert!(!depth.contains(&"000002.png".to_string()) && !depth.contains(&"000003.png".to_string()));
     let coco: Value = serde_json::from_slice(&std::fs::read(out.join("coco.json")).unwrap()).unwrap();
-    assert_eq!(coco["images"].as_array().unwrap().len(), 2);
+    assert_eq!(coco["images"].as_array().unwrap().len(), frames);
+
+    // A full re-run without depth or YOLO: nothing stale survives.
+    let output = OutputOptions::default();
+    write_labels(&out, &scan, &boxes, &labeler, &output, &|_| {}).unwrap();
+    assert_eq!(listing(&out), vec![".nerflabel-labels", "coco.json", "masks"]);
+    assert_eq!(listing(&out.join("masks")).len(), scan.frames.len());
 
     // A range with no frame is an error that leaves the outputs alone.
     let output = OutputOptions { frames: Some("100..200".parse().unwrap()), ..OutputOptions::default() };

@@ -86,7 +86,7 @@ impl Room {
                 }
             })
             .collect();
-        Scan { root: "synthetic-room".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new() }
+        Scan { root: "synthetic-room".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new(), inputs: Vec::new() }
     }
 }
 
@@ -143,15 +143,25 @@ fn bounds_enclose_all_cameras_even_a_far_one() {
 #[test]
 fn bbox_txt_overrides_the_depth() {
     let mut scan = Room::default().scan();
-    let user = Bounds { min: DVec3::new(-0.5, -0.25, -0.1), max: DVec3::new(0.5, 0.75, 0.3) };
+    // Reaches the wall at x = 2 (bounds holding no surface are refused).
+    let user = Bounds { min: DVec3::new(-0.5, -0.25, -0.1), max: DVec3::new(2.5, 0.75, 0.3) };
     scan.bounds = Some(user);
     let (b, n) = normalization_of(&scan);
     assert_eq!(b.source, BoundsSource::User);
     assert_eq!((b.aabb.min, b.aabb.max), (user.min, user.max));
     assert!(!n.rotated);
     // The user box becomes the local box, its longest edge spanning 0.9.
-    assert!(max_abs_diff(n.transform.world_to_local_point(user.min), DVec3::new(0.05, 0.05, 0.32)) < 1e-12);
-    assert!(max_abs_diff(n.transform.world_to_local_point(user.max), DVec3::new(0.95, 0.95, 0.68)) < 1e-12);
+    assert!(max_abs_diff(n.transform.world_to_local_point(user.min), DVec3::new(0.05, 0.35, 0.44)) < 1e-12);
+    assert!(max_abs_diff(n.transform.world_to_local_point(user.max), DVec3::new(0.95, 0.65, 0.56)) < 1e-12);
+}
+
+#[test]
+fn bbox_txt_holding_no_surface_is_refused() {
+    // Regression: bounds away from the scene trained nothing and exited 0.
+    let mut scan = Room::default().scan();
+    scan.bounds = Some(Bounds { min: DVec3::new(-0.5, -0.25, -0.1), max: DVec3::new(0.5, 0.75, 0.3) });
+    let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("bbox.txt") && err.contains("hold 0 of"), "{err}");
 }
 
 #[test]

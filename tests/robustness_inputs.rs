@@ -97,7 +97,7 @@ fn fit_degenerate(scan: &Path, steps: u32, what: &str) -> Outcome {
     if o.status.success() {
         let model = Model::load(&model_path).unwrap_or_else(|e| panic!("{what}: model does not load: {e}"));
         assert_model_finite(&model, what);
-        assert_report_finite(&model_path.with_file_name("fit_report.json"), what);
+        assert_report_finite(&model_path.with_extension("report.json"), what);
         Outcome::Fitted
     } else {
         assert_ne!(o.status.code(), Some(101), "{what}: exit code of a panic\n{stderr}");
@@ -153,7 +153,7 @@ fn scan_without_any_depth_fits_photometrically() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let model = Model::load(&model_path).unwrap();
     assert_model_finite(&model, "no depth");
-    assert_report_finite(&scan.join("fit_report.json"), "no depth");
+    assert_report_finite(&scan.join("model.report.json"), "no depth");
 }
 
 #[test]
@@ -336,7 +336,7 @@ fn tiny_and_huge_scene_scales_fit_without_nan_and_agree() {
     for (scale, scan, model_path) in &scaled_fits().fits {
         let model = Model::load(model_path).unwrap();
         assert_model_finite(&model, &format!("scale {scale}"));
-        assert_report_finite(&scan.join("fit_report.json"), &format!("scale {scale}"));
+        assert_report_finite(&scan.join("model.report.json"), &format!("scale {scale}"));
         let score = score_holdout(&model, scan).unwrap();
         eprintln!("scale {scale}: {score:?}");
         assert!(score.psnr.is_finite() && score.depth_mae_m.is_finite(), "scale {scale}: {score:?}");
@@ -486,7 +486,7 @@ fn failed_fit_leaves_the_existing_model_untouched() {
     // No temp files left beside the model.
     let leftovers: Vec<_> = frame_files(dir.path())
         .into_iter()
-        .filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint"))
+        .filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint" && e != "lock"))
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }

@@ -198,7 +198,7 @@ fn fit_with_learning_rate(dir: &Path, lr: &str, steps: u32) -> (serde_json::Valu
         "the override reaches the trainer"
     );
     let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("fit_report.json")).unwrap()).unwrap();
+        serde_json::from_slice(&std::fs::read(dir.join("model.report.json")).unwrap()).unwrap();
     assert_json_finite(&report, "report", lr);
     let stdout = String::from_utf8_lossy(&o.stdout);
     let printed = stdout
@@ -252,16 +252,37 @@ fn learning_rate_100x_too_high_is_caught_by_the_guard_and_still_trains() {
 }
 
 #[test]
-fn absurd_learning_rate_is_caught_by_the_guard_and_counted_in_the_report() {
+fn absurd_learning_rate_fails_the_fit_and_keeps_the_previous_model() {
     // 1e8 (1e10 x the default): every step would be enormous (and overflows
-    // activations to inf): those batches are skipped, the step size halves,
-    // and the count reaches the report.
+    // activations to inf): the guard skips those batches and halves the step
+    // size. Regression: such a fit trained nothing yet exited 0 and replaced
+    // the model; now it fails, says why, and leaves the previous model and
+    // report alone (its own report goes to MODEL.failed.report.json).
     let dir = tempfile::tempdir().unwrap();
-    let (report, printed) = fit_with_learning_rate(dir.path(), "1e8", 30);
+    let model_path = dir.path().join("model.nlf");
+    let fit = |lr: &str| {
+        Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+            .arg("fit")
+            .arg(small_fixture())
+            .args(["--steps", "30", "--preset", "fast", "--holdout", "12", "--learning-rate", lr, "--model"])
+            .arg(&model_path)
+            .output()
+            .unwrap()
+    };
+    let good = fit("0.01");
+    assert!(good.status.success(), "{}", String::from_utf8_lossy(&good.stderr));
+    let (model_before, report_before) = (std::fs::read(&model_path).unwrap(), std::fs::read(dir.path().join("model.report.json")).unwrap());
+    let o = fit("1e8");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !stderr.contains("panicked"), "{stderr}");
+    assert!(stderr.contains("trained no usable model") && stderr.contains("batches"), "{stderr}");
+    assert!(std::fs::read(&model_path).unwrap() == model_before, "previous model kept");
+    assert!(std::fs::read(dir.path().join("model.report.json")).unwrap() == report_before, "previous report kept");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.failed.report.json")).unwrap()).unwrap();
+    assert_json_finite(&report, "report", "1e8");
     let skipped = report["counters"]["skipped_batches"].as_u64().unwrap();
     eprintln!("lr 1e8: {skipped} of 30 batches skipped");
-    assert_eq!(skipped, printed, "stdout and report agree");
-    assert!(skipped >= 5, "the guard must skip the non-finite batches: {skipped}");
+    assert!(skipped > 15, "most batches skipped: {skipped}");
     assert_eq!(report["lr_scale"].as_f64(), Some(1e-4), "backed off to the floor");
     assert_eq!(report["counters"]["steps"], 30, "skipped batches still count as steps");
 }

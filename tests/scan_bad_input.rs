@@ -101,8 +101,90 @@ struct Case {
     expect: &'static [&'static str],
 }
 
+fn depth_png_sized(path: &Path, w: u32, h: u32) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(w, h, Luma([1500])).save(path).unwrap();
+}
+
 fn cases() -> Vec<Case> {
     vec![
+        Case {
+            // Regression: 36x48 depth for 160x120 colour was stretched silently.
+            name: "depth of another aspect ratio than colour",
+            build: |r| {
+                native(r);
+                for i in 0..2 {
+                    depth_png_sized(&r.join(format!("depth/{i:06}.png")), 3, 8);
+                }
+                r.to_path_buf()
+            },
+            expect: &["depth/000000.png", "3x8", "8x6", "stretch"],
+        },
+        Case {
+            name: "one depth image of another size than the rest",
+            build: |r| {
+                native(r);
+                depth_png_sized(&r.join("depth/000001.png"), 4, 3);
+                r.to_path_buf()
+            },
+            expect: &["depth/000001.png", "4x3", "other depth images are 8x6"],
+        },
+        Case {
+            // Regression: reported as a missing image.
+            name: "a directory where a frame image should be",
+            build: |r| {
+                native(r);
+                std::fs::remove_file(r.join("rgb/000001.png")).unwrap();
+                std::fs::create_dir_all(r.join("rgb/000001.png")).unwrap();
+                r.to_path_buf()
+            },
+            expect: &["rgb/000001.png", "is a directory"],
+        },
+        Case {
+            // Regression: a FIFO among the frames made loading hang.
+            name: "a FIFO in a frame folder",
+            build: |r| {
+                native(r);
+                std::fs::remove_file(r.join("depth/000001.png")).unwrap();
+                let made = std::process::Command::new("mkfifo").arg(r.join("depth/000001.png")).status();
+                assert!(made.is_ok_and(|s| s.success()), "mkfifo (coreutils) is needed for this case");
+                r.to_path_buf()
+            },
+            expect: &["depth/000001.png", "not a regular file"],
+        },
+        Case {
+            // Regression: the skew was dropped silently.
+            name: "intrinsics with skew",
+            build: |r| {
+                native(r);
+                write(&r.join("intrinsics.txt"), "8 0.5 3.5\n0 8 2.5\n0 0 1\n");
+                r.to_path_buf()
+            },
+            expect: &["intrinsics.txt", "skew 0.5"],
+        },
+        Case {
+            // Regression: fx = 1e-300 loaded and the fit trained nothing.
+            name: "focal length 1e-300",
+            build: |r| {
+                native(r);
+                write(&r.join("intrinsics.txt"), "1e-300 0 3.5\n0 8 2.5\n0 0 1\n");
+                r.to_path_buf()
+            },
+            expect: &["intrinsics.txt", "field of view"],
+        },
+        Case {
+            // Regression: 24 frames of 16384x16384 aborted on allocation.
+            name: "more pixels than memory",
+            build: |r| {
+                write(&r.join("intrinsics.txt"), "16000 0 8191.5\n0 16000 8191.5\n0 0 1\n");
+                for i in 0..24 {
+                    write(&r.join(format!("rgb/{i:06}.png")), png_header_only(16384, 16384));
+                    write(&r.join(format!("pose/{i:06}.txt")), pose_text(i as f64 * 0.1));
+                }
+                r.to_path_buf()
+            },
+            expect: &["24 frames of 16384x16384", "GB", "memory available"],
+        },
         Case {
             name: "missing folder",
             build: |r| r.join("nope"),
@@ -548,4 +630,72 @@ fn the_valid_base_scans_load() {
         r#"{"fl_x": 8, "frames": [{"file_path": "images/0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
     );
     assert_eq!(load(dir.path(), &LoadOptions::default()).unwrap().frames.len(), 1);
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+fn small_fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small")
+}
+
+#[test]
+fn one_pose_a_hundred_kilometres_off_is_excluded_with_a_warning_naming_it() {
+    // Regression: a translation of 1e5 m in one pose file gave `warnings none`,
+    // 104 km scene bounds and a fit with a held-out depth error of 63 km.
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&small_fixture(), dir.path());
+    let pose = dir.path().join("pose/000007.txt");
+    let text = std::fs::read_to_string(&pose).unwrap();
+    let mut rows: Vec<Vec<f64>> = text.lines().filter(|l| !l.trim().is_empty()).map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect()).collect();
+    rows[1][3] += 1e5;
+    let text: String = rows.iter().map(|r| r.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" ") + "\n").collect();
+    std::fs::write(&pose, text).unwrap();
+    let scan = load(dir.path(), &LoadOptions::default()).unwrap();
+    assert_eq!(scan.frames.len(), 23);
+    assert!(scan.frames.iter().all(|f| f.name != "000007"));
+    let warning = scan.warnings.iter().find(|w| w.contains("excluded")).expect("a warning");
+    assert!(warning.contains("000007") && warning.contains("far from the rest of the trajectory"), "{warning}");
+    let bounds = nerflabel::poses::scene_bounds(&scan, &Default::default()).unwrap();
+    assert!(bounds.aabb.max_extent() < 20.0, "bounds stay those of the scene: {}", bounds.aabb.max_extent());
+
+    // Ten of 24 poses moved is not an outlier to exclude: the trajectory is broken.
+    let far = std::fs::read(&pose).unwrap();
+    for i in 0..10 {
+        std::fs::write(dir.path().join(format!("pose/{i:06}.txt")), &far).unwrap();
+    }
+    let err = match load(dir.path(), &LoadOptions::default()) {
+        Ok(scan) => panic!("loaded {} frames, warnings {:?}", scan.frames.len(), scan.warnings),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("not trustworthy"), "{err}");
+}
+
+#[test]
+fn generated_and_real_scans_have_no_pose_outliers() {
+    let mut scans = vec![small_fixture()];
+    let shared = std::env::var_os("NERFLABEL_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    for real in ["scans/cabinet", "real/tum_fr1_desk_first9", "real/tum_fr1_rpy_every10"] {
+        if shared.join(real).is_dir() {
+            scans.push(shared.join(real));
+        } else {
+            eprintln!("{} is absent: skipping that real scan", shared.join(real).display());
+        }
+    }
+    for path in scans {
+        let scan = load(&path, &LoadOptions::default()).unwrap();
+        assert!(!scan.warnings.iter().any(|w| w.contains("excluded")), "{}: {:?}", path.display(), scan.warnings);
+    }
 }

@@ -17,7 +17,10 @@ use crate::nerf::fit::render_options;
 use crate::nerf::march::ray_interval;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::{RenderOptions, RenderRay};
+use super::support::{excluded_planes, ExcludedPlane};
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
+use crate::poses::sample_depth_points;
+use crate::scan::Scan;
 use crate::nerf::view::ViewRenderer;
 use crate::scan::Frame;
 use glam::{DMat3, DMat4};
@@ -26,6 +29,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Rays rendered per call of the renderer.
 const PACKET: usize = 4096;
+/// Measured surface points sampled from the scan to find support planes.
+const SUPPORT_POINTS: usize = 2_000_000;
 
 /// One visible instance in one frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -81,6 +86,12 @@ pub struct Labeler<'a> {
     /// A surface point this far (metres) in front of a box the ray then
     /// enters belongs to that box (0 for the sensor source).
     box_tolerance_m: f64,
+    /// Per box (instance id - 1): planes of the scene excluded from it
+    /// (supports and walls a loosely drawn box reaches into).
+    excluded: Vec<Vec<ExcludedPlane>>,
+    /// Rendered surfaces lie within about this of the true ones (a finest
+    /// grid cell; 0 for the sensor source).
+    surface_error_m: f64,
 }
 
 impl<'a> Labeler<'a> {
@@ -98,7 +109,47 @@ impl<'a> Labeler<'a> {
         };
         let fused_tolerance_m = options.fused_tolerance_cells * cell_m;
         let box_tolerance_m = options.box_tolerance_cells * cell_m;
-        Ok(Labeler { boxes, classifier: BoxClassifier::new(boxes), options, renderer, render, fused_tolerance_m, box_tolerance_m })
+        Ok(Labeler {
+            boxes,
+            classifier: BoxClassifier::new(boxes),
+            options,
+            renderer,
+            render,
+            fused_tolerance_m,
+            box_tolerance_m,
+            excluded: vec![Vec::new(); boxes.boxes.len()],
+            surface_error_m: cell_m,
+        })
+    }
+
+    /// Find, from the scan's measured depth, the support and wall planes
+    /// each box reaches into ([`super::support`]) and exclude them from the
+    /// box; nothing with `exact_boxes`. Returns how many planes were found.
+    pub fn exclude_supports(&mut self, scan: &Scan) -> Result<usize, LabelError> {
+        if self.options.exact_boxes {
+            return Ok(0);
+        }
+        let samples = sample_depth_points(scan, SUPPORT_POINTS)
+            .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
+        self.excluded = excluded_planes(self.boxes, &samples.points, 0);
+        Ok(self.excluded.iter().map(Vec::len).sum())
+    }
+
+    /// How far above an excluded plane a surface point still counts as the
+    /// plane: the plane's measured noise band for sensor depth; rendered
+    /// surfaces are smooth, and the finest grid places them to within half a
+    /// cell, its nearest vertex (the plane itself, fitted to thousands of
+    /// points, is far more precise).
+    fn plane_band(&self, plane: &ExcludedPlane) -> f64 {
+        match self.options.source {
+            DepthSource::Sensor => plane.band,
+            DepthSource::Nerf | DepthSource::Fused => 0.5 * self.surface_error_m,
+        }
+    }
+
+    /// The planes excluded from each box (indexed like the box set).
+    pub fn excluded_planes(&self) -> &[Vec<ExcludedPlane>] {
+        &self.excluded
     }
 
     /// The options in use.
@@ -185,7 +236,12 @@ impl<'a> Labeler<'a> {
                 let ray = rot * k.unproject(j.x as f64, j.y as f64);
                 let len = ray.length();
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
-                mask[index] = self.classifier.classify_on_ray(origin, ray / len, z * len, self.box_tolerance_m) as u16;
+                let dir = ray / len;
+                let id = self.classifier.classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
+                let point = origin + dir * (z * len);
+                let on_excluded = |planes: &Vec<ExcludedPlane>| planes.iter().any(|p| p.distance(point) <= self.plane_band(p));
+                let excluded = id > 0 && self.excluded.get(id as usize - 1).is_some_and(on_excluded);
+                mask[index] = if excluded { 0 } else { id as u16 };
             }
         }
         if self.options.cleanup_fraction > 0.0 {

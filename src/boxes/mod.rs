@@ -21,6 +21,7 @@ pub mod output;
 pub mod parse;
 pub mod project;
 pub mod rle;
+pub mod support;
 pub mod surface;
 
 pub use classify::BoxClassifier;

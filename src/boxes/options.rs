@@ -126,6 +126,9 @@ pub struct LabelOptions {
     /// Mask clean-up: fill enclosed holes and drop detached specks smaller
     /// than this fraction of their instance (0 = off).
     pub cleanup_fraction: f64,
+    /// Label exactly what each box encloses: no support or wall plane is
+    /// excluded (`Labeler::exclude_supports` does nothing).
+    pub exact_boxes: bool,
 }
 
 impl Default for LabelOptions {
@@ -136,6 +139,7 @@ impl Default for LabelOptions {
             fused_tolerance_cells: 1.0,
             surface_opacity: 0.5,
             box_tolerance_cells: 2.0,
+            exact_boxes: false,
             cleanup_fraction: 0.02,
         }
     }
@@ -160,6 +164,10 @@ pub enum LabelError {
     Encode { path: PathBuf, source: image::ImageError },
     #[error("{path}: could not write JSON: {source}")]
     Json { path: PathBuf, source: serde_json::Error },
+    #[error("{path}: holds `{entry}` but was not written by `nerflabel label`; refusing to replace it (choose an empty or new --out folder)")]
+    NotOurs { path: PathBuf, entry: String },
+    #[error("{path}: cannot update the labels of the other frames: {reason}; label every frame instead (without --frames)")]
+    Merge { path: PathBuf, reason: String },
 }
 
 #[cfg(test)]

@@ -3,6 +3,9 @@
 //! `labels/` and `classes.txt`. Everything is written into a staging folder
 //! inside the output folder and swapped in at the end, so a failed run keeps
 //! the previous outputs and a re-run never leaves a mix of old and new.
+//! A marker file says the folder is ours: entries of a folder without it
+//! are never replaced. A run over some frames (`--frames`) into a labelled
+//! folder keeps every other frame's files and their COCO records.
 
 use super::coco::{assemble, frame_record, yolo_classes, CocoInfo, FrameRecord};
 use super::label::{FrameLabel, Labeler};
@@ -13,11 +16,16 @@ use crate::scan::{Frame, Scan};
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder};
 use rayon::prelude::*;
+use std::collections::BTreeSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
 /// Entries of the output folder a run owns; replaced as a whole, `coco.json` last.
 const OWNED: [&str; 5] = ["masks", "depth", "labels", "classes.txt", "coco.json"];
+/// Per-frame folders among [`OWNED`] (one file per frame, named by its stem).
+const PER_FRAME: [&str; 3] = ["masks", "depth", "labels"];
+/// Marks a folder whose owned entries `label` wrote and may replace.
+pub const MARKER: &str = ".nerflabel-labels";
 
 /// What to write besides masks and COCO.
 #[derive(Clone, Debug, Default)]
@@ -131,12 +139,24 @@ pub fn write_labels(
     if frames.is_empty() {
         return Err(LabelError::NoFrames(options.frames.unwrap_or(FrameRange { start: None, end: None })));
     }
-    fs::create_dir_all(out).map_err(io_err(out))?;
+    let labelled_before = claim(out)?;
     let staging = out.join(format!(".staging-{}", std::process::id()));
     if staging.exists() {
         fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
     }
-    let result = stage(&staging, scan, boxes, labeler, options, &frames, progress).and_then(|summary| {
+    let partial = options.frames.is_some() && labelled_before && out.join("coco.json").is_file();
+    let result = stage(&staging, scan, boxes, labeler, options, &frames, progress).and_then(|mut summary| {
+        if partial {
+            let names: BTreeSet<&str> = frames.iter().map(|f| f.name.as_str()).collect();
+            let dropped = carry_over(out, &staging, &names)?;
+            merge_coco(&out.join("coco.json"), &staging.join("coco.json"), &frames)?;
+            if !dropped.is_empty() {
+                summary.warnings.push(format!(
+                    "the relabelled frames' old {} files were removed: this run did not write them (add --depth / --yolo to rewrite them)",
+                    dropped.join(" and ")
+                ));
+            }
+        }
         swap_in(out, &staging)?;
         Ok(LabelSummary { out: out.to_path_buf(), ..summary })
     });
@@ -144,6 +164,111 @@ pub fn write_labels(
         let _ = fs::remove_dir_all(&staging);
     }
     result
+}
+
+/// Make `out` a label folder: refuse one that holds an owned entry without
+/// the marker (a scan, another tool's output), create it and its marker
+/// otherwise. Returns whether it held labels before.
+fn claim(out: &Path) -> Result<bool, LabelError> {
+    let marked = out.join(MARKER).is_file();
+    if !marked {
+        if let Some(entry) = OWNED.iter().find(|name| out.join(name).exists()) {
+            return Err(LabelError::NotOurs { path: out.to_path_buf(), entry: entry.to_string() });
+        }
+    }
+    fs::create_dir_all(out).map_err(io_err(out))?;
+    if !marked {
+        let marker = out.join(MARKER);
+        atomic::write_file(&marker, b"written by `nerflabel label`: its masks, depth, labels, classes.txt and coco.json are replaced by the next run\n")
+            .map_err(io_err(&marker))?;
+    }
+    Ok(marked)
+}
+
+/// Partial run: bring every other frame's files from `out` into `staging`
+/// (hard links, so they stay byte-identical), and `classes.txt` when this
+/// run wrote none. Returns the per-frame kinds whose files of the
+/// relabelled frames were dropped because this run did not rewrite them.
+fn carry_over(out: &Path, staging: &Path, relabelled: &BTreeSet<&str>) -> Result<Vec<&'static str>, LabelError> {
+    let mut dropped = Vec::new();
+    for dir in PER_FRAME {
+        let (old, new) = (out.join(dir), staging.join(dir));
+        if !old.is_dir() {
+            continue;
+        }
+        fs::create_dir_all(&new).map_err(io_err(&new))?;
+        for entry in fs::read_dir(&old).map_err(io_err(&old))? {
+            let entry = entry.map_err(io_err(&old))?;
+            let path = entry.path();
+            let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let target = new.join(entry.file_name());
+            if target.exists() {
+                continue;
+            }
+            if relabelled.contains(stem.as_str()) {
+                if !dropped.contains(&dir) {
+                    dropped.push(dir);
+                }
+                continue;
+            }
+            if fs::hard_link(&path, &target).is_err() {
+                fs::copy(&path, &target).map_err(io_err(&path))?;
+            }
+        }
+    }
+    let (old, new) = (out.join("classes.txt"), staging.join("classes.txt"));
+    if old.is_file() && !new.exists() {
+        fs::copy(&old, &new).map_err(io_err(&old))?;
+    }
+    Ok(dropped)
+}
+
+/// Partial run: the staged `coco.json` gains the images and annotations of
+/// every frame of the old one that this run did not relabel; image and
+/// annotation ids are renumbered in frame order.
+fn merge_coco(old_path: &Path, staged_path: &Path, relabelled: &[&Frame]) -> Result<(), LabelError> {
+    let merge_err = |reason: String| LabelError::Merge { path: old_path.to_path_buf(), reason };
+    let read = |path: &Path| -> Result<serde_json::Value, LabelError> {
+        let bytes = fs::read(path).map_err(io_err(path))?;
+        serde_json::from_slice(&bytes).map_err(|e| merge_err(format!("its coco.json is not valid JSON ({e})")))
+    };
+    let (old, mut new) = (read(old_path)?, read(staged_path)?);
+    if old.get("categories") != new.get("categories") {
+        return Err(merge_err("the boxes' labels (COCO categories) changed since it was written".into()));
+    }
+    let ids: BTreeSet<u64> = relabelled.iter().map(|f| f.id).collect();
+    let frame_of = |image: &serde_json::Value| image.get("frame_id").and_then(|v| v.as_u64());
+    let array = |doc: &serde_json::Value, key: &str| doc.get(key).and_then(|v| v.as_array()).cloned().unwrap_or_default();
+    // (frame id, image, its annotations) from both files.
+    let mut frames: Vec<(u64, serde_json::Value, Vec<serde_json::Value>)> = Vec::new();
+    for (doc, keep) in [(&old, false), (&new, true)] {
+        let annotations = array(doc, "annotations");
+        for image in array(doc, "images") {
+            let frame = frame_of(&image).ok_or_else(|| merge_err("an image has no frame_id".into()))?;
+            if ids.contains(&frame) != keep {
+                continue;
+            }
+            let id = image.get("id").and_then(|v| v.as_u64()).ok_or_else(|| merge_err("an image has no id".into()))?;
+            let own = annotations.iter().filter(|a| a.get("image_id").and_then(|v| v.as_u64()) == Some(id)).cloned().collect();
+            frames.push((frame, image, own));
+        }
+    }
+    frames.sort_by_key(|(frame, _, _)| *frame);
+    let (mut images, mut annotations) = (Vec::new(), Vec::new());
+    for (i, (_, mut image, own)) in frames.into_iter().enumerate() {
+        let image_id = i as u64 + 1;
+        image["id"] = image_id.into();
+        images.push(image);
+        for mut a in own {
+            a["id"] = (annotations.len() as u64 + 1).into();
+            a["image_id"] = image_id.into();
+            annotations.push(a);
+        }
+    }
+    new["images"] = images.into();
+    new["annotations"] = annotations.into();
+    let json = serde_json::to_vec(&new).map_err(|source| LabelError::Json { path: staged_path.to_path_buf(), source })?;
+    atomic::write_file(staged_path, &json).map_err(io_err(staged_path))
 }
 
 /// Write everything into `staging`.

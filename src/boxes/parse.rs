@@ -135,7 +135,14 @@ pub fn read_boxes(path: &Path) -> Result<BoxSet, BoxError> {
     if bytes > MAX_FILE_BYTES {
         return Err(BoxError::TooLarge { path: path.to_path_buf(), bytes });
     }
-    let text = std::fs::read_to_string(path).map_err(read_err)?;
+    // Devices and pipes report no length: read at most one byte past the cap.
+    let mut raw = Vec::new();
+    std::io::Read::read_to_end(&mut std::io::Read::take(std::fs::File::open(path).map_err(read_err)?, MAX_FILE_BYTES + 1), &mut raw)
+        .map_err(read_err)?;
+    if raw.len() as u64 > MAX_FILE_BYTES {
+        return Err(BoxError::TooLarge { path: path.to_path_buf(), bytes: raw.len() as u64 });
+    }
+    let text = String::from_utf8(raw).map_err(|_| BoxError::Format { path: path.to_path_buf(), problem: "not UTF-8 text".into() })?;
     parse_boxes(&text, path)
 }
 
@@ -145,6 +152,8 @@ pub fn parse_boxes(text: &str, source: &Path) -> Result<BoxSet, BoxError> {
     if text.len() as u64 > MAX_FILE_BYTES {
         return Err(BoxError::TooLarge { path: source.to_path_buf(), bytes: text.len() as u64 });
     }
+    // Editors on Windows may start the file with a byte-order mark.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let root: Value = serde_json::from_str(text).map_err(|e| BoxError::Json { path: source.to_path_buf(), source: e })?;
     let root = root.as_object().ok_or_else(|| format("expected a JSON object with a `boxes` array".into()))?;
     if let Some(key) = root.keys().find(|k| k.as_str() != "boxes") {
@@ -209,6 +218,11 @@ fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
     let size = DVec3::from_array(numbers::<3>(obj, "size")?);
     if let Some(axis) = (0..3).find(|&a| size[a] < 0.0) {
         return Err(field_err("size", format!("edge {} is {}; sizes must not be negative", ["x", "y", "z"][axis], size[axis])));
+    }
+    // Volume and corners must be finite numbers (a size of 1e307 overflows both).
+    let corner = center.abs() + size * 0.5;
+    if !(size.x * size.y * size.z).is_finite() || !corner.is_finite() {
+        return Err(field_err("size", format!("{:?} with centre {:?} is too large: its volume or corners are not finite numbers", size.to_array(), center.to_array())));
     }
     let rotation = match (obj.get("rotation"), obj.get("quaternion")) {
         (Some(_), Some(_)) => return Err(field_err("quaternion", "give either `rotation` or `quaternion`, not both")),
@@ -361,6 +375,8 @@ mod tests {
             (r#"{"label": "a", "center": [0, "x", 0], "size": [1, 1, 1]}"#, "center", "element 1 must be a number"),
             (r#"{"label": "a", "center": [0, 0, 0]}"#, "size", "missing"),
             (r#"{"label": "a", "center": [0, 0, 0], "size": [1, -1, 1]}"#, "size", "edge y is -1"),
+            (r#"{"label": "a", "center": [0, 0, 0], "size": [1e307, 1e307, 1]}"#, "size", "too large"),
+            (r#"{"label": "a", "center": [1.7e308, 0, 0], "size": [1e308, 1, 1]}"#, "size", "too large"),
             (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, null]}"#, "size", "element 2 must be a number"),
             (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1, 1]}"#, "size", "expected 3 numbers, found 4"),
             (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "colour": "red"}"#, "colour", "unknown key"),
@@ -424,5 +440,17 @@ mod tests {
         let r = parse(text).unwrap().boxes[0].rotation;
         assert!((r.transpose() * r - DMat3::IDENTITY).abs_diff_eq(DMat3::ZERO, 1e-12));
         assert!((r.determinant() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn byte_order_mark_is_accepted_and_dev_zero_is_capped() {
+        // Regression: a BOM gave a bare "line 1 column 1".
+        let set = parse("\u{feff}{\"boxes\": [{\"label\": \"a\", \"center\": [0, 0, 0], \"size\": [1, 1, 1]}]}").unwrap();
+        assert_eq!(set.boxes.len(), 1);
+        // Regression: /dev/zero (no length) was read past the size cap.
+        if Path::new("/dev/zero").exists() {
+            let err = read_boxes(Path::new("/dev/zero")).unwrap_err().to_string();
+            assert!(err.starts_with("/dev/zero") && err.contains("larger than any boxes file"), "{err}");
+        }
     }
 }

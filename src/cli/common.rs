@@ -1,12 +1,15 @@
 //! Helpers shared by the subcommands: loading a scan with its warnings,
-//! default output paths, progress bars, Ctrl-C.
+//! default output paths, progress bars, Ctrl-C and SIGTERM.
 
 use super::ScanArgs;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
+use nerflabel::nerf::model_file::{Model, ScanMatch};
 use nerflabel::scan::Scan;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use signal_hook::consts::{SIGINT, SIGTERM};
+use signal_hook::iterator::Signals;
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::time::Duration;
 
 /// Load and validate a scan, printing its warnings to stderr.
@@ -17,6 +20,40 @@ pub fn load_scan(args: &ScanArgs) -> anyhow::Result<Scan> {
         eprintln!("warning: {warning}");
     }
     Ok(scan)
+}
+
+/// Read a model and the CRC32 of its file. A missing file suggests fitting;
+/// any other problem is reported as it is (it names the file first).
+pub fn read_model(path: &Path) -> anyhow::Result<(Model, u32)> {
+    if !path.exists() {
+        anyhow::bail!(
+            "{}: no model here: run `nerflabel fit` first, or give its path with --model (label can also use --source sensor)",
+            path.display()
+        );
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read the model", path.display()))?;
+    let checksum = crc32fast::hash(&bytes);
+    Ok((Model::from_bytes(&bytes, path)?, checksum))
+}
+
+/// Refuse a model fitted to another scan (or to this one before its poses
+/// changed) unless `force`, which only warns.
+pub fn check_model_scan(model: &Model, path: &Path, scan: &Scan, force: bool) -> anyhow::Result<()> {
+    match model.matches_scan(scan) {
+        ScanMatch::Same => {}
+        ScanMatch::Unknown => eprintln!(
+            "warning: {}: the model does not record which scan it was fitted to (an earlier version wrote it); make sure it belongs to this scan",
+            path.display()
+        ),
+        ScanMatch::Other(what) if force => {
+            eprintln!("warning: {}: the model belongs to another scan ({what}); using it anyway (--force)", path.display())
+        }
+        ScanMatch::Other(what) => anyhow::bail!(
+            "{}: the model was fitted to another scan, or to this one before it changed ({what}); refit with `nerflabel fit`, or pass --force to use it anyway",
+            path.display()
+        ),
+    }
+    Ok(())
 }
 
 /// SCAN/nerflabel, where outputs go by default.
@@ -39,18 +76,36 @@ pub fn progress_bar(len: u64, template: &str) -> ProgressBar {
 }
 
 static STOP: AtomicBool = AtomicBool::new(false);
+/// The signal that set [`STOP`] (0 = none).
+static SIGNAL: AtomicI32 = AtomicI32::new(0);
 
-/// Flag set by the first Ctrl-C; a second Ctrl-C exits at once (outputs
-/// are written atomically, so nothing half-written is left behind).
+/// Flag set by the first Ctrl-C (SIGINT) or SIGTERM; a second signal exits at
+/// once (outputs are written atomically, so nothing half-written is left).
 pub fn stop_flag() -> &'static AtomicBool {
     static INSTALLED: std::sync::Once = std::sync::Once::new();
-    INSTALLED.call_once(|| {
-        let _ = ctrlc::set_handler(|| {
-            if STOP.swap(true, Ordering::SeqCst) {
-                std::process::exit(130);
-            }
-            eprintln!("\ninterrupted: finishing the current step and saving (Ctrl-C again to abort)");
-        });
+    INSTALLED.call_once(|| match Signals::new([SIGINT, SIGTERM]) {
+        Ok(mut signals) => {
+            std::thread::spawn(move || {
+                for signal in signals.forever() {
+                    if STOP.swap(true, Ordering::SeqCst) {
+                        std::process::exit(128 + signal);
+                    }
+                    SIGNAL.store(signal, Ordering::SeqCst);
+                    let name = if signal == SIGTERM { "SIGTERM" } else { "Ctrl-C" };
+                    eprintln!("\ninterrupted ({name}): finishing the current step and saving (signal again to abort)");
+                }
+            });
+        }
+        Err(e) => eprintln!("warning: cannot catch Ctrl-C or SIGTERM ({e}): an interrupted run will not save its work"),
     });
     &STOP
+}
+
+/// Exit status of a run that a signal stopped after saving its work:
+/// 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM), as shells do.
+pub fn interrupted_status() -> Option<u8> {
+    match SIGNAL.load(Ordering::SeqCst) {
+        0 => None,
+        signal => u8::try_from(128 + signal).ok(),
+    }
 }

@@ -46,7 +46,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let model_path = super::common::model_path(&scan_dir, None);
     outcome.model.save(&model_path)?;
     let json = serde_json::to_vec_pretty(&outcome.report)?;
-    nerflabel::atomic::write_file(&model_path.with_file_name("fit_report.json"), &json)?;
+    nerflabel::atomic::write_file(&nerflabel::nerf::fit::report_path(&model_path), &json)?;
     println!(
         "2. fit: {} steps in {:.1} s, {:.0} k samples/s; model {}",
         outcome.report.counters.steps,
@@ -68,7 +68,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let boxes = read_boxes(&boxes_path)?;
     for source in [DepthSource::Sensor, DEFAULT_SOURCE] {
         let options = LabelOptions { source, ..LabelOptions::default() };
-        let labeler = Labeler::new(&boxes, Some(&outcome.model), options)?;
+        let mut labeler = Labeler::new(&boxes, Some(&outcome.model), options)?;
+        labeler.exclude_supports(&scan)?;
         let t = Instant::now();
         let mut scores = MaskScores::default();
         for frame in &scan.frames {
@@ -87,7 +88,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     }
     let out = scan_dir.join("nerflabel").join("labels");
     let info = CocoInfo { source: DEFAULT_SOURCE.name().into(), nerflabel_version: env!("CARGO_PKG_VERSION").into(), ..CocoInfo::default() };
-    let labeler = Labeler::new(&boxes, Some(&outcome.model), LabelOptions::default())?;
+    let mut labeler = Labeler::new(&boxes, Some(&outcome.model), LabelOptions::default())?;
+    labeler.exclude_supports(&scan)?;
     let summary = write_labels(&out, &scan, &boxes, &labeler, &OutputOptions { info, ..OutputOptions::default() }, &|_| {})?;
     println!("   wrote masks and coco.json ({} annotations) to {}", summary.annotations, out.display());
 

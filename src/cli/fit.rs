@@ -5,7 +5,8 @@ use super::FitArgs;
 use anyhow::{bail, Context};
 use nerflabel::nerf::config::Preset;
 use nerflabel::nerf::checkpoint::{checkpoint_path, Checkpoint};
-use nerflabel::nerf::fit::{fit, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
+use nerflabel::nerf::fit::{fit, report_path, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
+use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     if let Some(t) = args.time {
@@ -21,12 +22,26 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             bail!("--learning-rate must be a positive number, got {lr}");
         }
     }
+    if let Some(l) = args.lambda_depth {
+        if !(l.is_finite() && l >= 0.0) {
+            bail!("--lambda-depth must be a finite number >= 0, got {l}");
+        }
+    }
     let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
     let model_path = model_path(&args.scan.scan, args.model.as_ref());
-    let report_path = model_path.with_file_name("fit_report.json");
+    let report_path = report_path(&model_path);
     let checkpoint = checkpoint_path(&model_path);
-    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
+    let outputs = [
+        Output::file(&model_path, "the model"),
+        Output::file(&report_path, "the fit report"),
+        Output::file(&checkpoint, "the checkpoint"),
+    ];
+    check_outputs(&outputs, None)?;
     let scan = load_scan(&args.scan)?;
+    check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
+    // Held until the model, report and checkpoint are written.
+    let _lock = lock_output(&model_path, "this model")?;
+    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
     let options = FitOptions {
         time: args.time,
         steps: args.steps,
@@ -86,6 +101,17 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         None => fit(&scan, &options, stop, &mut on_event)?,
     };
     bar.finish_and_clear();
+    if let Some(why) = outcome.report.failure() {
+        // Keep the previous model and report; this run's report goes aside for diagnosis.
+        let failed = model_path.with_extension("failed.report.json");
+        let json = serde_json::to_vec_pretty(&outcome.report).context("cannot serialise the fit report")?;
+        nerflabel::atomic::write_file(&failed, &json).with_context(|| format!("cannot write {}", failed.display()))?;
+        bail!(
+            "the fit trained no usable model: {why}. {} and its report are unchanged; this run's report: {}",
+            model_path.display(),
+            failed.display()
+        );
+    }
     outcome.model.save(&model_path)?;
     let json = serde_json::to_vec_pretty(&outcome.report).context("cannot serialise the fit report")?;
     nerflabel::atomic::write_file(&report_path, &json).with_context(|| format!("cannot write {}", report_path.display()))?;

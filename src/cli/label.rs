@@ -1,11 +1,10 @@
 //! `nerflabel label`: 3D boxes to masks, 2D boxes, object poses and COCO.
 
-use super::common::{load_scan, model_path, progress_bar, work_dir};
+use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir};
 use super::LabelArgs;
-use anyhow::Context;
 use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::{read_boxes, write_labels, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions, DEFAULT_SOURCE};
-use nerflabel::nerf::model_file::Model;
+use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
@@ -17,14 +16,25 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let boxes = read_boxes(&args.boxes)?;
     let model_path = model_path(scan_dir, args.model.as_ref());
     let model = if source.needs_model() {
-        Some(Model::load(&model_path).with_context(|| format!("source `{source}` needs a model: run `nerflabel fit` first"))?)
+        Some(read_model(&model_path)?.0)
     } else {
         None
     };
-    let scan = load_scan(&args.scan)?;
     let out = args.out.clone().unwrap_or_else(|| work_dir(scan_dir).join("labels"));
-    let options = LabelOptions { source, full_depth: args.depth, ..LabelOptions::default() };
-    let labeler = Labeler::new(&boxes, model.as_ref(), options)?;
+    let outputs = [Output::folder(&out, "the labels")];
+    check_outputs(&outputs, None)?;
+    let scan = load_scan(&args.scan)?;
+    check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
+    if let Some(model) = &model {
+        check_model_scan(model, &model_path, &scan, args.force)?;
+    }
+    let _lock = lock_output(&out, "these labels")?;
+    let options = LabelOptions { source, full_depth: args.depth, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
+    let mut labeler = Labeler::new(&boxes, model.as_ref(), options)?;
+    let planes = labeler.exclude_supports(&scan)?;
+    if planes > 0 {
+        eprintln!("excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)");
+    }
     let info = CocoInfo {
         description: "nerflabel instance labels".into(),
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),
@@ -44,8 +54,9 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     for warning in &summary.warnings {
         eprintln!("warning: {warning}");
     }
+    let work = if source.needs_model() { "rendered" } else { "classified" };
     println!(
-        "labelled {} frames with {} depth: {} annotations in {}; rendered {:.1} % of the pixels (rays that can meet a box)",
+        "labelled {} frames with {} depth: {} annotations in {}; {work} {:.1} % of the pixels (rays that can meet a box)",
         summary.frames,
         source,
         summary.annotations,

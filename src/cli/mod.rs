@@ -10,6 +10,7 @@ mod label;
 mod report;
 mod synth;
 
+pub use common::interrupted_status;
 use clap::{Args, Parser, Subcommand};
 use nerflabel::scan::{Layout, LoadOptions};
 use std::path::PathBuf;
@@ -207,7 +208,7 @@ pub struct ReportArgs {
     /// Draw PSNR and depth error against seconds into this PNG.
     #[arg(long)]
     pub plot: Option<PathBuf>,
-    /// Model file whose report to read (the report sits beside it; default SCAN/nerflabel/model.nlf).
+    /// Model file whose report to read (MODEL.report.json, or fit_report.json beside it from earlier versions; default SCAN/nerflabel/model.nlf).
     #[arg(long)]
     pub model: Option<PathBuf>,
 }
@@ -237,6 +238,17 @@ pub struct LabelArgs {
     /// Also write YOLO txt boxes.
     #[arg(long)]
     pub yolo: bool,
+    /// Use the model even if it was fitted to another scan or to this scan before its poses changed (warns).
+    #[arg(long)]
+    pub force: bool,
+    /// Label exactly what each box encloses. By default a plane of the
+    /// measured surface that runs through a box and continues well outside
+    /// it (the table, floor or shelf under a loosely drawn box, a wall
+    /// behind it) is excluded from the box, with what lies behind it. An
+    /// object lying flat on its support (a sheet) keeps its box whole; one
+    /// thinner than the plane's measured noise band is lost to the support.
+    #[arg(long)]
+    pub exact_boxes: bool,
 }
 
 #[derive(Args, Debug)]
@@ -264,6 +276,12 @@ pub struct SynthArgs {
     /// Output Parquet file (default SCAN/nerflabel/synth.parquet).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Replace the output file when it exists (otherwise an existing file is refused).
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Use the model even if it was fitted to another scan or to this scan before its poses changed (warns).
+    #[arg(long)]
+    pub force: bool,
     /// Model file (default SCAN/nerflabel/model.nlf).
     #[arg(long)]
     pub model: Option<PathBuf>,

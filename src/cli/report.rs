@@ -3,11 +3,13 @@
 use super::common::model_path;
 use super::ReportArgs;
 use anyhow::Context;
-use nerflabel::nerf::fit::{CurvePoint, FitReport};
+use nerflabel::nerf::fit::{legacy_report_path, report_path, CurvePoint, FitReport};
 use nerflabel::plot::{render_panels, write_png, Panel, Series};
 
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
-    let path = model_path(&args.scan, args.model.as_ref()).with_file_name("fit_report.json");
+    let model = model_path(&args.scan, args.model.as_ref());
+    // Reports of earlier versions sit in `fit_report.json` beside the model.
+    let path = Some(report_path(&model)).filter(|p| p.exists()).unwrap_or_else(|| legacy_report_path(&model));
     let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the fit report (run `nerflabel fit` first)", path.display()))?;
     let report: FitReport = serde_json::from_slice(&bytes).with_context(|| format!("{}: not a valid fit report", path.display()))?;
     println!("fit of {} ({} training frames, preset {:?}, seed {}, {} threads)", report.scan, report.train_frames, report.preset, report.seed, report.threads);

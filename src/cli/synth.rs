@@ -1,26 +1,32 @@
 //! `nerflabel synth`: render novel views to one Parquet file.
 
-use super::common::{load_scan, model_path, progress_bar, stop_flag, work_dir};
+use super::common::{check_model_scan, load_scan, read_model, model_path, progress_bar, stop_flag, work_dir};
 use super::SynthArgs;
-use anyhow::Context;
+use anyhow::bail;
 use nerflabel::boxes::read_boxes;
-use nerflabel::nerf::model_file::Model;
+use nerflabel::outputs::{check_outputs, Output, ProtectedInputs};
 use nerflabel::synth::{read_poses, synthesize, SynthOptions, SynthProgress};
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
     let model_path = model_path(scan_dir, args.model.as_ref());
     let out = args.out.clone().unwrap_or_else(|| work_dir(scan_dir).join("synth.parquet"));
+    let outputs = [Output::file(&out, "the synthetic views")];
+    check_outputs(&outputs, None)?;
     // Boxes: --boxes, else SCAN/boxes.json when present, else none (scene centre).
     let boxes_path = args.boxes.clone().or_else(|| Some(scan_dir.join("boxes.json")).filter(|p| p.exists()));
     let boxes = boxes_path.as_deref().map(read_boxes).transpose()?;
     let poses = args.poses.as_deref().map(read_poses).transpose()?;
-    let model_bytes = std::fs::read(&model_path)
-        .with_context(|| format!("{}: cannot read the model (run `nerflabel fit` first)", model_path.display()))?;
-    let model_checksum = crc32fast::hash(&model_bytes);
-    let model = Model::from_bytes(&model_bytes, &model_path)?;
-    drop(model_bytes);
+    let (model, model_checksum) = read_model(&model_path)?;
+    if boxes.is_none() {
+        eprintln!("warning: no boxes (no --boxes, no {}): every mask will be empty", scan_dir.join("boxes.json").display());
+    }
     let scan = load_scan(&args.scan)?;
+    check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
+    check_model_scan(&model, &model_path, &scan, args.force)?;
+    if out.exists() && !args.overwrite {
+        bail!("{}: exists; pass --overwrite to replace it, or choose another --out", out.display());
+    }
     let options = SynthOptions {
         n: args.n,
         width: args.width,

@@ -101,7 +101,19 @@ pub struct Timings {
     pub checkpoint_s: f64,
 }
 
-/// Contents of `fit_report.json`.
+/// Where the report of a model lives: `model.nlf` -> `model.report.json`,
+/// so two models in one folder keep their own reports.
+pub fn report_path(model: &std::path::Path) -> std::path::PathBuf {
+    model.with_extension("report.json")
+}
+
+/// The report name of earlier versions (one per folder), read when a model
+/// has no report of its own.
+pub fn legacy_report_path(model: &std::path::Path) -> std::path::PathBuf {
+    model.with_file_name("fit_report.json")
+}
+
+/// Contents of a fit report (`MODEL.report.json`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct FitReport {
     pub nerflabel_version: String,
@@ -133,6 +145,65 @@ fn one() -> f32 {
     1.0
 }
 
+impl FitReport {
+    /// Why this fit gave no usable model, if it did not: the divergence
+    /// guard skipped most batches, no sample was trained, or the held-out
+    /// error is absurd (not finite, or a depth error larger than the whole
+    /// scene, the diagonal of the unit cube the scene was mapped into).
+    pub fn failure(&self) -> Option<String> {
+        let c = &self.counters;
+        if c.steps > 0 && c.skipped_batches * 2 > c.steps {
+            return Some(format!(
+                "the divergence guard skipped {} of {} batches (a learning rate far too high, or data the field cannot fit)",
+                c.skipped_batches, c.steps
+            ));
+        }
+        if c.steps > 0 && c.samples == 0 {
+            return Some("no training sample fell inside the scene: the scene bounds miss what the cameras see".into());
+        }
+        let point = self.curve.last()?;
+        if !point.psnr.is_finite() {
+            return Some(format!("the held-out PSNR is {}", point.psnr));
+        }
+        let scene_m = self.metres_per_unit * 3f64.sqrt();
+        match point.depth_mae_m {
+            Some(mae) if !(mae <= scene_m) => Some(format!(
+                "the held-out depth error ({mae:.3} m) is larger than the whole scene ({scene_m:.3} m)"
+            )),
+            _ => None,
+        }
+    }
+}
+
+impl FitOptions {
+    /// Refuse settings no fit can train with, naming the setting.
+    pub fn validate(&self) -> Result<(), FitError> {
+        let bad = |name: &'static str, reason: String| Err(FitError::Setting { name, reason });
+        if let Some(l) = self.lambda_depth {
+            if !(l.is_finite() && l >= 0.0) {
+                return bad("--lambda-depth", format!("must be a finite number >= 0, got {l}"));
+            }
+        }
+        if let Some(lr) = self.learning_rate {
+            if !(lr.is_finite() && lr > 0.0) {
+                return bad("--learning-rate", format!("must be a positive finite number, got {lr}"));
+            }
+        }
+        if let Some(t) = self.time {
+            if !(t.is_finite() && t > 0.0) {
+                return bad("--time", format!("must be a positive number of seconds, got {t}"));
+            }
+        }
+        if self.steps == Some(0) {
+            return bad("--steps", "must be at least 1".into());
+        }
+        if !(self.eval_interval_s.is_finite() && self.eval_interval_s > 0.0) {
+            return bad("eval_interval_s", format!("must be a positive number of seconds, got {}", self.eval_interval_s));
+        }
+        Ok(())
+    }
+}
+
 /// What the caller hears during a fit.
 pub enum FitEvent<'a> {
     /// Set-up done; training starts.
@@ -160,6 +231,8 @@ pub enum FitError {
     Geometry(#[from] GeometryError),
     #[error("the scan has no frame left for training")]
     NoTrainingFrames,
+    #[error("{name} {reason}")]
+    Setting { name: &'static str, reason: String },
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
 }
@@ -218,6 +291,7 @@ pub fn prepare(scan: &Scan, opts: &FitOptions) -> Result<Prepared, FitError> {
 }
 
 fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<Prepared, FitError> {
+    opts.validate()?;
     let mut timings = Timings::default();
     let t = Instant::now();
     let bounds = scene_bounds(scan, &BoundsOptions::default())?;
@@ -415,6 +489,8 @@ fn run(
         steps: trainer.counters.steps,
         seed: opts.seed,
         scan: scan.root.display().to_string(),
+        scan_frames: Some(scan.frames.len()),
+        scan_fingerprint: Some(crate::scan::fingerprint::scan_fingerprint(scan)),
         sections: [0; 5],
     };
     let occupancy = trainer.rendering_occupancy();

@@ -6,6 +6,8 @@
 use super::field::{Field, FieldConfig};
 use super::occupancy::OccupancyGrid;
 use super::train::{StepSpec, TrainConfig};
+use crate::scan::fingerprint::scan_fingerprint;
+use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -34,6 +36,12 @@ pub struct ModelHeader {
     pub steps: u64,
     pub seed: u64,
     pub scan: String,
+    /// Frame count and fingerprint (`scan::fingerprint`) of the scan it was
+    /// fitted to; `None` in models of earlier versions.
+    #[serde(default)]
+    pub scan_frames: Option<usize>,
+    #[serde(default)]
+    pub scan_fingerprint: Option<u64>,
     /// Lengths of the sections: grid, density MLP, colour MLP, occupancy
     /// densities (f32 each), then carved-cell mask (u64 words).
     pub sections: [usize; 5],
@@ -45,6 +53,16 @@ pub struct Model {
     pub header: ModelHeader,
     pub field: Field,
     pub occupancy: OccupancyGrid,
+}
+
+/// Whether a model was fitted to a scan.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ScanMatch {
+    Same,
+    /// The model predates scan fingerprints.
+    Unknown,
+    /// Another scan, or this one since changed: what differs.
+    Other(String),
 }
 
 /// Why a model file could not be read or written.
@@ -65,6 +83,21 @@ pub enum ModelError {
 }
 
 impl Model {
+    /// Whether this model was fitted to `scan` as it is now (frames, names,
+    /// sizes, intrinsics, poses, which frames have depth).
+    pub fn matches_scan(&self, scan: &Scan) -> ScanMatch {
+        let (Some(frames), Some(fingerprint)) = (self.header.scan_frames, self.header.scan_fingerprint) else {
+            return ScanMatch::Unknown;
+        };
+        if frames != scan.frames.len() {
+            ScanMatch::Other(format!("fitted to {frames} frames, this scan has {}", scan.frames.len()))
+        } else if fingerprint != scan_fingerprint(scan) {
+            ScanMatch::Other(format!("same {frames} frames, but other poses, intrinsics, image sizes or frame names"))
+        } else {
+            ScanMatch::Same
+        }
+    }
+
     /// Serialise to bytes (header sections filled in from the parameters).
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut header = self.header.clone();
@@ -187,6 +220,8 @@ mod tests {
             steps: 7,
             seed: 3,
             scan: "scan".into(),
+            scan_frames: Some(2),
+            scan_fingerprint: Some(11),
             sections: [0; 5],
         };
         Model { header, field, occupancy }

@@ -128,6 +128,10 @@ pub struct SceneBounds {
     pub options: BoundsOptions,
 }
 
+/// User bounds must hold at least 1 in this many sampled depth points
+/// (a few flying pixels inside bounds placed away from the scene do not count).
+const USER_BOUNDS_MIN_SHARE: usize = 1000;
+
 /// Compute robust scene bounds for `scan`.
 pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds, GeometryError> {
     if scan.frames.is_empty() {
@@ -145,6 +149,12 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
         let b = DAabb::new(user.min, user.max);
         if !b.is_valid() || !b.min.cmplt(b.max).all() {
             return Err(GeometryError::InvalidUserBounds { min: user.min, max: user.max });
+        }
+        // Bounds holding (almost) none of the measured surface train nothing.
+        let total = samples.points.len();
+        let inside = samples.points.par_iter().filter(|p| b.contains(**p)).count();
+        if total > 0 && inside * USER_BOUNDS_MIN_SHARE < total {
+            return Err(GeometryError::UserBoundsMissScene { min: user.min, max: user.max, inside, total });
         }
         (b, BoundsSource::User)
     } else if let Some(b) = point_box {

@@ -18,6 +18,11 @@ pub enum GeometryError {
     )]
     InvalidUserBounds { min: DVec3, max: DVec3 },
     #[error(
+        "scene bounds (bbox.txt) min {min:?} max {max:?} hold {inside} of {total} sampled depth points: \
+         they miss the scene the depth shows; fix or delete bbox.txt"
+    )]
+    UserBoundsMissScene { min: DVec3, max: DVec3, inside: usize, total: usize },
+    #[error(
         "cannot size the scene: no usable depth and all {cameras} camera centres \
          coincide, so nothing gives the scene a scale"
     )]

@@ -105,7 +105,7 @@ impl Room {
                 }
             })
             .collect();
-        Scan { root: "synthetic".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new() }
+        Scan { root: "synthetic".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new(), inputs: Vec::new() }
     }
 }
 

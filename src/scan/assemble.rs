@@ -2,7 +2,7 @@
 //! frame's images in parallel (one rayon task per frame), bring depth onto
 //! the colour grid and intrinsics to the colour resolution.
 
-use super::image_io::{decode_depth, decode_rgb};
+use super::image_io::{decode_depth, decode_rgb, dimensions};
 use super::rigid::rigid_inverse;
 use super::validate::{accept_pose, check_intrinsics};
 use super::{resample_depth_to, Bounds, Frame, Intrinsics, Layout, LoadOptions, Scan, ScanError, MAX_FRAMES};
@@ -48,6 +48,9 @@ pub(crate) struct Listing {
     pub intrinsics_source: PathBuf,
     pub bounds: Option<Bounds>,
     pub warnings: Vec<String>,
+    /// Files read besides each frame's images and the intrinsics (pose
+    /// files, index files, `bbox.txt`): outputs must never touch them.
+    pub inputs: Vec<PathBuf>,
 }
 
 impl Listing {
@@ -62,6 +65,7 @@ impl Listing {
             intrinsics_source,
             bounds: None,
             warnings: Vec::new(),
+            inputs: Vec::new(),
         }
     }
 }
@@ -106,6 +110,7 @@ pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Sc
             PoseKind::WorldToCamera => rigid_inverse(&pose),
         };
     }
+    check_pixel_budget(&listing)?;
     let decoded: Vec<Result<Frame, ScanError>> = listing
         .frames
         .par_iter()
@@ -131,13 +136,94 @@ pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Sc
             }
         }
     }
+    check_depth_sizes(&frames, &listing)?;
+    let mut inputs = std::mem::take(&mut listing.inputs);
+    inputs.push(listing.intrinsics_source.clone());
+    for spec in &listing.frames {
+        inputs.push(spec.rgb.clone());
+        inputs.extend(spec.depth.clone());
+    }
     Ok(Scan {
         root: listing.root,
         layout: listing.layout,
         frames,
         bounds: listing.bounds,
         warnings,
+        inputs,
     })
+}
+
+/// Bytes the pipeline holds per colour pixel of a scan: the decoded colour
+/// and depth on the colour grid, and the training views' per-pixel colour,
+/// depth and ray data (measured order of magnitude, rounded up).
+const BYTES_PER_PIXEL: u64 = 32;
+
+/// Refuse a scan whose pixels cannot fit in this machine's available memory,
+/// from the first frame's header, before anything is decoded.
+fn check_pixel_budget(listing: &Listing) -> Result<(), ScanError> {
+    let Some(first) = listing.frames.first() else { return Ok(()) };
+    let (w, h) = dimensions(&first.rgb)?;
+    let pixels = (w as u64 * h as u64).saturating_mul(listing.frames.len() as u64);
+    let needed = pixels.saturating_mul(BYTES_PER_PIXEL);
+    let Some(available) = available_memory() else { return Ok(()) };
+    if needed > available {
+        return Err(ScanError::Invalid(
+            listing.root.clone(),
+            format!(
+                "{} frames of {w}x{h} are {:.1} G pixels; at ~{BYTES_PER_PIXEL} bytes per pixel that needs {:.1} GB, more than the {:.1} GB of memory available; downscale the images or use fewer frames",
+                listing.frames.len(),
+                pixels as f64 / 1e9,
+                needed as f64 / 1e9,
+                available as f64 / 1e9
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// `MemAvailable` of /proc/meminfo in bytes (Linux); `None` elsewhere.
+fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb.saturating_mul(1024))
+}
+
+/// Every depth image has one size, and the colour images' aspect ratio
+/// (rescaling depth of another shape would stretch it silently).
+fn check_depth_sizes(frames: &[Frame], listing: &Listing) -> Result<(), ScanError> {
+    let with_depth = frames.iter().zip(&listing.frames).filter_map(|(f, spec)| Some((f.depth_size?, f.size(), spec.depth.as_ref()?)));
+    let mut first: Option<((u32, u32), &PathBuf)> = None;
+    for (size, rgb, path) in with_depth {
+        match first {
+            None => {
+                let (aspect_depth, aspect_rgb) = (size.0 as f64 / size.1 as f64, rgb.0 as f64 / rgb.1 as f64);
+                // One pixel of rounding on the depth image's shorter side is tolerated.
+                let tolerance = 1.0 / size.0.min(size.1) as f64 + 0.01;
+                if (aspect_depth / aspect_rgb - 1.0).abs() > tolerance {
+                    return Err(ScanError::Image {
+                        path: path.clone(),
+                        reason: format!(
+                            "depth is {}x{} (aspect {aspect_depth:.3}) but colour is {}x{} (aspect {aspect_rgb:.3}): rescaling would stretch it; crop or register the depth to the colour camera",
+                            size.0, size.1, rgb.0, rgb.1
+                        ),
+                    });
+                }
+                first = Some((size, path));
+            }
+            Some((want, first_path)) if size != want => {
+                return Err(ScanError::Image {
+                    path: path.clone(),
+                    reason: format!(
+                        "depth image is {}x{}, other depth images are {}x{} ({})",
+                        size.0, size.1, want.0, want.1, first_path.display()
+                    ),
+                });
+            }
+            Some(_) => {}
+        }
+    }
+    Ok(())
 }
 
 /// Decode one frame's colour and depth (one rayon task).

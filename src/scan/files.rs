@@ -56,8 +56,17 @@ pub(crate) fn files_by_id(
             .file_name()
             .and_then(|n| n.to_str())
             .is_some_and(|n| n.starts_with('.'));
-        if hidden || !super::image_io::has_extension(&path, exts) || path.is_dir() {
+        if hidden || !super::image_io::has_extension(&path, exts) {
             continue;
+        }
+        // Never open a FIFO (it blocks) or a device; a folder named like a
+        // frame file is a mistake worth naming, not a missing frame.
+        let meta = std::fs::metadata(&path).map_err(|e| ScanError::io(&path, e))?;
+        if meta.is_dir() {
+            return Err(ScanError::Invalid(path, format!("is a directory, expected a .{} file", exts.join("/."))));
+        }
+        if !meta.is_file() {
+            return Err(ScanError::Invalid(path, "is not a regular file (a pipe, socket or device); refusing to read it".into()));
         }
         let Some(id) = stem_id(&path) else {
             skipped.push(

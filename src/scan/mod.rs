@@ -14,6 +14,7 @@ mod depth;
 mod detect;
 mod error;
 mod files;
+pub mod fingerprint;
 mod image_io;
 mod native;
 mod nerfstudio;
@@ -157,6 +158,8 @@ pub struct Scan {
     pub bounds: Option<Bounds>,
     /// Non-fatal findings (skipped frames, re-orthonormalised poses, ...).
     pub warnings: Vec<String>,
+    /// Every file the scan was read from (images, poses, intrinsics, lists).
+    pub inputs: Vec<PathBuf>,
 }
 
 impl Scan {
@@ -198,5 +201,6 @@ pub fn load(root: &Path, options: &LoadOptions) -> Result<Scan, ScanError> {
     let mut scan = assemble::assemble(listing, options)?;
     scan.frames.sort_by_key(|f| f.id);
     validate::check_scan(&scan)?;
+    validate::exclude_outlier_poses(&mut scan)?;
     Ok(scan)
 }

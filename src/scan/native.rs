@@ -41,15 +41,18 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let k_path = require_file(root, "intrinsics.txt", "3x3 camera matrix for the rgb resolution")?;
     let intrinsics = text::intrinsics(&read_text(&k_path)?).map_err(|e| ScanError::parse(&k_path, e))?;
     let mut listing = Listing::new(root, Layout::Native, PoseKind::WorldToCamera, k_path);
+    listing.inputs.extend([rgb_dir.clone(), pose_dir.clone()]);
 
     let bbox = root.join("bbox.txt");
     if bbox.is_file() {
+        listing.inputs.push(bbox.clone());
         listing.bounds = Some(text::bounds(&read_text(&bbox)?).map_err(|e| ScanError::parse(&bbox, e))?);
     }
 
     let rgb = files_by_id(&rgb_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     let poses = files_by_id(&pose_dir, &["txt"], &mut listing.warnings)?;
     let depth = optional_depth_files(root, &mut listing.warnings)?;
+    listing.inputs.extend(Some(root.join("depth")).filter(|d| d.is_dir()));
     if rgb.is_empty() && poses.is_empty() {
         return Err(ScanError::NoFrames(
             root.to_path_buf(),
@@ -77,6 +80,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     for (id, rgb_path) in &rgb {
         let Some(pose_path) = poses.get(id) else { continue };
         let pose = text::matrix4(&read_text(pose_path)?).map_err(|e| ScanError::parse(pose_path, e))?;
+        listing.inputs.push(pose_path.clone());
         listing.frames.push(FrameSpec {
             id: *id,
             name: stem(rgb_path),

@@ -27,6 +27,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let color = files_by_id(&color_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     let poses = files_by_id(&pose_dir, &["txt"], &mut listing.warnings)?;
     let depth = optional_depth_files(root, &mut listing.warnings)?;
+    listing.inputs.extend(Some(root.join("depth")).filter(|d| d.is_dir()));
     if color.is_empty() && poses.is_empty() {
         return Err(ScanError::NoFrames(
             root.to_path_buf(),
@@ -42,6 +43,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     for (id, rgb) in &color {
         let Some(pose_path) = poses.get(id) else { continue };
         let pose = text::matrix4(&read_text(pose_path)?).map_err(|e| ScanError::parse(pose_path, e))?;
+        listing.inputs.push(pose_path.clone());
         if !pose.is_finite() {
             lost.push(*id);
             continue;

@@ -36,6 +36,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
         })?;
     let intrinsics = text::intrinsics(&read_text(&k_path)?).map_err(|e| ScanError::parse(&k_path, e))?;
     let mut listing = Listing::new(root, Layout::Stray, PoseKind::CameraToWorld, k_path);
+    listing.inputs.push(odometry_path.clone());
 
     let images = files_by_id(&image_dir, &RGB_EXTENSIONS, &mut listing.warnings)?;
     if images.is_empty() {
@@ -46,6 +47,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     }
     check_frame_count(&image_dir, images.len())?;
     let depth = optional_depth_files(root, &mut listing.warnings)?;
+    listing.inputs.extend(Some(root.join("depth")).filter(|d| d.is_dir()));
     let odometry = read_odometry(&odometry_path)?;
 
     for (id, rgb) in &images {

@@ -219,6 +219,7 @@ mod tests {
             ],
             bounds: None,
             warnings: vec!["w1".into()],
+            inputs: Vec::new(),
         };
         let s = summarize(&scan);
         assert_eq!(s.frames, 3);

@@ -135,6 +135,9 @@ pub fn matrix4(text: &str) -> Result<DMat4, TextError> {
 
 /// Pinhole intrinsics from a 3x3 K, a 4x4 or 3x4 with K top-left, or one
 /// row `fx fy cx cy`.
+/// Largest skew accepted, as a fraction of fx.
+const MAX_SKEW: f64 = 1e-4;
+
 pub fn intrinsics(text: &str) -> Result<Intrinsics, TextError> {
     let m = matrix(text)?;
     let rows = m.len();
@@ -155,8 +158,17 @@ pub fn intrinsics(text: &str) -> Result<Intrinsics, TextError> {
                     "not a camera matrix: expected rows 'fx s cx', '0 fy cy', '0 0 1'",
                 ));
             }
+            // The camera model has no skew: refuse one that would move pixels
+            // (over 1e-4 fx, i.e. under 0.05 px across a 640-pixel image).
+            let (fx, skew) = (get(0, 0), get(0, 1));
+            if skew.abs() > MAX_SKEW * fx.abs() {
+                return Err(TextError::new(
+                    0,
+                    format!("skew {skew} (K[0][1]) is not supported: the camera model has none; set it to 0 if it is negligible, or undistort the images"),
+                ));
+            }
             Ok(Intrinsics {
-                fx: get(0, 0) / k22,
+                fx: fx / k22,
                 fy: get(1, 1) / k22,
                 cx: get(0, 2) / k22,
                 cy: get(1, 2) / k22,
@@ -275,6 +287,14 @@ mod tests {
         assert_eq!(intrinsics("500 510 320 240").unwrap(), k);
         assert!(intrinsics("500 0 320\n0 510 240\n1 0 1\n").is_err());
         assert!(intrinsics("1 2\n3 4\n").is_err());
+    }
+
+    #[test]
+    fn skew_is_refused_not_dropped_unless_negligible() {
+        // Regression: K[0][1] was dropped silently.
+        let err = intrinsics("500 2.5 320\n0 510 240\n0 0 1\n").unwrap_err().reason;
+        assert!(err.contains("skew 2.5"), "{err}");
+        assert!(intrinsics("500 0.00001 320\n0 510 240\n0 0 1\n").is_ok(), "rounding noise is accepted");
     }
 
     #[test]

@@ -3,10 +3,17 @@
 
 use super::rigid::{orthonormality_error, orthonormalize};
 use super::{Intrinsics, Scan, ScanError, MAX_FRAMES};
-use glam::{DMat3, DMat4, DVec4};
+use glam::{DMat3, DMat4, DVec3, DVec4};
 
 /// Tolerance on `|R^T R - I|` entries and on `det R - 1`.
 pub const POSE_TOLERANCE: f64 = 1e-3;
+/// `--fix-poses` repairs rotations at most this far from orthonormal
+/// (rounding in exported text); a rotation scaled x2 (deviation 3) is a
+/// wrong matrix, not a rounding error.
+pub const FIX_POSES_MAX_ERROR: f64 = 0.05;
+/// Plausible field of view of a pinhole camera, degrees.
+const MIN_FOV_DEG: f64 = 1.0;
+const MAX_FOV_DEG: f64 = 179.0;
 
 /// Outcome of checking one pose.
 #[derive(Clone, Debug, PartialEq)]
@@ -68,6 +75,16 @@ pub fn check_intrinsics(k: &Intrinsics, width: u32, height: u32) -> Result<(), S
     if k.fx <= 0.0 || k.fy <= 0.0 {
         return Err(format!("focal lengths must be positive, found fx {} fy {}", k.fx, k.fy));
     }
+    // A pinhole camera sees between 1 and 179 degrees; fx = 1e-300 (180) or
+    // 1e9 (0) are typos or wrong units, and nothing trains with them.
+    let fov = |f: f64, size: f64| (2.0 * (0.5 * size / f).atan()).to_degrees();
+    let (fov_x, fov_y) = (fov(k.fx, w), fov(k.fy, h));
+    if !(MIN_FOV_DEG..=MAX_FOV_DEG).contains(&fov_x) || !(MIN_FOV_DEG..=MAX_FOV_DEG).contains(&fov_y) {
+        return Err(format!(
+            "focal lengths fx {} fy {} give a field of view of {fov_x:.3} x {fov_y:.3} degrees on the {width}x{height} image; expected {MIN_FOV_DEG} to {MAX_FOV_DEG} (wrong units, or intrinsics for another resolution?)",
+            k.fx, k.fy
+        ));
+    }
     if !(-0.5 * w..=1.5 * w).contains(&k.cx) || !(-0.5 * h..=1.5 * h).contains(&k.cy) {
         return Err(format!(
             "principal point ({:.1}, {:.1}) is far outside the {width}x{height} image",
@@ -91,6 +108,12 @@ pub(crate) fn accept_pose(
     };
     if fix {
         if let PoseCheck::NotOrthonormal { error } = check {
+            if error > FIX_POSES_MAX_ERROR {
+                return Err(ScanError::Pose {
+                    source_name: source.to_string(),
+                    reason: format!("{problem}; too far from a rotation for --fix-poses (it repairs deviations up to {FIX_POSES_MAX_ERROR})"),
+                });
+            }
             if let Some(fixed) = orthonormalize(&pose) {
                 warnings.push(format!("{source}: rotation re-orthonormalised (deviation {error:.2e})"));
                 return Ok(fixed);
@@ -144,6 +167,81 @@ pub(crate) fn check_scan(scan: &Scan) -> Result<(), ScanError> {
     Ok(())
 }
 
+/// A camera this many times farther from the trajectory's median centre
+/// than the typical frame (or than the scene's viewing distance, or a step
+/// of the trajectory) is an outlier: a straight walk reaches 2x, a room scan
+/// about 3x, a wrong pose file orders of magnitude more.
+const OUTLIER_DISTANCE_RATIO: f64 = 20.0;
+/// More outliers than this share of the frames means the trajectory itself
+/// is not trustworthy: refuse rather than guess which frames are right.
+const MAX_OUTLIER_SHARE: f64 = 0.25;
+
+/// Exclude frames whose camera lies far outside the rest of the trajectory
+/// (a translation typed in the wrong unit, a corrupted pose file), with a
+/// warning naming each; refuse when too many frames would go. The scale is
+/// the scan's own: the median distance of the cameras from their median
+/// centre, the median step between consecutive frames and the median
+/// measured depth, whichever is largest.
+pub(crate) fn exclude_outlier_poses(scan: &mut Scan) -> Result<(), ScanError> {
+    let n = scan.frames.len();
+    if n < 3 {
+        return Ok(());
+    }
+    let centres: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
+    let median = |mut v: Vec<f64>| -> f64 {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(0.0)
+    };
+    let centre = DVec3::new(
+        median(centres.iter().map(|c| c.x).collect()),
+        median(centres.iter().map(|c| c.y).collect()),
+        median(centres.iter().map(|c| c.z).collect()),
+    );
+    let distances: Vec<f64> = centres.iter().map(|c| c.distance(centre)).collect();
+    let spread = median(distances.clone());
+    let step = median(centres.windows(2).map(|w| w[0].distance(w[1])).collect());
+    let depth = median(
+        scan.frames
+            .iter()
+            .filter_map(|f| f.depth.as_ref())
+            .flat_map(|d| d.metres.iter().step_by(97).copied().filter(|&z| z > 0.0).map(f64::from))
+            .collect(),
+    );
+    let scale = spread.max(step).max(depth);
+    if !(scale > 0.0) {
+        return Ok(());
+    }
+    let limit = OUTLIER_DISTANCE_RATIO * scale;
+    let outliers: Vec<usize> = (0..n).filter(|&i| distances[i] > limit).collect();
+    if outliers.is_empty() {
+        return Ok(());
+    }
+    let names: Vec<String> = outliers.iter().map(|&i| format!("{} ({:.3e} m)", scan.frames[i].name, distances[i])).collect();
+    if outliers.len() as f64 > MAX_OUTLIER_SHARE * n as f64 {
+        return Err(ScanError::Invalid(
+            scan.root.clone(),
+            format!(
+                "{} of {n} cameras lie more than {limit:.3} m ({OUTLIER_DISTANCE_RATIO}x the scan's scale of {scale:.3} m) from the trajectory's centre: {}; the poses are not trustworthy (wrong units, or a broken export?)",
+                outliers.len(),
+                names.join(", ")
+            ),
+        ));
+    }
+    scan.warnings.push(format!(
+        "excluded {} frame(s) whose camera lies far from the rest of the trajectory (more than {limit:.3} m from its centre, {OUTLIER_DISTANCE_RATIO}x the scan's scale of {scale:.3} m): {}; check their pose files",
+        outliers.len(),
+        names.join(", ")
+    ));
+    let drop: std::collections::BTreeSet<usize> = outliers.into_iter().collect();
+    let mut index = 0;
+    scan.frames.retain(|_| {
+        let keep = !drop.contains(&index);
+        index += 1;
+        keep
+    });
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -183,6 +281,10 @@ mod tests {
         assert_eq!(check_pose(&fixed), PoseCheck::Ok);
         assert_eq!(warnings.len(), 1);
         assert!(warnings[0].contains("re-orthonormalised"));
+        // Regression: a rotation scaled x2 is a wrong matrix, not rounding.
+        let doubled = DMat4::from_scale(DVec3::splat(2.0));
+        let err = accept_pose(doubled, "pose/000001.txt", true, &mut warnings).unwrap_err().to_string();
+        assert!(err.contains("too far from a rotation for --fix-poses"), "{err}");
         // A reflection is never "fixed".
         let mirror = DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0));
         assert!(accept_pose(mirror, "p", true, &mut warnings).is_err());
@@ -206,5 +308,10 @@ mod tests {
             .contains("principal point"));
         assert!(check_intrinsics(&Intrinsics { cy: -250.0, ..k }, 640, 480).is_err());
         assert!(check_intrinsics(&Intrinsics { cx: f64::NAN, ..k }, 640, 480).is_err());
+        // Regression: fx = 1e-300 (a 180-degree view) trained nothing and exited 0.
+        let err = check_intrinsics(&Intrinsics { fx: 1e-300, ..k }, 640, 480).unwrap_err();
+        assert!(err.contains("field of view"), "{err}");
+        assert!(check_intrinsics(&Intrinsics { fy: 1e9, ..k }, 640, 480).is_err());
+        assert!(check_intrinsics(&Intrinsics { fx: 30.0, fy: 30.0, ..k }, 640, 480).is_ok(), "a 169-degree wide angle is fine");
     }
 }

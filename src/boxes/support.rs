@@ -1,0 +1,261 @@
+//! Loosely drawn boxes: users draw boxes with centimetres of margin that
+//! dip into the table, floor or shelf the object stands on, or reach the
+//! wall behind it. A plane of the measured surface that runs through such a
+//! box and continues well outside it (a support or a wall; the object ends
+//! at the box) is excluded from the box: points on it, within its measured
+//! thickness, or behind it never belong to the object. A box drawn tight
+//! to its support (not reaching past the plane by more than its band)
+//! already leaves it out and keeps everything it encloses.
+//!
+//! Every threshold comes from the scan: a plane's band is three robust
+//! standard deviations of its own points' residuals (for rendered depth,
+//! half a finest grid cell: see `Labeler::plane_band`), and a plane counts
+//! only when a fifth of the surface around the box lies on it.
+//!
+//! Limits: an object flat on its support (a sheet of paper) has no point
+//! off the plane, so its box keeps everything; an object thinner than the
+//! band loses its pixels to the support; a curved support is no plane and
+//! is not excluded; without sensor depth near the box nothing is found.
+
+use super::parse::{Box3, BoxSet};
+use crate::rng::Rng;
+use glam::DVec3;
+
+/// The shell around a box that shows whether a plane continues outside it:
+/// the box grown by this fraction of its size on every side.
+const SHELL_GROWTH: f64 = 0.5;
+/// A plane counts when at least this share of the shell's points lie on it.
+const MIN_SHELL_SHARE: f64 = 0.2;
+/// Fewer shell points than this say nothing about the surroundings.
+const MIN_SHELL_POINTS: usize = 50;
+/// Planes tried per box (a support, then a wall behind the object).
+const MAX_PLANES: usize = 2;
+/// RANSAC hypotheses per plane.
+const RANSAC_TRIALS: usize = 300;
+/// Band half-width in robust standard deviations of the plane's residuals.
+const BAND_SIGMAS: f64 = 3.0;
+
+/// A plane excluded from one box: `normal . p + offset` is the signed
+/// distance, positive on the object's side.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExcludedPlane {
+    pub normal: DVec3,
+    pub offset: f64,
+    /// Points closer to the plane than this (or behind it) are excluded.
+    pub band: f64,
+}
+
+impl ExcludedPlane {
+    /// Signed distance of `p` to the plane, positive on the object's side.
+    pub fn distance(&self, p: DVec3) -> f64 {
+        self.normal.dot(p) + self.offset
+    }
+
+    /// Whether `p` lies on the plane (within its band) or behind it.
+    pub fn excludes(&self, p: DVec3) -> bool {
+        self.distance(p) <= self.band
+    }
+}
+
+/// The planes excluded from each box of `boxes` (indexed like `boxes.boxes`),
+/// found among `points`, surface points of the scan in world metres.
+pub fn excluded_planes(boxes: &BoxSet, points: &[DVec3], seed: u64) -> Vec<Vec<ExcludedPlane>> {
+    boxes.boxes.iter().enumerate().map(|(i, b)| planes_of_box(b, points, seed.wrapping_add(i as u64))).collect()
+}
+
+fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64) -> Vec<ExcludedPlane> {
+    let half = b.size * 0.5;
+    let grown = half + b.size * SHELL_GROWTH;
+    let inside = |q: DVec3| q.abs().cmple(half).all();
+    let (mut shell, mut inner) = (Vec::new(), Vec::new());
+    for &p in points {
+        let q = b.to_local(p);
+        if inside(q) {
+            inner.push(p);
+        } else if q.abs().cmple(grown).all() {
+            shell.push(p);
+        }
+    }
+    let mut rng = Rng::new(seed, 0x5u64);
+    let mut planes = Vec::new();
+    let needed = ((shell.len() as f64 * MIN_SHELL_SHARE) as usize).max(MIN_SHELL_POINTS);
+    let reach = half.x.max(half.y).max(half.z);
+    for _ in 0..MAX_PLANES {
+        if shell.len() < needed {
+            break;
+        }
+        // Hypotheses from three shell points; scored with a threshold a
+        // fiftieth of the box's half-extent, refined from the data below.
+        let coarse = reach / 50.0;
+        let Some((normal, offset)) = ransac(&shell, coarse, &mut rng) else { break };
+        let Some((normal, offset, sigma)) = refine(&shell, normal, offset, coarse) else { break };
+        let band = BAND_SIGMAS * sigma;
+        let on_plane = shell.iter().filter(|p| (normal.dot(**p) + offset).abs() <= band).count();
+        if on_plane < needed {
+            break;
+        }
+        shell.retain(|p| (normal.dot(*p) + offset).abs() > band);
+        // The plane must run through the box, and the box must hold
+        // something off it: that side is the object's.
+        let centre = normal.dot(b.center) + offset;
+        let radius = (0..3).map(|a| half[a] * normal.dot(b.rotation.col(a)).abs()).sum::<f64>();
+        if centre.abs() > radius + band {
+            continue;
+        }
+        let off: Vec<f64> = inner.iter().map(|p| normal.dot(*p) + offset).filter(|d| d.abs() > band).collect();
+        if off.len() < (inner.len() / 100).max(10) {
+            continue;
+        }
+        let above = off.iter().filter(|&&d| d > 0.0).count();
+        let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
+        // A box drawn tight to the support does not reach past it: it
+        // already leaves the support out, and nothing is excluded.
+        if radius - sign * centre <= band {
+            continue;
+        }
+        planes.push(ExcludedPlane { normal: normal * sign, offset: offset * sign, band });
+    }
+    planes
+}
+
+/// The plane with the most points within `threshold`, from random triples.
+fn ransac(points: &[DVec3], threshold: f64, rng: &mut Rng) -> Option<(DVec3, f64)> {
+    let n = points.len();
+    // Score on a subsample: plenty to rank hypotheses, bounded cost.
+    let step = (n / 2000).max(1);
+    let mut best: Option<(usize, DVec3, f64)> = None;
+    for _ in 0..RANSAC_TRIALS {
+        let pick = |rng: &mut Rng| points[(rng.f64() * n as f64) as usize % n];
+        let (a, b, c) = (pick(rng), pick(rng), pick(rng));
+        let normal = (b - a).cross(c - a);
+        let len = normal.length();
+        if !(len > 1e-12) {
+            continue;
+        }
+        let normal = normal / len;
+        let offset = -normal.dot(a);
+        let score = points.iter().step_by(step).filter(|p| (normal.dot(**p) + offset).abs() <= threshold).count();
+        if best.is_none_or(|(s, _, _)| score > s) {
+            best = Some((score, normal, offset));
+        }
+    }
+    best.map(|(_, normal, offset)| (normal, offset))
+}
+
+/// Least-squares plane through the points near a hypothesis, iterated with
+/// a band of three robust standard deviations; returns the plane and the
+/// robust standard deviation of its points' residuals.
+fn refine(points: &[DVec3], mut normal: DVec3, mut offset: f64, threshold: f64) -> Option<(DVec3, f64, f64)> {
+    let mut band = threshold;
+    let mut sigma = threshold / BAND_SIGMAS;
+    for _ in 0..3 {
+        let near: Vec<DVec3> = points.iter().copied().filter(|p| (normal.dot(*p) + offset).abs() <= band).collect();
+        if near.len() < 3 {
+            return None;
+        }
+        (normal, offset) = fit_plane(&near)?;
+        let mut residuals: Vec<f64> = near.iter().map(|p| (normal.dot(*p) + offset).abs()).collect();
+        residuals.sort_by(|a, b| a.total_cmp(b));
+        // 1.4826 x median absolute residual: the standard deviation of Gaussian noise.
+        sigma = (1.4826 * residuals[residuals.len() / 2]).max(f64::EPSILON);
+        band = BAND_SIGMAS * sigma;
+    }
+    Some((normal, offset, sigma))
+}
+
+/// Least-squares plane: the eigenvector of the smallest eigenvalue of the
+/// points' covariance (by inverse iteration on the 3x3 matrix).
+fn fit_plane(points: &[DVec3]) -> Option<(DVec3, f64)> {
+    let n = points.len() as f64;
+    let mean = points.iter().fold(DVec3::ZERO, |s, p| s + *p) / n;
+    let mut cov = glam::DMat3::ZERO;
+    for p in points {
+        let d = *p - mean;
+        cov += glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    cov *= 1.0 / n;
+    // Shift slightly so the inverse exists, then power-iterate on it.
+    let scale = cov.x_axis.x + cov.y_axis.y + cov.z_axis.z;
+    let inverse = (cov + glam::DMat3::IDENTITY * (scale * 1e-9 + 1e-300)).inverse();
+    if !inverse.is_finite() {
+        return None;
+    }
+    let mut v = DVec3::new(0.577, 0.577, 0.577);
+    for _ in 0..50 {
+        let next = inverse * v;
+        let len = next.length();
+        if !(len.is_finite() && len > 0.0) {
+            return None;
+        }
+        v = next / len;
+    }
+    Some((v, -v.dot(mean)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DMat3;
+
+    fn box3(center: DVec3, size: DVec3) -> Box3 {
+        Box3 { label: "obj".into(), instance_id: 1, center, size, rotation: DMat3::IDENTITY }
+    }
+
+    /// A table (z = 0, 2 mm noise) with a 10 cm cube on it and a wall at y = 0.1.
+    fn scene(rng: &mut Rng) -> Vec<DVec3> {
+        let mut points = Vec::new();
+        let noise = |rng: &mut Rng| (rng.f64() - 0.5) * 0.004;
+        for _ in 0..40_000 {
+            let (x, y) = (rng.f64() - 0.5, rng.f64() * 0.8 - 0.5);
+            if y < 0.1 && !(x.abs() < 0.05 && y.abs() < 0.05) {
+                points.push(DVec3::new(x, y, noise(rng)));
+            }
+        }
+        for _ in 0..20_000 {
+            points.push(DVec3::new(rng.f64() - 0.5, 0.1 + noise(rng), rng.f64() * 0.5));
+        }
+        for _ in 0..10_000 {
+            // The cube's top and sides.
+            let (u, v) = (rng.f64() * 0.1 - 0.05, rng.f64() * 0.1);
+            points.push(DVec3::new(u, -0.05, v));
+            points.push(DVec3::new(u, 0.05, v));
+            points.push(DVec3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
+        }
+        points
+    }
+
+    #[test]
+    fn a_loose_box_excludes_the_table_and_the_wall_and_keeps_the_cube() {
+        let mut rng = Rng::new(3, 0);
+        let points = scene(&mut rng);
+        // 3 cm margins, bottom 2 cm into the table, back 1 cm into the wall.
+        let loose = box3(DVec3::new(0.0, 0.03, 0.045), DVec3::new(0.16, 0.16, 0.17));
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1).remove(0);
+        assert_eq!(planes.len(), 2, "{planes:?}");
+        let kept: Vec<&DVec3> = points.iter().filter(|p| loose.contains(**p) && !planes.iter().any(|pl| pl.excludes(**p))).collect();
+        let table_or_wall = kept.iter().filter(|p| p.z.abs() < 0.003 || (p.y - 0.1).abs() < 0.003).count();
+        let cube_in_box = points.iter().filter(|p| loose.contains(**p) && p.z > 0.01 && p.y < 0.09).count();
+        assert_eq!(table_or_wall, 0, "no table or wall point is kept");
+        assert!(kept.len() as f64 >= 0.95 * cube_in_box as f64, "the cube is kept: {} of {cube_in_box}", kept.len());
+        for plane in &planes {
+            assert!(plane.band > 0.001 && plane.band < 0.01, "band from the 2 mm noise: {}", plane.band);
+            assert!(plane.distance(DVec3::new(0.0, 0.0, 0.05)) > 0.0, "the cube's centre is on the kept side");
+        }
+    }
+
+    #[test]
+    fn a_box_around_a_flat_sheet_keeps_it() {
+        // A sheet flat on the table has nothing off the plane: nothing is excluded.
+        let mut rng = Rng::new(4, 0);
+        let points: Vec<DVec3> = (0..30_000).map(|_| DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0)).collect();
+        let sheet = box3(DVec3::new(0.0, 0.0, 0.0), DVec3::new(0.2, 0.3, 0.02));
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1)[0].is_empty());
+    }
+
+    #[test]
+    fn a_box_with_no_surface_around_it_excludes_nothing() {
+        let points = vec![DVec3::new(5.0, 5.0, 5.0); 100];
+        let b = box3(DVec3::ZERO, DVec3::splat(0.1));
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, 1)[0].is_empty());
+    }
+}

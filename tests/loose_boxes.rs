@@ -3,22 +3,12 @@
 //! through the box and on outside it) is excluded and the object kept;
 //! `--exact-boxes` labels everything the box encloses, table included.
 
+mod common;
+
+use common::copy_dir;
 use nerflabel::boxes::metrics::MaskScores;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
 
 fn read_ids(path: &Path) -> Vec<u16> {
     match image::open(path).unwrap() {

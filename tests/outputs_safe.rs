@@ -4,41 +4,12 @@
 //! frame, each model has its own report, `synth` never replaces a file
 //! silently, and two fits of one model cannot run at once.
 
+mod common;
+
+use common::{copy_dir, one_view_poses, run, s, small_scan, stderr};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-}
-
-fn run(args: &[&str]) -> Output {
-    bin().args(args).output().expect("the binary runs")
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
-
-/// A copy of the committed small fixture (24 frames, 160x120).
-fn small_scan(dir: &Path) -> PathBuf {
-    let scan = dir.join("scan");
-    copy_dir(&Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small"), &scan);
-    scan
-}
+use std::process::Command;
 
 /// Every file under `dir` with its bytes.
 fn contents(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
@@ -60,10 +31,6 @@ fn contents(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
 /// The scan's input files (everything but the work folder `nerflabel/`).
 fn inputs(scan: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     contents(scan).into_iter().filter(|(p, _)| !p.starts_with("nerflabel")).collect()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 #[test]
@@ -253,9 +220,7 @@ fn synth_refuses_to_replace_a_file_without_overwrite() {
     std::fs::write(&out, b"precious").unwrap();
     // One given view: a two-step model has no geometry to sample views around.
     let poses = dir.path().join("poses.json");
-    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
-    let view = serde_json::json!({"views": [{"camera_to_world": identity, "intrinsics": [20.0, 20.0, 7.5, 5.5], "width": 16, "height": 12}]});
-    std::fs::write(&poses, view.to_string()).unwrap();
+    one_view_poses(&poses);
     let synth = |extra: &[&str]| {
         let mut args = vec!["synth", s(&scan), "--poses", s(&poses), "--out", s(&out)];
         args.extend_from_slice(extra);
@@ -275,7 +240,7 @@ fn a_second_fit_of_the_same_model_stops_at_once_naming_the_first() {
     let dir = tempfile::tempdir().unwrap();
     let scan = small_scan(dir.path());
     let model = dir.path().join("m.nlf");
-    let mut first = bin()
+    let mut first = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
         .args(["fit", s(&scan), "--steps", "100000", "--preset", "fast", "--model", s(&model)])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())

@@ -2,6 +2,9 @@
 //! `load` must fail, and the one-line message must name the offending file
 //! (or frame) and say what is wrong.
 
+mod common;
+
+use common::{copy_dir, small_fixture};
 use image::{ImageBuffer, Luma, Rgb, RgbImage};
 use nerflabel::scan::{load, LoadOptions, MAX_FRAMES};
 use std::fmt::Write as _;
@@ -630,23 +633,6 @@ fn the_valid_base_scans_load() {
         r#"{"fl_x": 8, "frames": [{"file_path": "images/0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
     );
     assert_eq!(load(dir.path(), &LoadOptions::default()).unwrap().frames.len(), 1);
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
-
-fn small_fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small")
 }
 
 #[test]

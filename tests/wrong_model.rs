@@ -2,33 +2,10 @@
 //! `synth` refuse a model whose scan fingerprint (frames, names, sizes,
 //! intrinsics, poses) differs from the scan's, unless `--force`.
 
+mod common;
+
+use common::{copy_dir, one_view_poses, run, s, stderr};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(args).output().expect("the binary runs")
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// Move every camera of a native scan by 0.3 m along x (world-to-camera files).
 fn shift_poses(scan: &Path) {
@@ -65,9 +42,7 @@ fn a_model_of_the_scan_before_its_poses_moved_is_refused_unless_forced() {
     let msg = stderr(&o);
     assert!(msg.contains("fitted to another scan") && msg.contains("other poses") && msg.contains("--force"), "{msg}");
     let poses = dir.path().join("poses.json");
-    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
-    let view = serde_json::json!({"views": [{"camera_to_world": identity, "intrinsics": [20.0, 20.0, 7.5, 5.5], "width": 16, "height": 12}]});
-    std::fs::write(&poses, view.to_string()).unwrap();
+    one_view_poses(&poses);
     let views = dir.path().join("v.parquet");
     let synth = |extra: &[&str]| {
         let mut args = vec!["synth", s(&scan), "--poses", s(&poses), "--out", s(&views), "--overwrite"];
@@ -117,9 +92,7 @@ fn messages_say_what_is_true_for_corrupt_models_missing_boxes_and_the_sensor_sou
     let fit = run(&["fit", s(&scan), "--steps", "2", "--preset", "fast", "--holdout", "0"]);
     assert!(fit.status.success(), "{}", stderr(&fit));
     let poses = dir.path().join("poses.json");
-    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
-    let view = serde_json::json!({"views": [{"camera_to_world": identity, "intrinsics": [20.0, 20.0, 7.5, 5.5], "width": 16, "height": 12}]});
-    std::fs::write(&poses, view.to_string()).unwrap();
+    one_view_poses(&poses);
     let o = run(&["synth", s(&scan), "--poses", s(&poses), "--out", s(&dir.path().join("v.parquet"))]);
     assert!(o.status.success() && stderr(&o).contains("every mask will be empty"), "{}", stderr(&o));
 }

@@ -1,0 +1,53 @@
+//! Helpers shared by the end-to-end tests: copies of the committed fixture
+//! and running the binary.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Copy a folder tree.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+/// The committed small fixture (24 frames, 160x120, exact masks in gt/).
+pub fn small_fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small")
+}
+
+/// A copy of the small fixture at `dir/scan`.
+pub fn small_scan(dir: &Path) -> PathBuf {
+    let scan = dir.join("scan");
+    copy_dir(&small_fixture(), &scan);
+    scan
+}
+
+/// Run the binary with `args`.
+pub fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(args).output().expect("the binary runs")
+}
+
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A `--poses` file with one 16x12 view from the identity pose (a model of
+/// a few steps has no geometry to sample views around).
+pub fn one_view_poses(path: &Path) {
+    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+    let view = serde_json::json!({"views": [{"camera_to_world": identity, "intrinsics": [20.0, 20.0, 7.5, 5.5], "width": 16, "height": 12}]});
+    std::fs::write(path, view.to_string()).unwrap();
+}

@@ -16,7 +16,8 @@ fn main() -> ExitCode {
             for cause in err.chain().skip(1) {
                 eprintln!("  caused by: {cause}");
             }
-            ExitCode::FAILURE
+            // A run stopped by a signal (synth gives up its views) still says so.
+            cli::interrupted_status().map_or(ExitCode::FAILURE, ExitCode::from)
         }
     }
 }

@@ -9,39 +9,9 @@ use nerflabel::nerf::fit::{fit, report_path, resume, FitEvent, FitOptions, DEFAU
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
-    if let Some(t) = args.time {
-        if !(t.is_finite() && t > 0.0) {
-            bail!("--time must be a positive number of seconds, got {t}");
-        }
-    }
-    if args.steps == Some(0) {
-        bail!("--steps must be at least 1");
-    }
-    if let Some(lr) = args.learning_rate {
-        if !(lr.is_finite() && lr > 0.0) {
-            bail!("--learning-rate must be a positive number, got {lr}");
-        }
-    }
-    if let Some(l) = args.lambda_depth {
-        if !(l.is_finite() && l >= 0.0) {
-            bail!("--lambda-depth must be a finite number >= 0, got {l}");
-        }
-    }
     let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
     let model_path = model_path(&args.scan.scan, args.model.as_ref());
-    let report_path = report_path(&model_path);
     let checkpoint = checkpoint_path(&model_path);
-    let outputs = [
-        Output::file(&model_path, "the model"),
-        Output::file(&report_path, "the fit report"),
-        Output::file(&checkpoint, "the checkpoint"),
-    ];
-    check_outputs(&outputs, None)?;
-    let scan = load_scan(&args.scan)?;
-    check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
-    // Held until the model, report and checkpoint are written.
-    let _lock = lock_output(&model_path, "this model")?;
-    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
     let options = FitOptions {
         time: args.time,
         steps: args.steps,
@@ -54,6 +24,20 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         checkpoint: Some(checkpoint.clone()),
         ..FitOptions::default()
     };
+    // Settings no fit can train with are refused before the scan is read.
+    options.validate()?;
+    let report_path = report_path(&model_path);
+    let outputs = [
+        Output::file(&model_path, "the model"),
+        Output::file(&report_path, "the fit report"),
+        Output::file(&checkpoint, "the checkpoint"),
+    ];
+    check_outputs(&outputs, None)?;
+    let scan = load_scan(&args.scan)?;
+    check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
+    // Held until the model, report and checkpoint are written.
+    let _lock = lock_output(&model_path, "this model")?;
+    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
     let (time, steps) = match &from {
         Some(c) if args.time.is_none() && args.steps.is_none() => (c.header.identity.time, c.header.identity.steps),
         _ => (args.time, args.steps),

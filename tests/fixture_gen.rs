@@ -3,8 +3,7 @@
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 use nerflabel::fixture::{
-    generate, read_meta, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions,
-    Scene, SceneKind,
+    generate, read_meta, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions, Scene, SceneKind,
 };
 use nerflabel::scan::Intrinsics;
 use serde_json::Value;
@@ -25,11 +24,7 @@ fn read_matrix(path: &Path) -> Vec<Vec<f64>> {
     let text = fs::read_to_string(path).unwrap();
     text.lines()
         .filter(|l| !l.trim().is_empty())
-        .map(|l| {
-            l.split_whitespace()
-                .map(|v| v.parse::<f64>().unwrap())
-                .collect()
-        })
+        .map(|l| l.split_whitespace().map(|v| v.parse::<f64>().unwrap()).collect())
         .collect()
 }
 
@@ -43,22 +38,13 @@ fn json_mat4(v: &Value) -> DMat4 {
         .as_array()
         .unwrap()
         .iter()
-        .map(|r| {
-            r.as_array()
-                .unwrap()
-                .iter()
-                .map(|x| x.as_f64().unwrap())
-                .collect()
-        })
+        .map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect())
         .collect();
     mat4(&rows)
 }
 
 fn max_abs_diff(a: &DMat4, b: &DMat4) -> f64 {
-    (*a - *b)
-        .to_cols_array()
-        .iter()
-        .fold(0.0, |m, v| m.max(v.abs()))
+    (*a - *b).to_cols_array().iter().fold(0.0, |m, v| m.max(v.abs()))
 }
 
 fn read_json(path: &Path) -> Value {
@@ -68,22 +54,14 @@ fn read_json(path: &Path) -> Value {
 fn gray16(path: &Path) -> image::ImageBuffer<image::Luma<u16>, Vec<u16>> {
     match image::open(path).unwrap() {
         image::DynamicImage::ImageLuma16(img) => img,
-        other => panic!(
-            "{}: expected 16-bit gray, found {:?}",
-            path.display(),
-            other.color()
-        ),
+        other => panic!("{}: expected 16-bit gray, found {:?}", path.display(), other.color()),
     }
 }
 
 fn gray8(path: &Path) -> image::GrayImage {
     match image::open(path).unwrap() {
         image::DynamicImage::ImageLuma8(img) => img,
-        other => panic!(
-            "{}: expected 8-bit gray, found {:?}",
-            path.display(),
-            other.color()
-        ),
+        other => panic!("{}: expected 8-bit gray, found {:?}", path.display(), other.color()),
     }
 }
 
@@ -93,10 +71,7 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     let out = dir.path().join("small");
     let options = small_options(6, 2);
     let summary = generate(&out, &options).unwrap();
-    assert_eq!(
-        (summary.frames, summary.holdout, summary.depth_size),
-        (6, 2, (32, 24))
-    );
+    assert_eq!((summary.frames, summary.holdout, summary.depth_size), (6, 2, (32, 24)));
     assert!(summary.warnings.is_empty(), "{:?}", summary.warnings);
 
     let scene = Scene::new(SceneKind::Small, 1.0);
@@ -117,11 +92,7 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     let gt_unit = read_json(&out.join("gt/meta.json"))["gt_depth_unit_m"]
         .as_f64()
         .unwrap();
-    let glass = scene
-        .labelled()
-        .find(|o| o.no_sensor_depth)
-        .unwrap()
-        .instance_id;
+    let glass = scene.labelled().find(|o| o.no_sensor_depth).unwrap().instance_id;
     for (i, c2w) in path.scan.iter().enumerate() {
         let name = format!("{i:06}");
         // pose/ holds world-to-camera; its inverse is the render pose.
@@ -165,18 +136,12 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     }
     for (i, c2w) in path.holdout.iter().enumerate() {
         let name = format!("{i:06}");
-        let w2c = mat4(&read_matrix(
-            &out.join(format!("gt/holdout/pose/{name}.txt")),
-        ));
+        let w2c = mat4(&read_matrix(&out.join(format!("gt/holdout/pose/{name}.txt"))));
         assert!(max_abs_diff(&w2c.inverse(), c2w) < 1e-9);
         let rgb = image::open(out.join(format!("gt/holdout/rgb/{name}.png")))
             .unwrap()
             .to_rgb8();
-        assert_eq!(
-            rgb,
-            scene.render(c2w, &k, 80, 60).rgb,
-            "held-out colour is clean"
-        );
+        assert_eq!(rgb, scene.render(c2w, &k, 80, 60).rgb, "held-out colour is clean");
         assert_eq!(
             gray16(&out.join(format!("gt/holdout/depth/{name}.png"))).dimensions(),
             (80, 60)
@@ -200,22 +165,13 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
         .zip(list.iter().zip(tight["boxes"].as_array().unwrap()))
     {
         assert_eq!(b["label"], o.label.as_str());
-        let v3 = |v: &Value| {
-            DVec3::new(
-                v[0].as_f64().unwrap(),
-                v[1].as_f64().unwrap(),
-                v[2].as_f64().unwrap(),
-            )
-        };
+        let v3 = |v: &Value| DVec3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
         let rot = match b.get("rotation") {
             Some(r) => DMat3::from_cols(v3(&r[0]), v3(&r[1]), v3(&r[2])).transpose(),
             None => DMat3::IDENTITY,
         };
         let (center, size) = (v3(&b["center"]), v3(&b["size"]));
-        assert!(
-            (v3(&t["size"]) - o.size).length() < 1e-12
-                && (v3(&t["center"]) - o.center()).length() < 1e-12
-        );
+        assert!((v3(&t["size"]) - o.size).length() < 1e-12 && (v3(&t["center"]) - o.center()).length() < 1e-12);
         for c in 0..8 {
             let s = DVec3::new(
                 (c & 1) as f64 - 0.5,
@@ -255,10 +211,7 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
         ),
         (80, 60, 6, 2)
     );
-    assert_eq!(
-        (parsed_meta.intrinsics, parsed_meta.gt_depth_unit),
-        (k, gt_unit)
-    );
+    assert_eq!((parsed_meta.intrinsics, parsed_meta.gt_depth_unit), (k, gt_unit));
     assert_eq!(parsed_meta.build_scene(), scene);
     let meta = read_json(&out.join("gt/meta.json"));
     assert_eq!(meta["scene"], "small");
@@ -266,9 +219,7 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     assert_eq!(meta["scan_depth"]["unit_m"].as_f64(), Some(0.001));
     let cmd = meta["command"].as_str().unwrap();
     assert!(
-        cmd.starts_with("nerflabel fixture --scene small ")
-            && cmd.contains("--frames 6")
-            && cmd.contains("--seed 11")
+        cmd.starts_with("nerflabel fixture --scene small ") && cmd.contains("--frames 6") && cmd.contains("--seed 11")
     );
 }
 
@@ -283,15 +234,9 @@ fn broken_meta_is_reported_with_its_path() {
         .replace("\"small\"", "\"kitchen\"");
     fs::write(&meta_path, text).unwrap();
     let err = read_meta(&out).unwrap_err().to_string();
-    assert!(
-        err.contains("gt/meta.json") && err.contains("kitchen"),
-        "{err}"
-    );
+    assert!(err.contains("gt/meta.json") && err.contains("kitchen"), "{err}");
     fs::write(&meta_path, "{").unwrap();
-    assert!(read_meta(&out)
-        .unwrap_err()
-        .to_string()
-        .contains("not valid JSON"));
+    assert!(read_meta(&out).unwrap_err().to_string().contains("not valid JSON"));
 }
 
 /// Every file under `root`, relative path -> bytes, sorted.
@@ -349,17 +294,9 @@ fn same_seed_gives_identical_bytes_and_another_seed_other_noise() {
             .filter(|((p, x), (_, y))| p.starts_with(prefix) && x != y)
             .count()
     };
-    assert_eq!(
-        differ("depth/"),
-        4,
-        "another seed must change the sensor noise"
-    );
+    assert_eq!(differ("depth/"), 4, "another seed must change the sensor noise");
     assert_eq!(differ("rgb/"), 4);
-    assert_eq!(
-        differ("boxes.json"),
-        0,
-        "the scene itself does not depend on the seed"
-    );
+    assert_eq!(differ("boxes.json"), 0, "the scene itself does not depend on the seed");
 }
 
 #[test]
@@ -431,23 +368,14 @@ fn refuses_foreign_folder_and_replaces_own_fixture_only_when_asked() {
     fs::create_dir_all(&foreign).unwrap();
     fs::write(foreign.join("notes.txt"), "mine").unwrap();
     let options = small_options(2, 0);
-    assert!(matches!(
-        generate(&foreign, &options),
-        Err(FixtureError::NotEmpty(_))
-    ));
-    assert_eq!(
-        fs::read_to_string(foreign.join("notes.txt")).unwrap(),
-        "mine"
-    );
+    assert!(matches!(generate(&foreign, &options), Err(FixtureError::NotEmpty(_))));
+    assert_eq!(fs::read_to_string(foreign.join("notes.txt")).unwrap(), "mine");
 
     let out = dir.path().join("fx");
     let mut bigger = small_options(3, 0);
     generate(&out, &bigger).unwrap();
     fs::write(out.join("README.txt"), "keep").unwrap();
-    assert!(matches!(
-        generate(&out, &options),
-        Err(FixtureError::Exists(_))
-    ));
+    assert!(matches!(generate(&out, &options), Err(FixtureError::Exists(_))));
     bigger.frames = Some(2);
     bigger.overwrite = true;
     generate(&out, &bigger).unwrap();
@@ -495,4 +423,63 @@ fn full_tabletop_fixture_prints_timing() {
     );
     assert!(summary.valid_depth_fraction > 0.6 && summary.valid_depth_fraction < 0.95);
     assert!(summary.warnings.is_empty(), "{:?}", summary.warnings);
+}
+
+#[test]
+fn realistic_scans_have_jpeg_colour_pose_error_and_drawn_boxes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut o = FixtureOptions::new(SceneKind::Clutter);
+    (o.width, o.height, o.frames, o.holdout, o.seed) = (96, 72, Some(6), Some(0), 5);
+    o.corruptions = Corruptions::realistic();
+    generate(dir.path(), &o).unwrap();
+    let scan = nerflabel::scan::load(dir.path(), &Default::default()).unwrap();
+    assert_eq!(scan.frames.len(), 6);
+    assert!(dir.path().join("rgb/000000.jpg").is_file());
+    assert!(!dir.path().join("rgb/000000.png").exists());
+
+    // Written poses differ from the exact ones by about the configured error, never more than 5 sigma.
+    let (mut shift, mut turn) = (Vec::new(), Vec::new());
+    for i in 0..6 {
+        let name = format!("{i:06}.txt");
+        let written = mat4(&read_matrix(&dir.path().join("pose").join(&name)));
+        let exact = mat4(&read_matrix(&dir.path().join("gt/pose").join(&name)));
+        let error = written * exact.inverse();
+        shift.push(error.w_axis.truncate().length());
+        let r = DMat3::from_mat4(error);
+        turn.push(
+            ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees(),
+        );
+    }
+    let c = Corruptions::realistic();
+    assert!(
+        turn.iter()
+            .all(|&t| t > 0.0 && t < 5.0 * 3f64.sqrt() * c.pose_sigma_deg),
+        "{turn:?}"
+    );
+    assert!(turn.iter().sum::<f64>() / 6.0 > 0.3 * c.pose_sigma_deg, "{turn:?}");
+    // World-to-camera translation error also carries the rotation error times the distance (about 1 m).
+    assert!(shift.iter().all(|&s| s > 1e-5 && s < 0.05), "{shift:?}");
+
+    // Drawn boxes: snug ones hold the tight box, loose ones hold the snug ones and reach 2 cm below.
+    let boxes = |name: &str| {
+        nerflabel::boxes::read_boxes(&dir.path().join("gt").join(name))
+            .unwrap()
+            .boxes
+    };
+    let (tight, snug, loose) = (
+        boxes("boxes_tight.json"),
+        boxes("boxes_user.json"),
+        boxes("boxes_loose.json"),
+    );
+    assert_eq!((tight.len(), snug.len(), loose.len()), (6, 6, 6));
+    for ((t, s), l) in tight.iter().zip(&snug).zip(&loose) {
+        let bottom = |b: &nerflabel::boxes::Box3| b.center.z - b.size.z / 2.0;
+        assert!((s.size - t.size - DVec3::new(0.02, 0.02, 0.009)).abs().max_element() < 1e-9);
+        assert!((bottom(s) - bottom(t) - 0.001).abs() < 1e-9);
+        assert!((l.size - t.size - DVec3::new(0.05, 0.05, 0.045)).abs().max_element() < 1e-9);
+        assert!((bottom(t) - bottom(l) - 0.02).abs() < 1e-9);
+    }
 }

@@ -17,7 +17,15 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
     options.layout = args.layout.parse().map_err(|e| anyhow::anyhow!("--layout: {e}"))?;
     options.overwrite = args.overwrite;
     options.supersample = !args.no_supersample;
-    let mut c = if args.clean { Corruptions::none() } else { Corruptions::default() };
+    let mut c = match (args.clean, args.realistic) {
+        (true, _) => Corruptions::none(),
+        (false, true) => Corruptions::realistic(),
+        (false, false) => Corruptions::default(),
+    };
+    if let Some(q) = args.jpeg {
+        c.jpeg_quality = q;
+    }
+    c.pose_noise |= args.pose_noise;
     c.depth_noise &= !args.no_depth_noise;
     c.holes &= !args.no_holes;
     c.edge_dropout &= !args.no_edge_dropout;
@@ -32,7 +40,8 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
 /// Generate and report.
 pub fn write(args: &FixtureArgs) -> anyhow::Result<FixtureSummary> {
     let options = options(args)?;
-    let summary = generate(&args.out, &options).with_context(|| format!("cannot write the fixture {}", args.out.display()))?;
+    let summary =
+        generate(&args.out, &options).with_context(|| format!("cannot write the fixture {}", args.out.display()))?;
     for warning in &summary.warnings {
         eprintln!("warning: {warning}");
     }

@@ -3,15 +3,15 @@
 mod cloud;
 mod common;
 mod demo;
-mod fixture;
 mod fit;
+mod fixture;
 mod info;
 mod label;
 mod report;
 mod synth;
 
-pub use common::interrupted_status;
 use clap::{Args, Parser, Subcommand};
+pub use common::interrupted_status;
 use nerflabel::scan::{Layout, LoadOptions};
 use std::path::PathBuf;
 
@@ -61,7 +61,10 @@ pub struct ScanArgs {
 
 impl ScanArgs {
     pub fn load_options(&self) -> LoadOptions {
-        LoadOptions { layout: self.format, fix_poses: self.fix_poses }
+        LoadOptions {
+            layout: self.format,
+            fix_poses: self.fix_poses,
+        }
     }
 }
 
@@ -87,7 +90,7 @@ pub struct CloudArgs {
 pub struct FixtureArgs {
     /// Output folder for the scan (ground truth goes to OUT/gt).
     pub out: PathBuf,
-    /// Scene: tabletop, small or cabinet.
+    /// Scene: tabletop, small, cabinet, clutter (6 objects 2 mm apart on a table) or room (objects on a table, the floor and a shelf).
     #[arg(long, default_value = "tabletop")]
     pub scene: String,
     /// Number of scan frames (default: tabletop 120, small 24, cabinet 60).
@@ -138,6 +141,15 @@ pub struct FixtureArgs {
     /// No sensor corruption at all.
     #[arg(long)]
     pub clean: bool,
+    /// Write colour as JPEG of this quality (1-100) instead of PNG.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=100))]
+    pub jpeg: Option<u8>,
+    /// Write scan poses with SLAM-like error (1.5 mm, 0.075 degrees per frame); gt/ keeps the exact poses.
+    #[arg(long)]
+    pub pose_noise: bool,
+    /// As hard as a real handheld scan: JPEG colour (quality 85) and pose error on top of the default corruptions.
+    #[arg(long, conflicts_with = "clean")]
+    pub realistic: bool,
     /// Replace an earlier fixture in OUT.
     #[arg(long)]
     pub overwrite: bool,

@@ -131,7 +131,7 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        self.excluded = excluded_planes(self.boxes, &samples.points, 0);
+        self.excluded = excluded_planes(self.boxes, &samples.points, 0, self.box_tolerance_m);
         Ok(self.excluded.iter().map(Vec::len).sum())
     }
 

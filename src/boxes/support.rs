@@ -3,16 +3,22 @@
 //! wall behind it. A plane of the measured surface that runs through such a
 //! box and continues well outside it (a support or a wall; the object ends
 //! at the box) is excluded from the box: points on it, within its measured
-//! thickness, or behind it never belong to the object. A box drawn tight
-//! to its support (not reaching past the plane by more than its band)
-//! already leaves it out and keeps everything it encloses.
+//! thickness, or behind it never belong to the object. A box drawn snug
+//! to its support (ending just above it) has its support excluded too:
+//! the labeller gives a box the surface points just in front of it (within
+//! its tolerance), and those would be the support around the object.
 //!
 //! Every threshold comes from the scan: a plane's band is three robust
 //! standard deviations of its own points' residuals (for rendered depth,
 //! half a finest grid cell: see `Labeler::plane_band`), and a plane counts
 //! only when a fifth of the surface around the box lies on it.
 //!
-//! Limits: an object flat on its support (a sheet of paper) has no point
+//! A plane counts only when it continues on at least three of the four sides
+//! of the box (a table around an object, a wall beside and above it): the
+//! object's own face, or the faces of neighbours lined up with it, do not.
+//!
+//! Limits: an object at a table's corner has the table on two sides only,
+//! so a loose box there keeps the table; an object flat on its support (a sheet of paper) has no point
 //! off the plane, so its box keeps everything; an object thinner than the
 //! band loses its pixels to the support; a curved support is no plane and
 //! is not excluded; without sensor depth near the box nothing is found.
@@ -32,6 +38,8 @@ const MIN_SHELL_POINTS: usize = 50;
 const MAX_PLANES: usize = 2;
 /// RANSAC hypotheses per plane.
 const RANSAC_TRIALS: usize = 300;
+/// A side of the box counts as surrounded by a plane holding 1/this of the plane's shell points.
+const SIDE_SHARE: usize = 20;
 /// Band half-width in robust standard deviations of the plane's residuals.
 const BAND_SIGMAS: f64 = 3.0;
 
@@ -59,11 +67,15 @@ impl ExcludedPlane {
 
 /// The planes excluded from each box of `boxes` (indexed like `boxes.boxes`),
 /// found among `points`, surface points of the scan in world metres.
-pub fn excluded_planes(boxes: &BoxSet, points: &[DVec3], seed: u64) -> Vec<Vec<ExcludedPlane>> {
-    boxes.boxes.iter().enumerate().map(|(i, b)| planes_of_box(b, points, seed.wrapping_add(i as u64))).collect()
+/// `tolerance`: how far outside a box the labeller still gives surface
+/// points to it; a plane that near the box is excluded as well.
+pub fn excluded_planes(boxes: &BoxSet, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<Vec<ExcludedPlane>> {
+    (boxes.boxes.iter().enumerate())
+        .map(|(i, b)| planes_of_box(b, points, seed.wrapping_add(i as u64), tolerance))
+        .collect()
 }
 
-fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64) -> Vec<ExcludedPlane> {
+fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<ExcludedPlane> {
     let half = b.size * 0.5;
     let grown = half + b.size * SHELL_GROWTH;
     let inside = |q: DVec3| q.abs().cmple(half).all();
@@ -90,16 +102,19 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64) -> Vec<ExcludedPlane> {
         let Some((normal, offset)) = ransac(&shell, coarse, &mut rng) else { break };
         let Some((normal, offset, sigma)) = refine(&shell, normal, offset, coarse) else { break };
         let band = BAND_SIGMAS * sigma;
-        let on_plane = shell.iter().filter(|p| (normal.dot(**p) + offset).abs() <= band).count();
-        if on_plane < needed {
+        let on_plane: Vec<DVec3> = shell.iter().copied().filter(|p| (normal.dot(*p) + offset).abs() <= band).collect();
+        if on_plane.len() < needed {
             break;
         }
         shell.retain(|p| (normal.dot(*p) + offset).abs() > band);
-        // The plane must run through the box, and the box must hold
-        // something off it: that side is the object's.
+        if !surrounds(b, normal, &on_plane) {
+            continue;
+        }
+        // The plane must run through the box or pass within the tolerance
+        // of it, and the box must hold something off it: that side is the object's.
         let centre = normal.dot(b.center) + offset;
         let radius = (0..3).map(|a| half[a] * normal.dot(b.rotation.col(a)).abs()).sum::<f64>();
-        if centre.abs() > radius + band {
+        if centre.abs() > radius + band + tolerance {
             continue;
         }
         let off: Vec<f64> = inner.iter().map(|p| normal.dot(*p) + offset).filter(|d| d.abs() > band).collect();
@@ -108,14 +123,30 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64) -> Vec<ExcludedPlane> {
         }
         let above = off.iter().filter(|&&d| d > 0.0).count();
         let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
-        // A box drawn tight to the support does not reach past it: it
-        // already leaves the support out, and nothing is excluded.
-        if radius - sign * centre <= band {
-            continue;
-        }
         planes.push(ExcludedPlane { normal: normal * sign, offset: offset * sign, band });
     }
     planes
+}
+
+/// Whether a plane's points lie around the box on at least three of the four
+/// sides within the plane, as a support or a wall does. A face of the object
+/// itself, or faces of neighbours lined up with it, continue on fewer sides.
+fn surrounds(b: &Box3, normal: DVec3, on_plane: &[DVec3]) -> bool {
+    let u = normal.any_orthonormal_vector();
+    let v = normal.cross(u);
+    let half = b.size * 0.5;
+    let reach = |axis: DVec3| (0..3).map(|a| half[a] * axis.dot(b.rotation.col(a)).abs()).sum::<f64>();
+    let (ru, rv) = (reach(u), reach(v));
+    let mut sides = [0usize; 4];
+    for p in on_plane {
+        let d = *p - b.center;
+        let (du, dv) = (d.dot(u), d.dot(v));
+        for (side, beyond) in [du > ru, du < -ru, dv > rv, dv < -rv].into_iter().enumerate() {
+            sides[side] += beyond as usize;
+        }
+    }
+    let enough = (on_plane.len() / SIDE_SHARE).max(1);
+    sides.iter().filter(|&&n| n >= enough).count() >= 3
 }
 
 /// The plane with the most points within `threshold`, from random triples.
@@ -230,7 +261,7 @@ mod tests {
         let points = scene(&mut rng);
         // 3 cm margins, bottom 2 cm into the table, back 1 cm into the wall.
         let loose = box3(DVec3::new(0.0, 0.03, 0.045), DVec3::new(0.16, 0.16, 0.17));
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
         assert_eq!(planes.len(), 2, "{planes:?}");
         let kept: Vec<&DVec3> = points.iter().filter(|p| loose.contains(**p) && !planes.iter().any(|pl| pl.excludes(**p))).collect();
         let table_or_wall = kept.iter().filter(|p| p.z.abs() < 0.003 || (p.y - 0.1).abs() < 0.003).count();
@@ -244,18 +275,39 @@ mod tests {
     }
 
     #[test]
+    fn a_snug_box_excludes_the_table_its_tolerance_reaches_and_not_the_far_wall() {
+        let mut rng = Rng::new(5, 0);
+        let points = scene(&mut rng);
+        // 1 cm margins, bottom 1 mm above the table; the wall is 5 cm behind the cube.
+        let snug = box3(DVec3::new(0.0, 0.0, 0.0555), DVec3::new(0.12, 0.12, 0.109));
+        let tolerance = 0.008;
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug.clone()]), &points, 1, tolerance).remove(0);
+        assert_eq!(planes.len(), 1, "{planes:?}");
+        assert!(planes[0].normal.z > 0.99, "the table, object side up: {:?}", planes[0]);
+        // Table points just in front of the box, which the tolerance would give it, are excluded.
+        let beside = DVec3::new(0.065, 0.0, 0.0);
+        assert!(planes[0].excludes(beside));
+        let cube_top = DVec3::new(0.0, 0.0, 0.1);
+        assert!(!planes[0].excludes(cube_top));
+        // A box ending 3 cm above the table is beyond the tolerance: nothing is excluded.
+        let high = box3(DVec3::new(0.0, 0.0, 0.085), DVec3::new(0.12, 0.12, 0.11));
+        let found = excluded_planes(&BoxSet::from_boxes(vec![high]), &points, 1, tolerance).remove(0);
+        assert!(found.is_empty(), "{found:?}");
+    }
+
+    #[test]
     fn a_box_around_a_flat_sheet_keeps_it() {
         // A sheet flat on the table has nothing off the plane: nothing is excluded.
         let mut rng = Rng::new(4, 0);
         let points: Vec<DVec3> = (0..30_000).map(|_| DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0)).collect();
         let sheet = box3(DVec3::new(0.0, 0.0, 0.0), DVec3::new(0.2, 0.3, 0.02));
-        assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1)[0].is_empty());
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1, 0.0)[0].is_empty());
     }
 
     #[test]
     fn a_box_with_no_surface_around_it_excludes_nothing() {
         let points = vec![DVec3::new(5.0, 5.0, 5.0); 100];
         let b = box3(DVec3::ZERO, DVec3::splat(0.1));
-        assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, 1)[0].is_empty());
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, 1, 0.0)[0].is_empty());
     }
 }

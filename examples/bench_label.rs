@@ -10,6 +10,8 @@
 //! `--fused-cells C` (fused agreement tolerance in finest grid cells),
 //! `--box-cells C` (surface points this many cells in front of a box the ray enters count for it),
 //! `--clean` (generate the fixture without sensor corruptions),
+//! `--boxes FILE` (boxes to label with, relative to the fixture, e.g. `gt/boxes_loose.json`; default `boxes.json`),
+//! `--realistic` (generate the fixture as hard as a handheld scan: JPEG colour, pose error),
 //! `--loose M` (boxes grown by M metres on every side, bottom 2 cm into the support),
 //! `--exact-boxes` (no support or wall plane excluded from the boxes),
 //! `--cleanup F` (mask clean-up fraction, 0 = off),
@@ -18,8 +20,8 @@
 //! `--dump DIR` (error images of every 10th frame: green = right, red =
 //! labelled but not in the reference, blue = missed, yellow = wrong id).
 
-use nerflabel::boxes::metrics::MaskScores;
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
+use nerflabel::evaluate::evaluate_labels;
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
 use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::model_file::Model;
@@ -49,6 +51,8 @@ struct Args {
     /// Grow every box by this margin on each side, bottom 2 cm below the original.
     loose: Option<f64>,
     exact_boxes: bool,
+    boxes: PathBuf,
+    realistic: bool,
 }
 
 fn shared_data() -> PathBuf {
@@ -75,6 +79,8 @@ fn parse_args() -> Result<Args, Error> {
         cleanup: LabelOptions::default().cleanup_fraction,
         loose: None,
         exact_boxes: false,
+        boxes: PathBuf::from("boxes.json"),
+        realistic: false,
     };
     let mut it = std::env::args().skip(1).peekable();
     while let Some(a) = it.next() {
@@ -87,6 +93,8 @@ fn parse_args() -> Result<Args, Error> {
             "--clean" => args.clean = true,
             "--loose" => args.loose = Some(value("--loose")?.parse()?),
             "--exact-boxes" => args.exact_boxes = true,
+            "--boxes" => args.boxes = value("--boxes")?.into(),
+            "--realistic" => args.realistic = true,
             "--cleanup" => args.cleanup = value("--cleanup")?.parse()?,
             "--opacity" => args.opacity = value("--opacity")?.parse()?,
             "--depth-errors" => args.depth_errors = true,
@@ -234,12 +242,14 @@ fn main() -> Result<(), Error> {
                 (o.width, o.height, o.frames) = (args.size.0, args.size.1, Some(args.frames));
                 if args.clean {
                     o.corruptions = nerflabel::fixture::Corruptions::none();
+                } else if args.realistic {
+                    o.corruptions = nerflabel::fixture::Corruptions::realistic();
                 }
                 eprintln!("generating {} fixture in {}", args.scene, args.dir.display());
                 generate(&args.dir, &o)?;
             }
             let scan = load(&args.dir, &LoadOptions::default())?;
-            let boxes = read_boxes(&args.dir.join("boxes.json"))?;
+            let boxes = read_boxes(&args.dir.join(&args.boxes))?;
             let truth = scan
                 .frames
                 .iter()
@@ -288,35 +298,23 @@ fn main() -> Result<(), Error> {
     }
     for source in DepthSource::ALL {
         let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, box_tolerance_cells: args.box_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
-        let mut labeler = Labeler::new(&boxes, Some(&model), opts)?;
-        labeler.exclude_supports(&scan)?;
-        if source == DepthSource::Fused {
-            eprintln!("fused tolerance {:.1} mm", labeler.fused_tolerance_m() * 1000.0);
-        }
-        let t = Instant::now();
-        let labels = labeler.label_frames(&frames, &|_| {});
-        let secs = t.elapsed().as_secs_f64();
-        let mut scores = MaskScores::default();
-        let (mut predicted_px, mut true_px) = (0usize, 0usize);
-        for (l, (_, gt)) in labels.iter().zip(&truth) {
-            scores.add(&l.mask, gt, l.width as usize);
-            predicted_px += l.mask.iter().filter(|&&m| m != 0).count();
-            true_px += gt.iter().filter(|&&m| m != 0).count();
-        }
+        let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, opts)?;
         if let Some(dir) = &args.dump {
-            dump_errors(dir, source, &labels, &truth)?;
+            dump_errors(dir, source, &e.labels, &truth)?;
         }
-        let per = scores.per_object();
-        let mut line = format!("{:<7} {:>8.4} {:>8.4} {:>7.1}", source.name(), scores.mean_frame_iou(), scores.mean_box_iou(), frames.len() as f64 / secs);
+        let per = e.scores.per_object();
+        let mut line = format!("{:<7} {:>8.4} {:>8.4} {:>7.1}", source.name(), e.scores.mean_frame_iou(), e.scores.mean_box_iou(), e.frames as f64 / e.seconds);
         for b in &boxes.boxes {
             line.push_str(&format!(" {:>9.4}", per.get(&(b.instance_id as u16)).copied().unwrap_or(0.0)));
         }
-        let rays: usize = labels.iter().map(|l| l.rendered_rays).sum();
+        let c = e.scores.total_counts();
         line.push_str(&format!(
-            "   ({:.1} s, {:.1} % of pixels rendered, predicted/true pixels {:.3})",
-            secs,
-            100.0 * rays as f64 / (frames.len() * (w * h) as usize) as f64,
-            predicted_px as f64 / true_px.max(1) as f64
+            "   ({:.1} s, {:.1} % of pixels rendered, predicted/true pixels {:.3}, FP:FN {:.1}, boundary F {:.3})",
+            e.seconds,
+            100.0 * e.rendered_fraction,
+            c.pixel_ratio(),
+            c.false_positives() as f64 / c.false_negatives().max(1) as f64,
+            c.boundary_f()
         ));
         println!("{line}");
     }

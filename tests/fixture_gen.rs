@@ -273,7 +273,8 @@ fn same_seed_gives_identical_bytes_and_another_seed_other_noise() {
         tree(&dir.path().join("b")),
         tree(&dir.path().join("c")),
     );
-    assert_eq!(a.len(), 4 * 3 + 4 * 2 + 4 + 5);
+    // Scan frames (rgb, depth, pose), their masks and depth, held-out files, JSON documents, drawn boxes.
+    assert_eq!(a.len(), 4 * 3 + 4 * 2 + 4 + 5 + 2);
     for ((pa, da), (pb, db)) in a.iter().zip(&b) {
         assert_eq!(pa, pb);
         if pa.ends_with("meta.json") {
@@ -456,7 +457,7 @@ fn realistic_scans_have_jpeg_colour_pose_error_and_drawn_boxes() {
     let c = Corruptions::realistic();
     assert!(
         turn.iter()
-            .all(|&t| t > 0.0 && t < 5.0 * 3f64.sqrt() * c.pose_sigma_deg),
+            .all(|&t| t > 0.0 && t < 4.0 * c.pose_sigma_deg),
         "{turn:?}"
     );
     assert!(turn.iter().sum::<f64>() / 6.0 > 0.3 * c.pose_sigma_deg, "{turn:?}");

@@ -144,7 +144,7 @@ pub struct FixtureArgs {
     /// Write colour as JPEG of this quality (1-100) instead of PNG.
     #[arg(long, value_parser = clap::value_parser!(u8).range(1..=100))]
     pub jpeg: Option<u8>,
-    /// Write scan poses with SLAM-like error (1.5 mm, 0.075 degrees per frame); gt/ keeps the exact poses.
+    /// Write scan poses with SLAM-like error (RMS 1.5 mm and 0.075 degrees per frame); gt/pose keeps the exact ones.
     #[arg(long)]
     pub pose_noise: bool,
     /// As hard as a real handheld scan: JPEG colour (quality 85) and pose error on top of the default corruptions.

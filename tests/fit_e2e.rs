@@ -46,3 +46,35 @@ fn same_seed_gives_the_same_model_bytes() {
     assert!(a == b, "same seed, different model");
     assert!(a != c, "the seed has no effect");
 }
+
+/// `fit --time T` bounds the wall time of the whole command: loading,
+/// preparation, evaluations and the final save fit inside it, and the
+/// report's curve is in wall seconds. (The fit measures itself; the bound
+/// has 10 % of slack for the estimate of what finishing costs.)
+#[test]
+fn time_budget_is_the_wall_time_of_the_whole_fit() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
+    let dir = tempfile::tempdir().unwrap();
+    let model_path = dir.path().join("model.nlf");
+    let budget = 6.0;
+    let started = std::time::Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(["fit", fixture.to_str().unwrap(), "--time", "6", "--model"])
+        .arg(&model_path)
+        .output()
+        .unwrap();
+    let command_s = started.elapsed().as_secs_f64();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
+    let wall = report["timings"]["wall_s"].as_f64().unwrap();
+    let train = report["timings"]["train_s"].as_f64().unwrap();
+    eprintln!("wall {wall:.2} s (command {command_s:.2} s), training {train:.2} s; {}", report["timings"]);
+    assert!(wall <= 1.1 * budget, "the fit took {wall:.2} s of a {budget} s budget");
+    // Writing the model and report, and starting the process, add little.
+    assert!(command_s <= 1.1 * budget + 1.0, "the command took {command_s:.2} s of a {budget} s budget");
+    assert!(wall >= 0.5 * budget, "the fit used only {wall:.2} s of a {budget} s budget");
+    assert!(train < wall, "training {train:.2} s is part of the wall time {wall:.2} s");
+    let seconds: Vec<f64> = report["curve"].as_array().unwrap().iter().map(|p| p["seconds"].as_f64().unwrap()).collect();
+    assert!(seconds.windows(2).all(|w| w[0] < w[1]), "curve seconds rise: {seconds:?}");
+    assert!(*seconds.last().unwrap() <= wall, "the last point lies within the fit: {seconds:?}");
+}

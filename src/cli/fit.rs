@@ -9,6 +9,8 @@ use nerflabel::nerf::fit::{fit, report_path, resume, FitEvent, FitOptions, DEFAU
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
+    // `--time` is the wall time of the whole command, loading the scan included.
+    let started = std::time::Instant::now();
     let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
     let model_path = model_path(&args.scan.scan, args.model.as_ref());
     let checkpoint = checkpoint_path(&model_path);
@@ -22,6 +24,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         learning_rate: args.learning_rate,
         unseen_objects: !args.no_unseen_objects,
         checkpoint: Some(checkpoint.clone()),
+        started: Some(started),
         ..FitOptions::default()
     };
     // Settings no fit can train with are refused before the scan is read.

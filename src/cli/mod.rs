@@ -169,7 +169,8 @@ pub struct DemoArgs {
 pub struct FitArgs {
     #[command(flatten)]
     pub scan: ScanArgs,
-    /// Stop after this much wall time (seconds).
+    /// Wall time of the whole command, seconds: loading the scan, preparation,
+    /// training, held-out evaluation and writing the model all fit inside it.
     #[arg(long)]
     pub time: Option<f64>,
     /// Stop after this many steps.

@@ -13,7 +13,7 @@ pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
     let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the fit report (run `nerflabel fit` first)", path.display()))?;
     let report: FitReport = serde_json::from_slice(&bytes).with_context(|| format!("{}: not a valid fit report", path.display()))?;
     println!("fit of {} ({} training frames, preset {:?}, seed {}, {} threads)", report.scan, report.train_frames, report.preset, report.seed, report.threads);
-    println!("{:>9} {:>7} {:>9} {:>7} {:>14} {:>12}", "seconds", "step", "PSNR dB", "SSIM", "depth MAE mm", "k samples/s");
+    println!("{:>9} {:>7} {:>9} {:>7} {:>14} {:>12}", "wall s", "step", "PSNR dB", "SSIM", "depth MAE mm", "k samples/s");
     for p in &report.curve {
         let depth = p.depth_mae_m.map(|d| format!("{:.1}", d * 1e3)).unwrap_or_else(|| "n/a".into());
         println!("{:>9.1} {:>7} {:>9.2} {:>7.3} {:>14} {:>12.0}", p.seconds, p.step, p.psnr, p.ssim, depth, p.samples_per_s / 1e3);
@@ -24,7 +24,7 @@ pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
         };
         let panel = |title: &str, y: &str, points: Vec<(f64, f64)>, color: [u8; 3]| Panel {
             title: title.into(),
-            x_label: "training time (s)".into(),
+            x_label: "wall time of the fit (s)".into(),
             y_label: y.into(),
             series: vec![Series { name: "held-out".into(), points, color }],
         };

@@ -25,7 +25,8 @@ use std::time::Instant;
 /// Budget and knobs of one fit.
 #[derive(Clone, Debug)]
 pub struct FitOptions {
-    /// Wall-time budget for training, seconds.
+    /// Wall-time budget of the whole fit, seconds: preparation, training,
+    /// evaluation and checkpoints all fit inside it, counted from `started`.
     pub time: Option<f64>,
     /// Step budget.
     pub steps: Option<u64>,
@@ -43,6 +44,9 @@ pub struct FitOptions {
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
     pub eval_max_side: u32,
+    /// When the command began (loading the scan counts too); `None` = when
+    /// `fit` is called.
+    pub started: Option<Instant>,
     /// Write a resumable checkpoint here at every evaluation point and at the end.
     pub checkpoint: Option<PathBuf>,
 }
@@ -61,6 +65,7 @@ impl Default for FitOptions {
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,
+            started: None,
         }
     }
 }
@@ -78,7 +83,8 @@ pub const DEFAULT_TIME_S: f64 = 120.0;
 /// One point of the error-against-run-time curve.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CurvePoint {
-    /// Training wall time so far (evaluation excluded).
+    /// Wall time of the fit so far (preparation, training, earlier
+    /// evaluations and checkpoints; this point's own evaluation excluded).
     pub seconds: f64,
     pub step: u64,
     pub psnr: f64,
@@ -99,6 +105,9 @@ pub struct Timings {
     /// Writing checkpoints.
     #[serde(default)]
     pub checkpoint_s: f64,
+    /// Wall time of the whole fit (what `--time` bounds), all runs of a resumed fit together.
+    #[serde(default)]
+    pub wall_s: f64,
 }
 
 /// Where the report of a model lives: `model.nlf` -> `model.report.json`,
@@ -365,6 +374,7 @@ fn run(
     stop: &AtomicBool,
     on_event: &mut dyn FnMut(FitEvent),
 ) -> Result<FitOutcome, FitError> {
+    let started = opts.started.unwrap_or_else(Instant::now);
     let Prepared { data, settings, transform, metres_per_unit, mut trainer, timings } = prepare_with(scan, opts, from.is_none())?;
     let mut identity = FitIdentity::new(scan, opts, &settings);
     let mut state = match from {
@@ -401,12 +411,22 @@ fn run(
         max_samples_per_ray: 4096,
         background: data.background,
     };
+    // Wall seconds of earlier runs (a resumed fit), then of this one.
+    let earlier_wall = state.timings.wall_s.max(state.train_seconds);
+    let spent = || earlier_wall + started.elapsed().as_secs_f64();
+    // What finishing costs (final evaluation, checkpoint, model and report):
+    // training stops early enough for it to fit in the budget.
+    let mut finish_cost = 0.0f64;
     let interval = if opts.eval_interval_s.is_finite() { opts.eval_interval_s.max(1e-3) } else { DEFAULT_TIME_S };
+    // A short budget evaluates sooner: the curve gets its points, and the
+    // first evaluation tells what finishing will cost.
+    let interval = time_budget.map_or(interval, |limit| interval.min(limit / 4.0));
     let mut next_eval = ((state.train_seconds / interval).floor() + 1.0) * interval;
     let evaluate_now = |trainer: &mut Trainer, state: &mut FitProgress| -> Option<CurvePoint> {
         if data.holdout.is_empty() {
             return None;
         }
+        let wall = spent();
         let t = Instant::now();
         let grid = trainer.rendering_occupancy();
         let r: EvalResult = evaluate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
@@ -414,7 +434,7 @@ fn run(
         let samples = trainer.counters.samples;
         let dt = (state.train_seconds - state.last_point.0).max(1e-9);
         let point = CurvePoint {
-            seconds: state.train_seconds,
+            seconds: wall,
             step: trainer.counters.steps,
             psnr: r.psnr,
             ssim: r.ssim,
@@ -436,13 +456,15 @@ fn run(
         }
     };
     loop {
+        let used = |limit: f64| (spent() + finish_cost) / limit;
         let progress = match (time_budget, step_budget) {
-            (Some(limit), Some(steps)) => (state.train_seconds / limit).max(trainer.counters.steps as f64 / steps as f64),
-            (Some(limit), None) => state.train_seconds / limit,
+            (Some(limit), Some(steps)) => used(limit).max(trainer.counters.steps as f64 / steps as f64),
+            (Some(limit), None) => used(limit),
             (None, Some(steps)) => trainer.counters.steps as f64 / steps.max(1) as f64,
             (None, None) => 1.0,
         };
-        if progress >= 1.0 {
+        // At least one step, so that even a budget spent on preparation gives a model.
+        if progress >= 1.0 && trainer.counters.steps > 0 {
             break;
         }
         if stop.load(Ordering::Relaxed) {
@@ -453,15 +475,21 @@ fn run(
         let stats = trainer.step(&data.train, progress as f32);
         state.train_seconds += t.elapsed().as_secs_f64();
         on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds: state.train_seconds, progress });
-        if state.train_seconds >= next_eval {
+        // The final evaluation comes soon anyway: no periodic one just before it.
+        let near_end = time_budget.is_some_and(|limit| spent() + 2.0 * finish_cost >= limit);
+        if state.train_seconds >= next_eval && !near_end {
             let eval_s_before = state.timings.eval_s;
             if let Some(point) = evaluate_now(&mut trainer, &mut state) {
                 on_event(FitEvent::Eval(&point));
             }
+            let checkpoint_s_before = state.timings.checkpoint_s;
+            state.timings.wall_s = spent();
             save_checkpoint(&trainer, &mut state, &mut *on_event);
             // Evaluation must not dominate a fit: the next one comes after
             // at least four times the last one's cost in training time.
             let last_cost = state.timings.eval_s - eval_s_before;
+            // The model and report together are about half a checkpoint.
+            finish_cost = last_cost + 1.5 * (state.timings.checkpoint_s - checkpoint_s_before);
             let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * interval);
             next_eval = (next_eval + interval).max(state.train_seconds + spacing);
             while next_eval <= state.train_seconds {
@@ -475,7 +503,9 @@ fn run(
         }
     }
     state.timings.train_s = state.train_seconds;
+    state.timings.wall_s = spent();
     save_checkpoint(&trainer, &mut state, &mut *on_event);
+    state.timings.wall_s = spent();
 
     let header = ModelHeader {
         nerflabel_version: env!("CARGO_PKG_VERSION").to_string(),

@@ -5,7 +5,11 @@
 //! loose (+2.5 cm, 2 cm into the support), scored against the exact masks.
 //!
 //! Run: `cargo run --release --example bench_scenes -- [--scenes tabletop,clutter,room]
-//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes]`
+//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--no-tsdf]`
+//!
+//! Besides the product's sources it labels TSDF fusion (the paper's
+//! baseline: sensor depth fused at 5 mm, ray cast into every frame,
+//! `support/tsdf.rs`) the same way as sensor depth.
 //!
 //! Prints one line per scene, seed, box drawing and source (mIoU = mean over
 //! frames of the frame's mean object IoU; ratio = predicted / true object
@@ -24,6 +28,9 @@ use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
+#[path = "support/tsdf.rs"]
+mod tsdf;
+
 type Error = Box<dyn std::error::Error>;
 
 struct Args {
@@ -34,6 +41,7 @@ struct Args {
     dir: PathBuf,
     objects: bool,
     exact_boxes: bool,
+    tsdf: bool,
 }
 
 fn parse_args() -> Result<Args, Error> {
@@ -45,6 +53,7 @@ fn parse_args() -> Result<Args, Error> {
         dir: std::env::temp_dir().join("nerflabel-scenes"),
         objects: false,
         exact_boxes: false,
+        tsdf: true,
     };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
@@ -63,6 +72,7 @@ fn parse_args() -> Result<Args, Error> {
             "--dir" => args.dir = value("--dir")?.into(),
             "--objects" => args.objects = true,
             "--exact-boxes" => args.exact_boxes = true,
+            "--no-tsdf" => args.tsdf = false,
             other => return Err(format!("unknown option {other}").into()),
         }
     }
@@ -111,17 +121,31 @@ fn main() -> Result<(), Error> {
                 out.model
             };
             let truth = fixture_truth(&dir, &scan, args.every)?;
+            // TSDF fused around the loose boxes (they hold the snug ones), ray cast into the scored frames.
+            let tsdf_scan = if args.tsdf {
+                let t = Instant::now();
+                let fused = tsdf::Tsdf::fuse(&scan, &read_boxes(&dir.join("gt/boxes_loose.json"))?);
+                let mut cast = scan.clone();
+                for (i, _) in &truth {
+                    cast.frames[*i] = fused.raycast_frame(&scan.frames[*i]);
+                }
+                eprintln!("  TSDF fused and cast in {:.1} s", t.elapsed().as_secs_f64());
+                Some(cast)
+            } else {
+                None
+            };
             for (drawing, file) in [("snug", "boxes_user.json"), ("loose", "boxes_loose.json")] {
                 let boxes = read_boxes(&dir.join("gt").join(file))?;
-                for source in DepthSource::ALL {
+                let runs = DepthSource::ALL.into_iter().map(|s| (s.name(), s, &scan)).chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
+                for (name, source, scan) in runs {
                     let opts = LabelOptions { source, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
-                    let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, opts)?;
-                    print_line(&scene.to_string(), seed, drawing, &e);
+                    let e = evaluate_labels(scan, &boxes, Some(&model), &truth, opts)?;
+                    print_line(&scene.to_string(), seed, drawing, name, &e);
                     if args.objects {
                         print_objects(&e, &boxes);
                     }
                     let c = e.scores.total_counts();
-                    let s = summary.entry((drawing.to_string(), source.name())).or_default();
+                    let s = summary.entry((drawing.to_string(), name)).or_default();
                     s.n += 1;
                     s.miou += e.scores.mean_frame_iou();
                     s.ratio += c.pixel_ratio();
@@ -148,14 +172,14 @@ fn main() -> Result<(), Error> {
     Ok(())
 }
 
-fn print_line(scene: &str, seed: u64, drawing: &str, e: &LabelEvaluation) {
+fn print_line(scene: &str, seed: u64, drawing: &str, source: &str, e: &LabelEvaluation) {
     let c = e.scores.total_counts();
     println!(
         "{:<9} {:>4} {:<6} {:<7} {:>7.4} {:>7.3} {:>7.1} {:>6.3} {:>7.1}",
         scene,
         seed,
         drawing,
-        e.source.name(),
+        source,
         e.scores.mean_frame_iou(),
         c.pixel_ratio(),
         c.false_positives() as f64 / c.false_negatives().max(1) as f64,

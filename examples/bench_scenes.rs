@@ -124,10 +124,11 @@ fn main() -> Result<(), Error> {
             // TSDF fused around the loose boxes (they hold the snug ones), ray cast into the scored frames.
             let tsdf_scan = if args.tsdf {
                 let t = Instant::now();
-                let fused = tsdf::Tsdf::fuse(&scan, &read_boxes(&dir.join("gt/boxes_loose.json"))?);
+                let loose = read_boxes(&dir.join("gt/boxes_loose.json"))?;
+                let fused = nerflabel::boxes::tsdf::BoxTsdf::fuse(&scan.frames, &loose, tsdf::VOXEL_M);
                 let mut cast = scan.clone();
                 for (i, _) in &truth {
-                    cast.frames[*i] = fused.raycast_frame(&scan.frames[*i]);
+                    cast.frames[*i] = tsdf::raycast_frame(&fused, &scan.frames[*i]);
                 }
                 eprintln!("  TSDF fused and cast in {:.1} s", t.elapsed().as_secs_f64());
                 Some(cast)

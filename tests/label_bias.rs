@@ -49,13 +49,17 @@ fn fitted_model_gives_masks_of_the_true_size() {
     let model = fit(&scan, &opts, &std::sync::atomic::AtomicBool::new(false), &mut |_| {}).unwrap().model;
     let truth = fixture_truth(dir.path(), &scan, 2).unwrap();
     let boxes = read_boxes(&dir.path().join("gt/boxes_user.json")).unwrap();
-    let options = LabelOptions { source: DepthSource::Nerf, ..LabelOptions::default() };
-    let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, options).unwrap();
-    for (id, c) in e.scores.object_counts() {
-        eprintln!("object {id}: ratio {:.4} IoU {:.4} bF {:.4}", c.pixel_ratio(), c.iou(), c.boundary_f());
-        assert!((0.97..=1.03).contains(&c.pixel_ratio()), "object {id}: predicted/true pixels {:.4}", c.pixel_ratio());
-        assert!(c.boundary_f() > 0.9, "object {id}: boundary F {:.4}", c.boundary_f());
+    // Rendered depth alone, and fused with the sensor depth of all frames (the default).
+    for source in [DepthSource::Nerf, DepthSource::Fused] {
+        let options = LabelOptions { source, ..LabelOptions::default() };
+        let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, options).unwrap();
+        for (id, c) in e.scores.object_counts() {
+            eprintln!("{source} object {id}: ratio {:.4} IoU {:.4} bF {:.4}", c.pixel_ratio(), c.iou(), c.boundary_f());
+            let ratio = c.pixel_ratio();
+            assert!((0.97..=1.03).contains(&ratio), "{source} object {id}: predicted/true pixels {ratio:.4}");
+            assert!(c.boundary_f() > 0.9, "{source} object {id}: boundary F {:.4}", c.boundary_f());
+        }
+        let total = e.scores.total_counts().pixel_ratio();
+        assert!((0.98..=1.02).contains(&total), "{source}: predicted/true pixels {total:.4}");
     }
-    let total = e.scores.total_counts().pixel_ratio();
-    assert!((0.98..=1.02).contains(&total), "predicted/true pixels {total:.4}");
 }

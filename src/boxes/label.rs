@@ -18,6 +18,7 @@ use crate::nerf::march::ray_interval;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::{RenderOptions, RenderRay};
 use super::support::{excluded_planes, ExcludedPlane};
+use super::tsdf::BoxTsdf;
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use crate::poses::sample_depth_points;
 use crate::scan::Scan;
@@ -92,6 +93,8 @@ pub struct Labeler<'a> {
     /// Rendered surfaces lie within about this of the true ones (a finest
     /// grid cell; 0 for the sensor source).
     surface_error_m: f64,
+    /// Fused source: the scan's sensor depth fused over all frames around the boxes.
+    sensor_fusion: Option<BoxTsdf>,
 }
 
 impl<'a> Labeler<'a> {
@@ -119,7 +122,18 @@ impl<'a> Labeler<'a> {
             box_tolerance_m,
             excluded: vec![Vec::new(); boxes.boxes.len()],
             surface_error_m: cell_m,
+            sensor_fusion: None,
         })
+    }
+
+    /// Fused source: fuse the scan's sensor depth over all frames around the
+    /// boxes (voxels of half a finest grid cell, the rendered surface's own
+    /// precision), and take the sensor depth from there instead of from each
+    /// frame alone. Other sources: nothing.
+    pub fn fuse_sensor_depth(&mut self, scan: &Scan) {
+        if self.options.source == DepthSource::Fused && self.surface_error_m > 0.0 {
+            self.sensor_fusion = Some(BoxTsdf::fuse(&scan.frames, self.boxes, 0.5 * self.surface_error_m));
+        }
     }
 
     /// Find, from the scan's measured depth, the support and wall planes
@@ -219,7 +233,14 @@ impl<'a> Labeler<'a> {
             DepthSource::Sensor => None,
             DepthSource::Nerf | DepthSource::Fused => Some(self.render_jobs(frame, &jobs)),
         };
-        let sensor = |j: &Job| frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64);
+        let sensor = |j: &Job| match &self.sensor_fusion {
+            Some(tsdf) => {
+                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let len = ray.length();
+                tsdf.depth_along(origin, ray / len, 1.0 / len)
+            }
+            None => frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64),
+        };
         let mut mask = vec![0u16; w as usize * h as usize];
         let mut depth_m = full.then(|| vec![0.0f32; w as usize * h as usize]);
         for (i, j) in jobs.iter().enumerate() {

@@ -4,7 +4,7 @@
 //!
 //! Flow: [`parse`] (boxes.json) -> [`classify`] (point in smallest box, ray
 //! intervals) and [`project`] (pixel rectangles) -> [`label`] (per-frame
-//! depth from [`surface`] and/or the sensor, mask, [`cleanup`], 2D boxes,
+//! depth from [`surface`] and/or the sensor fused over frames in [`tsdf`], mask, [`cleanup`], 2D boxes,
 //! object poses) -> [`rle`], [`coco`] and [`output`] (files, swapped in
 //! at the end). [`metrics`] scores masks against ground truth.
 //!
@@ -23,6 +23,7 @@ pub mod project;
 pub mod rle;
 pub mod support;
 pub mod surface;
+pub mod tsdf;
 
 pub use classify::BoxClassifier;
 pub use label::{FrameLabel, InstanceLabel, Labeler};

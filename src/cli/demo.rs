@@ -70,6 +70,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         let options = LabelOptions { source, ..LabelOptions::default() };
         let mut labeler = Labeler::new(&boxes, Some(&outcome.model), options)?;
         labeler.exclude_supports(&scan)?;
+        labeler.fuse_sensor_depth(&scan);
         let t = Instant::now();
         let mut scores = MaskScores::default();
         for frame in &scan.frames {
@@ -90,6 +91,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let info = CocoInfo { source: DEFAULT_SOURCE.name().into(), nerflabel_version: env!("CARGO_PKG_VERSION").into(), ..CocoInfo::default() };
     let mut labeler = Labeler::new(&boxes, Some(&outcome.model), LabelOptions::default())?;
     labeler.exclude_supports(&scan)?;
+    labeler.fuse_sensor_depth(&scan);
     let summary = write_labels(&out, &scan, &boxes, &labeler, &OutputOptions { info, ..OutputOptions::default() }, &|_| {})?;
     println!("   wrote masks and coco.json ({} annotations) to {}", summary.annotations, out.display());
 

@@ -35,6 +35,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     if planes > 0 {
         eprintln!("excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)");
     }
+    labeler.fuse_sensor_depth(&scan);
     let info = CocoInfo {
         description: "nerflabel instance labels".into(),
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),

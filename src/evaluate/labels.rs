@@ -40,8 +40,8 @@ pub fn fixture_truth(dir: &Path, scan: &Scan, every: usize) -> Result<Vec<TruthM
         .collect()
 }
 
-/// Label the frames of `truth` with `options` (support planes excluded as the
-/// CLI does) and score them.
+/// Label the frames of `truth` with `options` (support planes excluded and
+/// sensor depth fused, as the CLI does) and score them.
 pub fn evaluate_labels(
     scan: &Scan,
     boxes: &BoxSet,
@@ -52,6 +52,7 @@ pub fn evaluate_labels(
     let source = options.source;
     let mut labeler = Labeler::new(boxes, model, options)?;
     labeler.exclude_supports(scan)?;
+    labeler.fuse_sensor_depth(scan);
     let frames: Vec<&Frame> = truth.iter().map(|(i, _)| &scan.frames[*i]).collect();
     let t = Instant::now();
     let labels = labeler.label_frames(&frames, &|_| {});

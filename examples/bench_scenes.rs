@@ -120,6 +120,14 @@ fn main() -> Result<(), Error> {
                 out.model.save(&model_path)?;
                 out.model
             };
+            let h = nerflabel::evaluate::score_holdout(&model, &dir)?;
+            println!(
+                "{scene} seed {seed}: {} steps; held-out views against exact truth: PSNR {:.2} dB, SSIM {:.3}, depth MAE {:.1} mm",
+                model.header.steps,
+                h.psnr,
+                h.ssim,
+                h.depth_mae_m * 1000.0
+            );
             let truth = fixture_truth(&dir, &scan, args.every)?;
             // TSDF fused around the loose boxes (they hold the snug ones), ray cast into the scored frames.
             let tsdf_scan = if args.tsdf {

@@ -6,6 +6,7 @@ use clap::Parser;
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
+    restore_default_sigpipe();
     let args = cli::Cli::parse();
     match cli::run(args) {
         // A run stopped by Ctrl-C or SIGTERM saved its work; its status says it was stopped.
@@ -19,5 +20,16 @@ fn main() -> ExitCode {
             // A run stopped by a signal (synth gives up its views) still says so.
             cli::interrupted_status().map_or(ExitCode::FAILURE, ExitCode::from)
         }
+    }
+}
+
+/// Rust ignores SIGPIPE, so printing into a closed pipe (`nerflabel info |
+/// head`) panics; end quietly as other command-line tools do instead.
+fn restore_default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: called first thing in main, before any thread exists; only
+    // resets one signal's disposition to the system default.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }

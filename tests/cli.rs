@@ -154,3 +154,15 @@ fn cloud_writes_a_binary_ply_of_the_fixture_inside_its_bounds() {
         }
     }
 }
+
+/// Output into a closed pipe (`nerflabel info | head -1`) ends quietly, without a panic.
+#[cfg(unix)]
+#[test]
+fn output_into_a_closed_pipe_does_not_panic() {
+    let small = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
+    // `true` exits before the scan is read, so every line goes into a closed pipe.
+    let script = format!("'{}' info '{}' | true", env!("CARGO_BIN_EXE_nerflabel"), small.display());
+    let out = std::process::Command::new("sh").args(["-c", &script]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked") && !stderr.contains("Broken pipe"), "{stderr}");
+}

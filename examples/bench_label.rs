@@ -21,7 +21,7 @@
 //! labelled but not in the reference, blue = missed, yellow = wrong id).
 
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
-use nerflabel::evaluate::evaluate_labels;
+use nerflabel::evaluate::{evaluate_labels, fixture_truth, read_gray16};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
 use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::model_file::Model;
@@ -136,14 +136,6 @@ fn model_for(scan: &Scan, path: &Path, seconds: f64) -> Result<Model, Error> {
     Ok(out.model)
 }
 
-fn read_mask(path: &Path) -> Result<Vec<u16>, Error> {
-    Ok(match image::open(path)? {
-        image::DynamicImage::ImageLuma8(m) => m.into_raw().into_iter().map(u16::from).collect(),
-        image::DynamicImage::ImageLuma16(m) => m.into_raw(),
-        other => return Err(format!("{}: unexpected colour type {:?}", path.display(), other.color()).into()),
-    })
-}
-
 /// Silhouette of a box set in a frame: pixels whose centre ray meets a box.
 fn silhouette(frame: &Frame, boxes: &BoxSet) -> Vec<u16> {
     let classifier = BoxClassifier::new(boxes);
@@ -172,7 +164,7 @@ fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], tr
     println!("full-frame depth (--depth): {:.1} frames/s", frames.len() as f64 / t.elapsed().as_secs_f64());
     let mut per: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
     for (l, (_, gt)) in labels.iter().zip(truth) {
-        let exact = read_mask(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;
+        let exact = read_gray16(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;
         let depth = l.depth_m.as_ref().ok_or("no depth")?;
         for i in 0..gt.len() {
             if gt[i] != 0 {
@@ -250,12 +242,7 @@ fn main() -> Result<(), Error> {
             }
             let scan = load(&args.dir, &LoadOptions::default())?;
             let boxes = read_boxes(&args.dir.join(&args.boxes))?;
-            let truth = scan
-                .frames
-                .iter()
-                .enumerate()
-                .map(|(i, f)| Ok((i, read_mask(&args.dir.join("gt/masks").join(format!("{}.png", f.name)))?)))
-                .collect::<Result<_, Error>>()?;
+            let truth = fixture_truth(&args.dir, &scan, 1)?;
             let model = args.model.clone().unwrap_or_else(|| args.dir.join(format!("nerflabel/bench-{}s.nlf", args.fit_seconds)));
             (scan, boxes, truth, model)
         }

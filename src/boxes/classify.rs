@@ -67,9 +67,8 @@ impl BoxClassifier {
             .into_iter()
             .map(|b| {
                 let half = b.size * 0.5;
-                // World extent of the box: |R| * half.
                 let r = b.rotation;
-                let extent = DMat3::from_cols(r.x_axis.abs(), r.y_axis.abs(), r.z_axis.abs()) * half;
+                let extent = b.world_half_extent();
                 // A hair of slack so the coarse test never rejects a face point.
                 let slack = DVec3::splat(1e-12 * (1.0 + b.center.abs().max_element() + extent.max_element()));
                 Prepared {

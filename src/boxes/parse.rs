@@ -49,6 +49,17 @@ impl Box3 {
         self.rotation.transpose() * (p - self.center)
     }
 
+    /// Half the box's extent along the unit world direction `axis`.
+    pub fn reach(&self, axis: DVec3) -> f64 {
+        let half = self.size * 0.5;
+        (0..3).map(|a| half[a] * axis.dot(self.rotation.col(a)).abs()).sum()
+    }
+
+    /// Half extents of the box's world-aligned bounding box.
+    pub fn world_half_extent(&self) -> DVec3 {
+        DVec3::new(self.reach(DVec3::X), self.reach(DVec3::Y), self.reach(DVec3::Z))
+    }
+
     /// Whether the world point lies inside the box (faces included).
     pub fn contains(&self, p: DVec3) -> bool {
         let q = self.to_local(p).abs();

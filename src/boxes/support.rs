@@ -113,7 +113,7 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
         // The plane must run through the box or pass within the tolerance
         // of it, and the box must hold something off it: that side is the object's.
         let centre = normal.dot(b.center) + offset;
-        let radius = (0..3).map(|a| half[a] * normal.dot(b.rotation.col(a)).abs()).sum::<f64>();
+        let radius = b.reach(normal);
         if centre.abs() > radius + band + tolerance {
             continue;
         }
@@ -134,9 +134,7 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
 fn surrounds(b: &Box3, normal: DVec3, on_plane: &[DVec3]) -> bool {
     let u = normal.any_orthonormal_vector();
     let v = normal.cross(u);
-    let half = b.size * 0.5;
-    let reach = |axis: DVec3| (0..3).map(|a| half[a] * axis.dot(b.rotation.col(a)).abs()).sum::<f64>();
-    let (ru, rv) = (reach(u), reach(v));
+    let (ru, rv) = (b.reach(u), b.reach(v));
     let mut sides = [0usize; 4];
     for p in on_plane {
         let d = *p - b.center;

@@ -91,8 +91,7 @@ impl BoxTsdf {
             .boxes
             .iter()
             .map(|b| {
-                let r = b.rotation;
-                let extent = DMat3::from_cols(r.x_axis.abs(), r.y_axis.abs(), r.z_axis.abs()) * (b.size * 0.5);
+                let extent = b.world_half_extent();
                 // Coarser voxels for a box too large to hold at this size.
                 let reach = |voxel: f64| extent + DVec3::splat(MARGIN_TRUNCATIONS * TRUNCATION_VOXELS * voxel);
                 let count = |voxel: f64| (reach(voxel) * 2.0 / voxel).element_product();

@@ -25,18 +25,19 @@ pub struct LabelEvaluation {
     pub labels: Vec<FrameLabel>,
 }
 
+/// Read a one-channel 8- or 16-bit PNG (instance ids, depth units) as 16-bit values.
+pub fn read_gray16(path: &Path) -> Result<Vec<u16>, String> {
+    match image::open(path).map_err(|e| format!("{}: {e}", path.display()))? {
+        image::DynamicImage::ImageLuma8(m) => Ok(m.into_raw().into_iter().map(u16::from).collect()),
+        image::DynamicImage::ImageLuma16(m) => Ok(m.into_raw()),
+        other => Err(format!("{}: unexpected colour type {:?}", path.display(), other.color())),
+    }
+}
+
 /// Read a fixture's ground-truth masks (`gt/masks/NAME.png`) of every `every`-th scan frame.
 pub fn fixture_truth(dir: &Path, scan: &Scan, every: usize) -> Result<Vec<TruthMask>, String> {
     (scan.frames.iter().enumerate().step_by(every.max(1)))
-        .map(|(i, f)| {
-            let path = dir.join("gt/masks").join(format!("{}.png", f.name));
-            let mask = match image::open(&path).map_err(|e| format!("{}: {e}", path.display()))? {
-                image::DynamicImage::ImageLuma8(m) => m.into_raw().into_iter().map(u16::from).collect(),
-                image::DynamicImage::ImageLuma16(m) => m.into_raw(),
-                other => return Err(format!("{}: unexpected colour type {:?}", path.display(), other.color())),
-            };
-            Ok((i, mask))
-        })
+        .map(|(i, f)| Ok((i, read_gray16(&dir.join("gt/masks").join(format!("{}.png", f.name)))?)))
         .collect()
 }
 

@@ -6,4 +6,4 @@ mod holdout;
 mod labels;
 
 pub use holdout::{score_holdout, HoldoutScore};
-pub use labels::{evaluate_labels, fixture_truth, LabelEvaluation, TruthMask};
+pub use labels::{evaluate_labels, fixture_truth, read_gray16, LabelEvaluation, TruthMask};

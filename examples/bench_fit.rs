@@ -34,10 +34,10 @@ fn main() -> anyhow::Result<()> {
         generate(&dir, &options)?;
         println!("generated the tabletop fixture in {}", dir.display());
     }
-    let scan = load(&dir, &LoadOptions::default())?;
+    let mut scan = load(&dir, &LoadOptions::default())?;
     let options = FitOptions { time, steps, seed, preset, ..FitOptions::default() };
     let stop = AtomicBool::new(false);
-    let outcome = fit(&scan, &options, &stop, &mut |e| {
+    let outcome = fit(&mut scan, &options, &stop, &mut |e| {
         if let FitEvent::Eval(p) = e {
             eprintln!("  {:6.1} s  step {:5}  PSNR {:5.2}  depth MAE {:?}", p.seconds, p.step, p.psnr, p.depth_mae_m);
         }

@@ -117,11 +117,13 @@ fn parse_args() -> Result<Args, Error> {
     Ok(args)
 }
 
-/// Fit (or load) the model of a scan.
-fn model_for(scan: &Scan, path: &Path, seconds: f64) -> Result<Model, Error> {
+/// Fit (or load) the model of a scan; the scan takes the poses it was fitted with.
+fn model_for(scan: &mut Scan, path: &Path, seconds: f64) -> Result<Model, Error> {
     if path.is_file() {
         eprintln!("loading {}", path.display());
-        return Ok(Model::load(path)?);
+        let model = Model::load(path)?;
+        model.apply_fitted_poses(scan);
+        return Ok(model);
     }
     eprintln!("fitting for {seconds} s ...");
     let opts = FitOptions { time: Some(seconds), holdout_every: 0, ..FitOptions::default() };
@@ -213,7 +215,7 @@ fn dump_errors(dir: &Path, source: DepthSource, labels: &[nerflabel::boxes::Fram
 
 fn main() -> Result<(), Error> {
     let args = parse_args()?;
-    let (scan, boxes, truth, model_path): (Scan, BoxSet, Vec<(usize, Vec<u16>)>, PathBuf) = match &args.cabinet {
+    let (mut scan, boxes, truth, model_path): (Scan, BoxSet, Vec<(usize, Vec<u16>)>, PathBuf) = match &args.cabinet {
         Some(root) => {
             let scan = load(root, &LoadOptions::default())?;
             let boxes = read_boxes(&root.join("boxes.json"))?;
@@ -247,7 +249,7 @@ fn main() -> Result<(), Error> {
             (scan, boxes, truth, model)
         }
     };
-    let model = model_for(&scan, &model_path, args.fit_seconds)?;
+    let model = model_for(&mut scan, &model_path, args.fit_seconds)?;
     let boxes = match args.loose {
         // Boxes as users draw them: a margin on every side, the bottom 2 cm into the support (boxes stand upright, z up).
         Some(margin) => BoxSet::from_boxes(

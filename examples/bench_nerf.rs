@@ -66,9 +66,9 @@ fn main() -> anyhow::Result<()> {
     println!("hash grid encode+backward (tabletop size, random points), 1 thread: {:.2} M samples/s", m as f64 / secs / 1e6);
 
     let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
-    let scan = nerflabel::scan::load(&fixture, &Default::default())?;
+    let mut scan = nerflabel::scan::load(&fixture, &Default::default())?;
     let options = FitOptions { steps: Some(200), time: None, holdout_every: 0, ..FitOptions::default() };
-    let outcome = fit(&scan, &options, &AtomicBool::new(false), &mut |_| {})?;
+    let outcome = fit(&mut scan, &options, &AtomicBool::new(false), &mut |_| {})?;
     let r = &outcome.report;
     println!(
         "training step ({} threads, {} samples/step): {:.0} k samples/s over {} steps ({:.1} samples/ray)",

@@ -5,7 +5,7 @@
 //! loose (+2.5 cm, 2 cm into the support), scored against the exact masks.
 //!
 //! Run: `cargo run --release --example bench_scenes -- [--scenes tabletop,clutter,room]
-//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--no-tsdf]`
+//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--no-tsdf] [--no-pose-refine]`
 //!
 //! Besides the product's sources it labels TSDF fusion (the paper's
 //! baseline: sensor depth fused at 5 mm, ray cast into every frame,
@@ -42,6 +42,7 @@ struct Args {
     objects: bool,
     exact_boxes: bool,
     tsdf: bool,
+    refine_poses: bool,
 }
 
 fn parse_args() -> Result<Args, Error> {
@@ -54,6 +55,7 @@ fn parse_args() -> Result<Args, Error> {
         objects: false,
         exact_boxes: false,
         tsdf: true,
+        refine_poses: true,
     };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
@@ -73,6 +75,7 @@ fn parse_args() -> Result<Args, Error> {
             "--objects" => args.objects = true,
             "--exact-boxes" => args.exact_boxes = true,
             "--no-tsdf" => args.tsdf = false,
+            "--no-pose-refine" => args.refine_poses = false,
             other => return Err(format!("unknown option {other}").into()),
         }
     }
@@ -107,19 +110,23 @@ fn main() -> Result<(), Error> {
                 eprintln!("generating {}", dir.display());
                 generate(&dir, &o)?;
             }
+            // The paper's baselines (sensor depth, TSDF) take the poses as captured.
             let scan = load(&dir, &LoadOptions::default())?;
-            let model_path = dir.join(format!("model-{}s.nlf", args.fit_seconds));
+            let mut fitted_scan = scan.clone();
+            let suffix = if args.refine_poses { "" } else { "-captured-poses" };
+            let model_path = dir.join(format!("model-{}s{suffix}.nlf", args.fit_seconds));
             let model = if model_path.is_file() {
                 Model::load(&model_path)?
             } else {
                 eprintln!("fitting {scene} seed {seed} for {} s", args.fit_seconds);
-                let opts = FitOptions { time: Some(args.fit_seconds), seed, ..FitOptions::default() };
+                let opts = FitOptions { time: Some(args.fit_seconds), seed, refine_poses: args.refine_poses, ..FitOptions::default() };
                 let t = Instant::now();
-                let out = fit(&scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
+                let out = fit(&mut fitted_scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
                 eprintln!("  {} steps in {:.0} s", out.model.header.steps, t.elapsed().as_secs_f64());
                 out.model.save(&model_path)?;
                 out.model
             };
+            model.apply_fitted_poses(&mut fitted_scan);
             let h = nerflabel::evaluate::score_holdout(&model, &dir)?;
             println!(
                 "{scene} seed {seed}: {} steps; held-out views against exact truth: PSNR {:.2} dB, SSIM {:.3}, depth MAE {:.1} mm",
@@ -145,7 +152,8 @@ fn main() -> Result<(), Error> {
             };
             for (drawing, file) in [("snug", "boxes_user.json"), ("loose", "boxes_loose.json")] {
                 let boxes = read_boxes(&dir.join("gt").join(file))?;
-                let runs = DepthSource::ALL.into_iter().map(|s| (s.name(), s, &scan)).chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
+                let scan_for = |s: DepthSource| if s.needs_model() { &fitted_scan } else { &scan };
+                let runs = DepthSource::ALL.into_iter().map(|s| (s.name(), s, scan_for(s))).chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
                 for (name, source, scan) in runs {
                     let opts = LabelOptions { source, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
                     let e = evaluate_labels(scan, &boxes, Some(&model), &truth, opts)?;

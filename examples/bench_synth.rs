@@ -171,15 +171,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         generate(scan_dir, &o)?;
         eprintln!("generated {} in {:.1} s", scan_dir.display(), t.elapsed().as_secs_f64());
     }
-    let scan = load(scan_dir, &LoadOptions::default())?;
+    let mut scan = load(scan_dir, &LoadOptions::default())?;
     let boxes = read_boxes(&scan_dir.join("boxes.json"))?;
     let model_path = scan_dir.join("nerflabel/model.nlf");
     let model = if args.reuse && model_path.exists() {
-        Model::load(&model_path)?
+        let model = Model::load(&model_path)?;
+        model.apply_fitted_poses(&mut scan);
+        model
     } else {
         let t = Instant::now();
         let opts = FitOptions { time: Some(args.time), ..FitOptions::default() };
-        let outcome = fit(&scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
+        let outcome = fit(&mut scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
         eprintln!("fitted {} steps in {:.1} s", outcome.report.counters.steps, t.elapsed().as_secs_f64());
         outcome.model.save(&model_path)?;
         outcome.model

@@ -334,9 +334,10 @@ fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
         steps: Some(5),
         preset: Preset::Fast,
         holdout_every: 0,
+        refine_poses: false,
         ..FitOptions::default()
     };
-    let model = fit(scan(), &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model;
+    let model = fit(&mut scan().clone(), &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model;
     let boxes = set(vec![enclosing(), behind_every_camera()]);
     let options = LabelOptions {
         source: DepthSource::Nerf,

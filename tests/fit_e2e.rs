@@ -40,7 +40,7 @@ fn same_seed_gives_the_same_model_bytes() {
     let scan = nerflabel::scan::load(&fixture, &Default::default()).unwrap();
     let run = |seed| {
         let options = FitOptions { steps: Some(12), time: None, seed, holdout_every: 0, ..FitOptions::default() };
-        fit(&scan, &options, &AtomicBool::new(false), &mut |_| {}).unwrap().model.to_bytes()
+        fit(&mut scan.clone(), &options, &AtomicBool::new(false), &mut |_| {}).unwrap().model.to_bytes()
     };
     let (a, b, c) = (run(4), run(4), run(5));
     assert!(a == b, "same seed, different model");

@@ -44,9 +44,9 @@ fn fitted_model_gives_masks_of_the_true_size() {
     (o.width, o.height, o.frames, o.holdout) = (320, 240, Some(24), Some(0));
     o.corruptions = Corruptions { low_res_depth: true, ..Corruptions::none() };
     generate(dir.path(), &o).unwrap();
-    let scan = load(dir.path(), &LoadOptions::default()).unwrap();
+    let mut scan = load(dir.path(), &LoadOptions::default()).unwrap();
     let opts = FitOptions { steps: Some(500), time: None, holdout_every: 0, seed: 1, ..FitOptions::default() };
-    let model = fit(&scan, &opts, &std::sync::atomic::AtomicBool::new(false), &mut |_| {}).unwrap().model;
+    let model = fit(&mut scan, &opts, &std::sync::atomic::AtomicBool::new(false), &mut |_| {}).unwrap().model;
     let truth = fixture_truth(dir.path(), &scan, 2).unwrap();
     let boxes = read_boxes(&dir.path().join("gt/boxes_user.json")).unwrap();
     // Rendered depth alone, and fused with the sensor depth of all frames (the default).

@@ -21,7 +21,7 @@ fn fixture(dir: &Path, scene: SceneKind, w: u32, h: u32, frames: usize) -> Scan 
     load(dir, &LoadOptions::default()).unwrap()
 }
 
-fn fit_steps(scan: &Scan, steps: u64) -> Model {
+fn fit_steps(scan: &mut Scan, steps: u64) -> Model {
     let opts = FitOptions { steps: Some(steps), time: None, holdout_every: 0, preset: Preset::Fast, ..FitOptions::default() };
     fit(scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model
 }
@@ -53,8 +53,8 @@ fn scores(dir: &Path, scan: &Scan, boxes: &BoxSet, model: Option<&Model>, source
 #[test]
 fn nerf_labels_match_ground_truth_and_beat_sensor_on_the_object_without_depth() {
     let dir = tempfile::tempdir().unwrap();
-    let scan = fixture(dir.path(), SceneKind::Small, 160, 120, 24);
-    let model = fit_steps(&scan, 400);
+    let mut scan = fixture(dir.path(), SceneKind::Small, 160, 120, 24);
+    let model = fit_steps(&mut scan, 400);
     let boxes = read_boxes(&dir.path().join("boxes.json")).unwrap();
     let can = boxes.boxes.iter().find(|b| b.label == "can").unwrap().instance_id as u16;
     let nerf = scores(dir.path(), &scan, &boxes, Some(&model), DepthSource::Nerf);

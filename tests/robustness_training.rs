@@ -59,12 +59,12 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
         checkpoint: Some(dir.path().join(name)),
         ..FitOptions::default()
     };
-    let whole = fit(&scan, &opts("whole.checkpoint"), &AtomicBool::new(false), &mut |_| {}).unwrap();
+    let whole = fit(&mut scan.clone(), &opts("whole.checkpoint"), &AtomicBool::new(false), &mut |_| {}).unwrap();
 
     // Stop after step 15 of 40, as Ctrl-C does.
     let stop = AtomicBool::new(false);
     let mut saved = Vec::new();
-    let first = fit(&scan, &opts("part.checkpoint"), &stop, &mut |e| match e {
+    let first = fit(&mut scan.clone(), &opts("part.checkpoint"), &stop, &mut |e| match e {
         FitEvent::Step { step: 15, .. } => stop.store(true, Ordering::Relaxed),
         FitEvent::CheckpointSaved { step } => saved.push(step),
         FitEvent::CheckpointFailed(e) => panic!("{e}"),
@@ -80,7 +80,7 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     assert_eq!(ckpt.steps(), 15);
     // Other settings or another scan are refused, naming what differs.
     let err = resume(
-        &scan,
+        &mut scan.clone(),
         &FitOptions {
             seed: 3,
             ..opts("x.checkpoint")
@@ -98,7 +98,7 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     let mut fewer = small_scan();
     fewer.frames.pop();
     let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
-    let err = resume(&fewer, &opts("x.checkpoint"), ckpt, &stop, &mut |_| {})
+    let err = resume(&mut fewer.clone(), &opts("x.checkpoint"), ckpt, &stop, &mut |_| {})
         .err()
         .unwrap()
         .to_string();
@@ -109,7 +109,7 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
 
     let stop = AtomicBool::new(false);
     let ckpt = Checkpoint::load(&dir.path().join("part.checkpoint")).unwrap();
-    let rest = resume(&scan, &opts("part.checkpoint"), ckpt, &stop, &mut |_| {}).unwrap();
+    let rest = resume(&mut scan.clone(), &opts("part.checkpoint"), ckpt, &stop, &mut |_| {}).unwrap();
     assert!(
         rest.model.to_bytes() == whole.model.to_bytes(),
         "resumed model differs from the uninterrupted one"

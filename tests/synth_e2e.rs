@@ -50,9 +50,9 @@ fn fitted() -> &'static Fitted {
         // missing depth (the benchmark scores that on a corrupted scan).
         o.corruptions = Corruptions::none();
         generate(&scan_dir, &o).unwrap();
-        let scan = load(&scan_dir, &LoadOptions::default()).unwrap();
+        let mut scan = load(&scan_dir, &LoadOptions::default()).unwrap();
         let opts = FitOptions { steps: Some(STEPS), time: None, holdout_every: 0, ..FitOptions::default() };
-        let outcome = fit(&scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap();
+        let outcome = fit(&mut scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap();
         Fitted { _dir: dir, scan_dir, scan, model: outcome.model }
     })
 }

@@ -37,8 +37,9 @@ pub fn read_model(path: &Path) -> anyhow::Result<(Model, u32)> {
 }
 
 /// Refuse a model fitted to another scan (or to this one before its poses
-/// changed) unless `force`, which only warns.
-pub fn check_model_scan(model: &Model, path: &Path, scan: &Scan, force: bool) -> anyhow::Result<()> {
+/// changed) unless `force`, which only warns; then give the scan the poses
+/// the model was fitted with (refined from the captured ones).
+pub fn check_model_scan(model: &Model, path: &Path, scan: &mut Scan, force: bool) -> anyhow::Result<()> {
     match model.matches_scan(scan) {
         ScanMatch::Same => {}
         ScanMatch::Unknown => eprintln!(
@@ -53,6 +54,7 @@ pub fn check_model_scan(model: &Model, path: &Path, scan: &Scan, force: bool) ->
             path.display()
         ),
     }
+    model.apply_fitted_poses(scan);
     Ok(())
 }
 

@@ -32,11 +32,11 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         t.elapsed().as_secs_f64()
     );
 
-    let scan = load(&scan_dir, &LoadOptions::default()).with_context(|| format!("cannot read {}", scan_dir.display()))?;
+    let mut scan = load(&scan_dir, &LoadOptions::default()).with_context(|| format!("cannot read {}", scan_dir.display()))?;
     let fit_options = FitOptions { time: Some(args.time), ..FitOptions::default() };
     let stop = super::common::stop_flag();
     let bar = super::common::progress_bar(1000, "   fitting [{elapsed_precise}] [{bar:30}] {msg}");
-    let outcome = fit(&scan, &fit_options, stop, &mut |event| {
+    let outcome = fit(&mut scan, &fit_options, stop, &mut |event| {
         if let FitEvent::Step { step, stats, progress, .. } = event {
             bar.set_position((progress * 1000.0) as u64);
             bar.set_message(format!("step {step} loss {:.4}", stats.loss));

@@ -23,6 +23,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         lambda_depth: args.lambda_depth,
         learning_rate: args.learning_rate,
         unseen_objects: !args.no_unseen_objects,
+        refine_poses: !args.no_pose_refine,
         checkpoint: Some(checkpoint.clone()),
         started: Some(started),
         ..FitOptions::default()
@@ -36,7 +37,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         Output::file(&checkpoint, "the checkpoint"),
     ];
     check_outputs(&outputs, None)?;
-    let scan = load_scan(&args.scan)?;
+    let mut scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
     // Held until the model, report and checkpoint are written.
     let _lock = lock_output(&model_path, "this model")?;
@@ -60,6 +61,17 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     let stop = stop_flag();
     let mut last_eval = String::new();
     let mut on_event = |event: FitEvent| match event {
+        FitEvent::PosesRefined(r) => {
+            bar.suspend(|| eprintln!(
+                "aligned {} poses to the depth: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",
+                r.frames_refined,
+                r.median_disagreement_before_m.unwrap_or(f64::NAN) * 1e3,
+                r.median_disagreement_after_m.unwrap_or(f64::NAN) * 1e3,
+                r.largest_translation_m * 1e3,
+                r.largest_rotation_deg
+            ));
+            bar.suspend(|| eprintln!("poses vs depth: {}", r.verdict));
+        }
         FitEvent::Prepared { train_views, holdout_views, param_count, occupied_fraction } => {
             bar.suspend(|| eprintln!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
@@ -84,8 +96,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         FitEvent::CheckpointFailed(e) => bar.suspend(|| eprintln!("warning: {e}")),
     };
     let outcome = match from {
-        Some(c) => resume(&scan, &options, c, stop, &mut on_event)?,
-        None => fit(&scan, &options, stop, &mut on_event)?,
+        Some(c) => resume(&mut scan, &options, c, stop, &mut on_event)?,
+        None => fit(&mut scan, &options, stop, &mut on_event)?,
     };
     bar.finish_and_clear();
     if let Some(why) = outcome.report.failure() {

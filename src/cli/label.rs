@@ -23,10 +23,10 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let out = args.out.clone().unwrap_or_else(|| work_dir(scan_dir).join("labels"));
     let outputs = [Output::folder(&out, "the labels")];
     check_outputs(&outputs, None)?;
-    let scan = load_scan(&args.scan)?;
+    let mut scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
     if let Some(model) = &model {
-        check_model_scan(model, &model_path, &scan, args.force)?;
+        check_model_scan(model, &model_path, &mut scan, args.force)?;
     }
     let _lock = lock_output(&out, "these labels")?;
     let options = LabelOptions { source, full_depth: args.depth, exact_boxes: args.exact_boxes, ..LabelOptions::default() };

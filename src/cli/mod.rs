@@ -202,6 +202,14 @@ pub struct FitArgs {
     /// ordinary surfaces in the middle of the frame.
     #[arg(long)]
     pub no_unseen_objects: bool,
+    /// Keep the scan's poses exactly as captured. By default every frame's
+    /// pose is first aligned to the depth the other frames measured (frames
+    /// whose depth fits better with the aligned pose take it; the scene as a
+    /// whole does not move), so that masks line up with the images; the
+    /// model keeps the aligned poses for `label` and `synth`, and the report
+    /// lists each frame's correction.
+    #[arg(long)]
+    pub no_pose_refine: bool,
     /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
     ///
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.

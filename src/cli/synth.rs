@@ -21,9 +21,9 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     if boxes.is_none() {
         eprintln!("warning: no boxes (no --boxes, no {}): every mask will be empty", scan_dir.join("boxes.json").display());
     }
-    let scan = load_scan(&args.scan)?;
+    let mut scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
-    check_model_scan(&model, &model_path, &scan, args.force)?;
+    check_model_scan(&model, &model_path, &mut scan, args.force)?;
     if out.exists() && !args.overwrite {
         bail!("{}: exists; pass --overwrite to replace it, or choose another --out", out.display());
     }

@@ -53,6 +53,9 @@ pub struct FitSettings {
     pub learning_rate: Option<f32>,
     #[serde(default)]
     pub unseen_objects: bool,
+    /// Checkpoints of earlier versions trained on the captured poses.
+    #[serde(default)]
+    pub refine_poses: bool,
 }
 
 /// What a checkpoint must match to be resumed: scan, settings and budget.
@@ -91,6 +94,7 @@ impl FitIdentity {
                 lambda_depth: opts.lambda_depth,
                 learning_rate: opts.learning_rate,
                 unseen_objects: opts.unseen_objects,
+                refine_poses: opts.refine_poses,
             },
             settings_fingerprint: h.finish(),
             time: opts.time,
@@ -446,6 +450,10 @@ impl Checkpoint {
             let flag = |on: bool| if on { "without --no-unseen-objects" } else { "with --no-unseen-objects" };
             diffs.push(format!("{} (this run: {})", flag(a.unseen_objects), flag(b.unseen_objects)));
         }
+        if a.refine_poses != b.refine_poses {
+            let flag = |on: bool| if on { "without --no-pose-refine" } else { "with --no-pose-refine" };
+            diffs.push(format!("{} (this run: {})", flag(a.refine_poses), flag(b.refine_poses)));
+        }
         if !diffs.is_empty() {
             return Err(CheckpointError::OtherSettings {
                 path: self.path.clone(),
@@ -515,6 +523,7 @@ mod tests {
                 lambda_depth: Some(0.3),
                 learning_rate: None,
                 unseen_objects: false,
+                refine_poses: true,
             },
             settings_fingerprint: 11,
             time: None,

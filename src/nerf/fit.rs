@@ -14,7 +14,10 @@ use super::model_file::{Model, ModelHeader};
 use super::occupancy::OccupancyGrid;
 use super::render::RenderOptions;
 use super::train::{StepStats, TrainCounters, Trainer};
-use crate::poses::{normalize, scene_bounds, BoundsOptions, GeometryError, NormalizeOptions, SceneTransform};
+use crate::poses::{
+    normalize, refine_poses, scene_bounds, BoundsOptions, FrameCorrection, GeometryError, NormalizeOptions, PoseRefinement,
+    RefineOptions, SceneTransform,
+};
 use crate::rng::Rng;
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
@@ -40,6 +43,9 @@ pub struct FitOptions {
     /// Read wide regions without depth, enclosed by measured depth, as
     /// objects the sensor cannot see (the no-return term, `train.rs`).
     pub unseen_objects: bool,
+    /// Align every frame's pose to the other frames' depth before training
+    /// (`poses::refine_poses`); the model keeps the refined poses.
+    pub refine_poses: bool,
     /// Training seconds between held-out evaluations (and checkpoints).
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
@@ -62,6 +68,7 @@ impl Default for FitOptions {
             lambda_depth: None,
             learning_rate: None,
             unseen_objects: true,
+            refine_poses: true,
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,
@@ -97,6 +104,9 @@ pub struct CurvePoint {
 /// Seconds spent in each phase.
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
 pub struct Timings {
+    /// Aligning the poses to the depth (`FitOptions::refine_poses`).
+    #[serde(default)]
+    pub pose_refine_s: f64,
     pub bounds_s: f64,
     pub views_s: f64,
     pub occupancy_seed_s: f64,
@@ -147,7 +157,46 @@ pub struct FitReport {
     #[serde(default)]
     pub resumed_from: Vec<u64>,
     pub occupied_fraction: f64,
+    /// What pose refinement changed; `None` when it was off or the scan has
+    /// too little depth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_refinement: Option<PoseRefinementReport>,
     pub curve: Vec<CurvePoint>,
+}
+
+/// The report's account of pose refinement.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseRefinementReport {
+    pub frames_refined: usize,
+    /// Median over frames of the median distance between a frame's depth
+    /// and the other frames' depth, with the captured and the fitted poses
+    /// (absent when no frame's depth overlaps another's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub median_disagreement_before_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub median_disagreement_after_m: Option<f64>,
+    /// Largest change of a camera centre (m) and orientation (degrees).
+    pub largest_translation_m: f64,
+    pub largest_rotation_deg: f64,
+    /// How well the captured poses agreed with the depth, in a sentence.
+    pub verdict: String,
+    pub frames: Vec<FrameCorrection>,
+}
+
+impl PoseRefinementReport {
+    pub fn new(r: &PoseRefinement) -> PoseRefinementReport {
+        let (before, after) = r.median_residuals();
+        let (translation, rotation) = r.largest_correction();
+        PoseRefinementReport {
+            frames_refined: r.refined_count(),
+            median_disagreement_before_m: before.is_finite().then_some(before),
+            median_disagreement_after_m: after.is_finite().then_some(after),
+            largest_translation_m: translation,
+            largest_rotation_deg: rotation,
+            verdict: r.verdict(),
+            frames: r.frames.clone(),
+        }
+    }
 }
 
 fn one() -> f32 {
@@ -215,6 +264,8 @@ impl FitOptions {
 
 /// What the caller hears during a fit.
 pub enum FitEvent<'a> {
+    /// The poses were aligned to the depth (before anything else).
+    PosesRefined(&'a PoseRefinementReport),
     /// Set-up done; training starts.
     Prepared { train_views: usize, holdout_views: usize, param_count: usize, occupied_fraction: f64 },
     /// A step finished; `progress` in [0, 1].
@@ -349,8 +400,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
 }
 
-/// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable model.
-pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
+/// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable
+/// model. With `opts.refine_poses` the scan's poses are first aligned to its
+/// depth, in place; the model records them (`Model::apply_fitted_poses`).
+pub fn fit(scan: &mut Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
     run(scan, opts, None, stop, on_event)
 }
 
@@ -358,7 +411,7 @@ pub fn fit(scan: &Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn
 /// budget counts the steps and seconds already trained (without one in
 /// `opts`, the checkpoint's budget), and the curve goes on.
 pub fn resume(
-    scan: &Scan,
+    scan: &mut Scan,
     opts: &FitOptions,
     from: Checkpoint,
     stop: &AtomicBool,
@@ -368,15 +421,31 @@ pub fn resume(
 }
 
 fn run(
-    scan: &Scan,
+    scan: &mut Scan,
     opts: &FitOptions,
     from: Option<Checkpoint>,
     stop: &AtomicBool,
     on_event: &mut dyn FnMut(FitEvent),
 ) -> Result<FitOutcome, FitError> {
     let started = opts.started.unwrap_or_else(Instant::now);
-    let Prepared { data, settings, transform, metres_per_unit, mut trainer, timings } = prepare_with(scan, opts, from.is_none())?;
+    // Models and checkpoints name the scan as captured.
+    let captured_fingerprint = crate::scan::fingerprint::scan_fingerprint(scan);
+    let t = Instant::now();
+    let refinement = if opts.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
+    if let Some(r) = &refinement {
+        for (frame, pose) in scan.frames.iter_mut().zip(&r.camera_to_world) {
+            frame.camera_to_world = *pose;
+        }
+    }
+    let refinement_report = refinement.as_ref().map(PoseRefinementReport::new);
+    if let Some(r) = &refinement_report {
+        on_event(FitEvent::PosesRefined(r));
+    }
+    let pose_refine_s = t.elapsed().as_secs_f64();
+    let Prepared { data, settings, transform, metres_per_unit, mut trainer, mut timings } = prepare_with(scan, opts, from.is_none())?;
+    timings.pose_refine_s = pose_refine_s;
     let mut identity = FitIdentity::new(scan, opts, &settings);
+    identity.scan_fingerprint = captured_fingerprint;
     let mut state = match from {
         None => FitProgress { timings, ..FitProgress::default() },
         Some(ckpt) => {
@@ -387,6 +456,7 @@ fn run(
             let mut state = ckpt.restore(&mut trainer)?;
             state.resumed_from.push(trainer.counters.steps);
             state.interrupted = false;
+            state.timings.pose_refine_s += timings.pose_refine_s;
             state.timings.bounds_s += timings.bounds_s;
             state.timings.views_s += timings.views_s;
             state
@@ -520,7 +590,8 @@ fn run(
         seed: opts.seed,
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
-        scan_fingerprint: Some(crate::scan::fingerprint::scan_fingerprint(scan)),
+        scan_fingerprint: Some(captured_fingerprint),
+        fitted_poses: refinement.as_ref().map(|r| r.camera_to_world.iter().map(|p| p.to_cols_array()).collect()),
         sections: [0; 5],
     };
     let occupancy = trainer.rendering_occupancy();
@@ -542,6 +613,7 @@ fn run(
         interrupted: state.interrupted,
         resumed_from: state.resumed_from,
         occupied_fraction: occupancy.occupied_fraction(),
+        pose_refinement: refinement_report,
         curve: state.curve,
     };
     let model = Model { header, field: trainer.field, occupancy };

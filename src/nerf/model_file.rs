@@ -15,8 +15,9 @@ use std::path::{Path, PathBuf};
 pub const MAGIC: &[u8; 8] = b"NERFLBL\0";
 /// Format version written by this build.
 pub const VERSION: u32 = 1;
-/// Header JSON larger than this is rejected.
-const MAX_HEADER: usize = 1 << 20;
+/// Header JSON larger than this is rejected (room for the fitted poses of
+/// the largest scan).
+const MAX_HEADER: usize = 1 << 26;
 /// Model files larger than this are rejected (4 GiB).
 const MAX_FILE: u64 = 1 << 32;
 
@@ -42,6 +43,11 @@ pub struct ModelHeader {
     pub scan_frames: Option<usize>,
     #[serde(default)]
     pub scan_fingerprint: Option<u64>,
+    /// Camera-to-world poses the model was fitted with (column-major), one
+    /// per scan frame in scan order, where pose refinement changed them;
+    /// `None`: the scan's own poses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fitted_poses: Option<Vec<[f64; 16]>>,
     /// Lengths of the sections: grid, density MLP, colour MLP, occupancy
     /// densities (f32 each), then carved-cell mask (u64 words).
     pub sections: [usize; 5],
@@ -96,6 +102,25 @@ impl Model {
         } else {
             ScanMatch::Same
         }
+    }
+
+    /// Give `scan` (the scan this model was fitted to) the poses the model
+    /// was fitted with, so that what it renders lines up with the images.
+    /// Returns how many frames changed.
+    pub fn apply_fitted_poses(&self, scan: &mut Scan) -> usize {
+        let Some(poses) = &self.header.fitted_poses else { return 0 };
+        if poses.len() != scan.frames.len() {
+            return 0;
+        }
+        let mut changed = 0;
+        for (frame, pose) in scan.frames.iter_mut().zip(poses) {
+            let pose = glam::DMat4::from_cols_array(pose);
+            if pose.is_finite() && pose != frame.camera_to_world {
+                frame.camera_to_world = pose;
+                changed += 1;
+            }
+        }
+        changed
     }
 
     /// Serialise to bytes (header sections filled in from the parameters).
@@ -222,6 +247,7 @@ mod tests {
             scan: "scan".into(),
             scan_frames: Some(2),
             scan_fingerprint: Some(11),
+            fitted_poses: Some(vec![glam::DMat4::from_translation(glam::DVec3::X).to_cols_array(); 2]),
             sections: [0; 5],
         };
         Model { header, field, occupancy }

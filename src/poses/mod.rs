@@ -8,6 +8,7 @@ mod cloud;
 mod error;
 mod normalize;
 mod orient;
+mod refine;
 #[cfg(test)]
 mod test_scene;
 
@@ -17,4 +18,5 @@ pub use bounds::{
 };
 pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
 pub use error::GeometryError;
+pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};

@@ -143,3 +143,56 @@ fn sweep_rounds() {
         );
     }
 }
+
+/// A copy of `scan_dir` whose poses' camera positions are multiplied by
+/// `factor` (native pose files: the translation column scales with them).
+fn scaled_copy(scan_dir: &Path, out: &Path, factor: f64) {
+    std::fs::create_dir_all(out.join("pose")).unwrap();
+    for entry in ["rgb", "depth", "intrinsics.txt"] {
+        std::os::unix::fs::symlink(scan_dir.join(entry), out.join(entry)).unwrap();
+    }
+    for file in std::fs::read_dir(scan_dir.join("pose")).unwrap() {
+        let path = file.unwrap().path();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let rows: Vec<String> = text
+            .lines()
+            .enumerate()
+            .map(|(r, line)| {
+                let mut v: Vec<f64> = line.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                if r < 3 {
+                    v[3] *= factor;
+                }
+                v.iter().map(|x| format!("{x:.17}")).collect::<Vec<_>>().join(" ")
+            })
+            .collect();
+        std::fs::write(out.join("pose").join(path.file_name().unwrap()), rows.join("\n") + "\n").unwrap();
+    }
+}
+
+/// Poses known only up to scale: `info` says so with the factor, and `fit`
+/// finds it within 1 % and fits in metres (boxes stay metric).
+#[test]
+fn up_to_scale_poses_are_found_and_made_metric() {
+    let dir = tempfile::tempdir().unwrap();
+    let (scan_dir, _, _) = perturbed_tabletop(dir.path(), 24, 0.0015, 0.075);
+    for factor in [0.4, 2.5] {
+        let scaled = dir.path().join(format!("scaled-{factor}"));
+        scaled_copy(&scan_dir, &scaled, factor);
+        let info = Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(["info", scaled.to_str().unwrap()]).output().unwrap();
+        let stdout = String::from_utf8_lossy(&info.stdout);
+        assert!(stdout.contains("poses are up to scale"), "x{factor}: {stdout}");
+        let model = scaled.join("model.nlf");
+        let out = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+            .args(["fit", scaled.to_str().unwrap(), "--steps", "2", "--preset", "fast", "--holdout", "0", "--model"])
+            .arg(&model)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(scaled.join("model.report.json")).unwrap()).unwrap();
+        let applied = report["pose_scale"]["applied"].as_f64().expect("the report gives the applied scale");
+        assert!((applied * factor - 1.0).abs() < 0.01, "x{factor}: applied {applied}");
+    }
+    // The metric original is left as it is.
+    let info = Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(["info", scan_dir.to_str().unwrap()]).output().unwrap();
+    assert!(String::from_utf8_lossy(&info.stdout).contains("poses look metric"));
+}

@@ -24,6 +24,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         learning_rate: args.learning_rate,
         unseen_objects: !args.no_unseen_objects,
         refine_poses: !args.no_pose_refine,
+        pose_scale: args.pose_scale,
         checkpoint: Some(checkpoint.clone()),
         started: Some(started),
         ..FitOptions::default()
@@ -61,6 +62,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     let stop = stop_flag();
     let mut last_eval = String::new();
     let mut on_event = |event: FitEvent| match event {
+        FitEvent::PosesScaled(r) => bar.suspend(|| eprintln!("warning: {}; camera positions multiplied by {:.4}", r.verdict, r.applied)),
         FitEvent::PosesRefined(r) => {
             bar.suspend(|| eprintln!(
                 "aligned {} poses to the depth: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",

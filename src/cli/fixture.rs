@@ -26,6 +26,19 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
         c.jpeg_quality = q;
     }
     c.pose_noise |= args.pose_noise;
+    if let Some(text) = &args.pose_error {
+        let parsed: Option<(f64, f64)> = text.split_once(',').and_then(|(mm, deg)| Some((mm.trim().parse().ok()?, deg.trim().parse().ok()?)));
+        let Some((mm, deg)) = parsed.filter(|(mm, deg)| mm.is_finite() && deg.is_finite() && *mm >= 0.0 && *deg >= 0.0) else {
+            anyhow::bail!("--pose-error {text}: expected millimetres and degrees as two non-negative numbers, e.g. 10,0.5");
+        };
+        (c.pose_noise, c.pose_sigma_m, c.pose_sigma_deg) = (true, mm * 1e-3, deg);
+    }
+    if let Some(mm) = args.pose_drift {
+        if !(mm.is_finite() && mm >= 0.0) {
+            anyhow::bail!("--pose-drift {mm}: expected non-negative millimetres");
+        }
+        (c.pose_noise, c.pose_drift_m) = (true, mm * 1e-3);
+    }
     c.depth_noise &= !args.no_depth_noise;
     c.holes &= !args.no_holes;
     c.edge_dropout &= !args.no_edge_dropout;

@@ -3,7 +3,7 @@
 use super::common::load_scan;
 use super::InfoArgs;
 use anyhow::Context;
-use nerflabel::poses::{refine_poses, scene_bounds, BoundsOptions, BoundsSource, RefineOptions};
+use nerflabel::poses::{estimate_pose_scale, refine_poses, scene_bounds, BoundsOptions, BoundsSource, RefineOptions};
 
 pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
     let scan = load_scan(&args.scan)?;
@@ -23,6 +23,10 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
     let e = bounds.aabb.extent();
     println!("scene size:     {:.3} x {:.3} x {:.3} m", e.x, e.y, e.z);
     let refinement = refine_poses(&scan, &RefineOptions::default()).context("cannot compare the poses with the depth")?;
+    match estimate_pose_scale(&scan).context("cannot compare the camera motion with the depth")? {
+        Some(e) => println!("pose scale:     {}", e.verdict()),
+        None => println!("pose scale:     fewer than two frames have depth; the scale cannot be checked"),
+    }
     match refinement {
         Some(r) => println!("poses vs depth: {}", r.verdict()),
         None => println!("poses vs depth: fewer than two frames have depth; the poses cannot be checked against it"),

@@ -147,6 +147,12 @@ pub struct FixtureArgs {
     /// Write scan poses with SLAM-like error (RMS 1.5 mm and 0.075 degrees per frame); gt/pose keeps the exact ones.
     #[arg(long)]
     pub pose_noise: bool,
+    /// Pose error per frame as RMS millimetres and degrees, e.g. `10,0.5` (implies --pose-noise).
+    #[arg(long, value_name = "MM,DEG")]
+    pub pose_error: Option<String>,
+    /// Slow drift of the written camera positions, RMS millimetres over the scan (implies --pose-noise).
+    #[arg(long, value_name = "MM")]
+    pub pose_drift: Option<f64>,
     /// As hard as a real handheld scan: JPEG colour (quality 85) and pose error on top of the default corruptions.
     #[arg(long, conflicts_with = "clean")]
     pub realistic: bool,
@@ -210,6 +216,14 @@ pub struct FitArgs {
     /// lists each frame's correction.
     #[arg(long)]
     pub no_pose_refine: bool,
+    /// Multiply every camera position by this factor before fitting, for
+    /// poses known only up to scale (structure from motion). By default the
+    /// scale is estimated from the depth and applied, with a warning, when
+    /// the poses are clearly not metric; `--pose-scale 1` keeps them as they
+    /// are. Boxes are given in the metric frame that results (same origin
+    /// and axes as the poses).
+    #[arg(long, value_name = "S")]
+    pub pose_scale: Option<f64>,
     /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
     ///
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.

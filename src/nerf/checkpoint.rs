@@ -56,6 +56,8 @@ pub struct FitSettings {
     /// Checkpoints of earlier versions trained on the captured poses.
     #[serde(default)]
     pub refine_poses: bool,
+    #[serde(default)]
+    pub pose_scale: Option<f64>,
 }
 
 /// What a checkpoint must match to be resumed: scan, settings and budget.
@@ -95,6 +97,7 @@ impl FitIdentity {
                 learning_rate: opts.learning_rate,
                 unseen_objects: opts.unseen_objects,
                 refine_poses: opts.refine_poses,
+                pose_scale: opts.pose_scale,
             },
             settings_fingerprint: h.finish(),
             time: opts.time,
@@ -450,6 +453,10 @@ impl Checkpoint {
             let flag = |on: bool| if on { "without --no-unseen-objects" } else { "with --no-unseen-objects" };
             diffs.push(format!("{} (this run: {})", flag(a.unseen_objects), flag(b.unseen_objects)));
         }
+        if a.pose_scale != b.pose_scale {
+            let scale = |v: Option<f64>| v.map_or_else(|| "estimated".to_string(), |x| x.to_string());
+            diffs.push(format!("--pose-scale {} (this run: {})", scale(a.pose_scale), scale(b.pose_scale)));
+        }
         if a.refine_poses != b.refine_poses {
             let flag = |on: bool| if on { "without --no-pose-refine" } else { "with --no-pose-refine" };
             diffs.push(format!("{} (this run: {})", flag(a.refine_poses), flag(b.refine_poses)));
@@ -524,6 +531,7 @@ mod tests {
                 learning_rate: None,
                 unseen_objects: false,
                 refine_poses: true,
+                pose_scale: None,
             },
             settings_fingerprint: 11,
             time: None,

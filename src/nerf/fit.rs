@@ -15,7 +15,7 @@ use super::occupancy::OccupancyGrid;
 use super::render::RenderOptions;
 use super::train::{StepStats, TrainCounters, Trainer};
 use crate::poses::{
-    normalize, refine_poses, scene_bounds, BoundsOptions, FrameCorrection, GeometryError, NormalizeOptions, PoseRefinement,
+    estimate_pose_scale, normalize, refine_poses, scale_poses, scene_bounds, BoundsOptions, FrameCorrection, GeometryError, NormalizeOptions, PoseRefinement,
     RefineOptions, SceneTransform,
 };
 use crate::rng::Rng;
@@ -46,6 +46,10 @@ pub struct FitOptions {
     /// Align every frame's pose to the other frames' depth before training
     /// (`poses::refine_poses`); the model keeps the refined poses.
     pub refine_poses: bool,
+    /// Multiply every camera position by this (poses known only up to
+    /// scale); `None`: estimated from the depth and applied when the poses
+    /// are clearly not metric.
+    pub pose_scale: Option<f64>,
     /// Training seconds between held-out evaluations (and checkpoints).
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
@@ -69,6 +73,7 @@ impl Default for FitOptions {
             learning_rate: None,
             unseen_objects: true,
             refine_poses: true,
+            pose_scale: None,
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,
@@ -157,11 +162,24 @@ pub struct FitReport {
     #[serde(default)]
     pub resumed_from: Vec<u64>,
     pub occupied_fraction: f64,
+    /// The scale applied to the camera positions, when not 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_scale: Option<PoseScaleReport>,
     /// What pose refinement changed; `None` when it was off or the scan has
     /// too little depth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_refinement: Option<PoseRefinementReport>,
     pub curve: Vec<CurvePoint>,
+}
+
+/// The report's account of the poses' scale.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseScaleReport {
+    /// Factor the camera positions were multiplied by.
+    pub applied: f64,
+    /// Given with `--pose-scale` rather than estimated.
+    pub forced: bool,
+    pub verdict: String,
 }
 
 /// The report's account of pose refinement.
@@ -237,6 +255,11 @@ impl FitOptions {
     /// Refuse settings no fit can train with, naming the setting.
     pub fn validate(&self) -> Result<(), FitError> {
         let bad = |name: &'static str, reason: String| Err(FitError::Setting { name, reason });
+        if let Some(s) = self.pose_scale {
+            if !(s.is_finite() && s > 0.0) {
+                return bad("--pose-scale", format!("must be a positive factor, got {s}"));
+            }
+        }
         if let Some(l) = self.lambda_depth {
             if !(l.is_finite() && l >= 0.0) {
                 return bad("--lambda-depth", format!("must be a finite number >= 0, got {l}"));
@@ -264,7 +287,9 @@ impl FitOptions {
 
 /// What the caller hears during a fit.
 pub enum FitEvent<'a> {
-    /// The poses were aligned to the depth (before anything else).
+    /// The camera positions were scaled to metres (before anything else).
+    PosesScaled(&'a PoseScaleReport),
+    /// The poses were aligned to the depth.
     PosesRefined(&'a PoseRefinementReport),
     /// Set-up done; training starts.
     Prepared { train_views: usize, holdout_views: usize, param_count: usize, occupied_fraction: f64 },
@@ -400,6 +425,24 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
 }
 
+/// Scale the scan's camera positions: by `forced`, else by the estimate
+/// from the depth when the poses are clearly not metric. `None`: unchanged.
+fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseScaleReport>, FitError> {
+    let (applied, verdict) = match forced {
+        Some(s) if s == 1.0 => return Ok(None),
+        Some(s) => (s, format!("camera positions multiplied by {s} (--pose-scale)")),
+        None => match estimate_pose_scale(scan)? {
+            Some(e) if e.is_determined() && !e.looks_metric() => (e.scale, e.verdict()),
+            _ => return Ok(None),
+        },
+    };
+    let poses: Vec<_> = scan.frames.iter().map(|f| f.camera_to_world).collect();
+    for (frame, pose) in scan.frames.iter_mut().zip(scale_poses(&poses, applied)) {
+        frame.camera_to_world = pose;
+    }
+    Ok(Some(PoseScaleReport { applied, forced: forced.is_some(), verdict }))
+}
+
 /// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable
 /// model. With `opts.refine_poses` the scan's poses are first aligned to its
 /// depth, in place; the model records them (`Model::apply_fitted_poses`).
@@ -431,6 +474,10 @@ fn run(
     // Models and checkpoints name the scan as captured.
     let captured_fingerprint = crate::scan::fingerprint::scan_fingerprint(scan);
     let t = Instant::now();
+    let scale_report = apply_pose_scale(scan, opts.pose_scale)?;
+    if let Some(r) = &scale_report {
+        on_event(FitEvent::PosesScaled(r));
+    }
     let refinement = if opts.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
     if let Some(r) = &refinement {
         for (frame, pose) in scan.frames.iter_mut().zip(&r.camera_to_world) {
@@ -442,6 +489,7 @@ fn run(
         on_event(FitEvent::PosesRefined(r));
     }
     let pose_refine_s = t.elapsed().as_secs_f64();
+    let scaled = scale_report.is_some();
     let Prepared { data, settings, transform, metres_per_unit, mut trainer, mut timings } = prepare_with(scan, opts, from.is_none())?;
     timings.pose_refine_s = pose_refine_s;
     let mut identity = FitIdentity::new(scan, opts, &settings);
@@ -591,7 +639,7 @@ fn run(
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
-        fitted_poses: refinement.as_ref().map(|r| r.camera_to_world.iter().map(|p| p.to_cols_array()).collect()),
+        fitted_poses: (scaled || refinement.is_some()).then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
         sections: [0; 5],
     };
     let occupancy = trainer.rendering_occupancy();
@@ -613,6 +661,7 @@ fn run(
         interrupted: state.interrupted,
         resumed_from: state.resumed_from,
         occupied_fraction: occupancy.occupied_fraction(),
+        pose_scale: scale_report,
         pose_refinement: refinement_report,
         curve: state.curve,
     };

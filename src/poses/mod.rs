@@ -9,6 +9,7 @@ mod error;
 mod normalize;
 mod orient;
 mod refine;
+mod scale;
 #[cfg(test)]
 mod test_scene;
 
@@ -18,5 +19,6 @@ pub use bounds::{
 };
 pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
 pub use error::GeometryError;
+pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};
 pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};

@@ -114,8 +114,12 @@ impl PoseRefinement {
                 .iter()
                 .take(5)
                 .map(|&(a, b, level)| {
-                    let names = if a == b { format!("frame {}", self.frames[a].frame) } else { format!("frames {}-{}", self.frames[a].frame, self.frames[b].frame) };
-                    format!("{names} disagree with the other frames' depth by ~{}", mm(level))
+                    let names = if a == b {
+                        format!("frame {} disagrees", self.frames[a].frame)
+                    } else {
+                        format!("frames {}-{} disagree", self.frames[a].frame, self.frames[b].frame)
+                    };
+                    format!("{names} with the other frames' depth by ~{}", mm(level))
                 })
                 .collect();
             let more = if runs.len() > 5 { format!(" (and {} more runs)", runs.len() - 5) } else { String::new() };
@@ -240,7 +244,7 @@ pub fn pose_difference(a: &DMat4, b: &DMat4) -> (f64, f64) {
 
 /// Camera-frame points of a frame's depth on a regular pixel grid, skipping
 /// pixels beside a depth edge (mixed foreground and background returns).
-fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Result<Vec<DVec3>, GeometryError> {
+pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Result<Vec<DVec3>, GeometryError> {
     let Some(depth) = &frame.depth else { return Ok(Vec::new()) };
     let Some(k) = super::bounds::depth_intrinsics(frame)? else { return Ok(Vec::new()) };
     let (w, h) = (depth.width, depth.height);
@@ -283,7 +287,7 @@ fn away_from_edges(depth: &crate::scan::DepthMap, x: u32, y: u32, z: f32, reach:
 }
 
 /// All frames' depth points in the world, with the frame each came from.
-struct Cloud {
+pub(super) struct Cloud {
     tree: ImmutableKdTree<f64, 3>,
     points: Vec<[f64; 3]>,
     frame_of: Vec<u32>,
@@ -299,7 +303,7 @@ struct FrameMatches {
 }
 
 impl Cloud {
-    fn new(samples: &[Vec<DVec3>], poses: &[DMat4]) -> Cloud {
+    pub(super) fn new(samples: &[Vec<DVec3>], poses: &[DMat4]) -> Cloud {
         let mut points = Vec::new();
         let mut frame_of = Vec::new();
         for (i, (s, pose)) in samples.iter().zip(poses).enumerate() {
@@ -335,9 +339,19 @@ impl Cloud {
             .collect()
     }
 
+    /// Distance from `x` to the nearest point another frame measured.
+    pub(super) fn nearest_other(&self, x: DVec3, own_frame: u32) -> Option<f64> {
+        let wanted = NonZeroUsize::new(8)?;
+        let found = self.tree.query(&x.to_array()).nearest_n::<SquaredEuclidean<f64>>(wanted).execute();
+        found
+            .iter()
+            .find(|r| self.frame_of.get(r.item as usize).is_some_and(|&f| f != own_frame))
+            .map(|r| r.distance.sqrt())
+    }
+
     /// Plane (centroid, unit normal) through the `neighbours` points nearest
     /// to `x` that other frames measured; `None` where they do not form one.
-    fn plane_near(&self, x: DVec3, own_frame: u32, neighbours: usize) -> Option<(DVec3, DVec3)> {
+    pub(super) fn plane_near(&self, x: DVec3, own_frame: u32, neighbours: usize) -> Option<(DVec3, DVec3)> {
         // Own points are a sampling stride apart, other frames' much denser:
         // a few extra candidates make up for the own ones dropped.
         let wanted = NonZeroUsize::new(neighbours + neighbours / 2)?;

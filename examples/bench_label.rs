@@ -14,6 +14,7 @@
 //! `--realistic` (generate the fixture as hard as a handheld scan: JPEG colour, pose error),
 //! `--loose M` (boxes grown by M metres on every side, bottom 2 cm into the support),
 //! `--exact-boxes` (no support or wall plane excluded from the boxes),
+//! `--no-pose-refine` (fit with the poses as captured),
 //! `--cleanup F` (mask clean-up fraction, 0 = off),
 //! `--opacity A` (accumulated opacity that marks the rendered surface),
 //! `--depth-errors` (fixture: rendered depth against exact depth inside each object),
@@ -51,6 +52,7 @@ struct Args {
     /// Grow every box by this margin on each side, bottom 2 cm below the original.
     loose: Option<f64>,
     exact_boxes: bool,
+    refine_poses: bool,
     boxes: PathBuf,
     realistic: bool,
 }
@@ -79,6 +81,7 @@ fn parse_args() -> Result<Args, Error> {
         cleanup: LabelOptions::default().cleanup_fraction,
         loose: None,
         exact_boxes: false,
+        refine_poses: true,
         boxes: PathBuf::from("boxes.json"),
         realistic: false,
     };
@@ -93,6 +96,7 @@ fn parse_args() -> Result<Args, Error> {
             "--clean" => args.clean = true,
             "--loose" => args.loose = Some(value("--loose")?.parse()?),
             "--exact-boxes" => args.exact_boxes = true,
+            "--no-pose-refine" => args.refine_poses = false,
             "--boxes" => args.boxes = value("--boxes")?.into(),
             "--realistic" => args.realistic = true,
             "--cleanup" => args.cleanup = value("--cleanup")?.parse()?,
@@ -118,7 +122,7 @@ fn parse_args() -> Result<Args, Error> {
 }
 
 /// Fit (or load) the model of a scan; the scan takes the poses it was fitted with.
-fn model_for(scan: &mut Scan, path: &Path, seconds: f64) -> Result<Model, Error> {
+fn model_for(scan: &mut Scan, path: &Path, seconds: f64, refine_poses: bool) -> Result<Model, Error> {
     if path.is_file() {
         eprintln!("loading {}", path.display());
         let model = Model::load(path)?;
@@ -126,7 +130,7 @@ fn model_for(scan: &mut Scan, path: &Path, seconds: f64) -> Result<Model, Error>
         return Ok(model);
     }
     eprintln!("fitting for {seconds} s ...");
-    let opts = FitOptions { time: Some(seconds), holdout_every: 0, ..FitOptions::default() };
+    let opts = FitOptions { time: Some(seconds), holdout_every: 0, refine_poses, ..FitOptions::default() };
     let t = Instant::now();
     let out = fit(scan, &opts, &AtomicBool::new(false), &mut |e| {
         if let FitEvent::Prepared { train_views, .. } = e {
@@ -249,7 +253,7 @@ fn main() -> Result<(), Error> {
             (scan, boxes, truth, model)
         }
     };
-    let model = model_for(&mut scan, &model_path, args.fit_seconds)?;
+    let model = model_for(&mut scan, &model_path, args.fit_seconds, args.refine_poses)?;
     let boxes = match args.loose {
         // Boxes as users draw them: a margin on every side, the bottom 2 cm into the support (boxes stand upright, z up).
         Some(margin) => BoxSet::from_boxes(

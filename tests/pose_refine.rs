@@ -196,3 +196,14 @@ fn up_to_scale_poses_are_found_and_made_metric() {
     let info = Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(["info", scan_dir.to_str().unwrap()]).output().unwrap();
     assert!(String::from_utf8_lossy(&info.stdout).contains("poses look metric"));
 }
+
+/// Regression: with poses off by centimetres (SLAM-like), too few planes
+/// were found at any scale and `info` said no frame had depth. The rough
+/// estimate stands instead, and says the poses are metric.
+#[test]
+fn centimetre_pose_error_still_gives_a_scale_verdict() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, scan, _) = perturbed_tabletop(dir.path(), 36, 0.02, 1.0);
+    let e = nerflabel::poses::estimate_pose_scale(&scan).unwrap().expect("the scan has depth");
+    assert!(e.looks_metric() && (e.scale - 1.0).abs() < 0.05, "{e:?}: {}", e.verdict());
+}

@@ -52,12 +52,14 @@ impl ScaleEstimate {
 
     /// Whether the depth determines the scale at all.
     pub fn is_determined(&self) -> bool {
-        self.sharpness > 0.02
+        self.cost_at_scale.is_finite() && self.sharpness > 0.02
     }
 
     /// A plain sentence.
     pub fn verdict(&self) -> String {
-        if !self.is_determined() {
+        if !self.cost_at_scale.is_finite() {
+            "the frames' depth overlaps too little to tell the poses' scale".into()
+        } else if !self.is_determined() {
             "the cameras move too little against the depth to tell the poses' scale".into()
         } else if self.looks_metric() {
             format!("poses look metric (best scale {:.3})", self.scale)
@@ -86,7 +88,8 @@ pub fn scale_poses(poses: &[DMat4], scale: f64) -> Vec<DMat4> {
 }
 
 /// Estimate the factor that makes the poses metric; `None` when fewer than
-/// two frames have depth.
+/// two frames have depth (see [`ScaleEstimate::is_determined`] for scans
+/// whose depth cannot tell).
 pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, GeometryError> {
     let samples: Vec<Vec<DVec3>> = scan
         .frames
@@ -107,12 +110,16 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     let coarse: Vec<f64> = (0..COARSE_STEPS).into_par_iter().map(|k| coarse_cost(at(k))).collect();
     let best = (0..COARSE_STEPS).min_by(|&a, &b| coarse[a].total_cmp(&coarse[b])).unwrap_or(COARSE_STEPS / 2);
     let rough = golden_section(at(best.saturating_sub(1)), at((best + 1).min(COARSE_STEPS - 1)), 0.01, &coarse_cost);
-    let scale = golden_section(rough / NEAR, rough * NEAR, TOLERANCE, &cost);
+    let fine = golden_section(rough / NEAR, rough * NEAR, TOLERANCE, &cost);
+    // Frames that disagree by more than their planes' size (poses off by
+    // centimetres) find too few planes: the rough estimate stands.
+    let (scale, cost): (f64, &dyn Fn(f64) -> f64) = if cost(fine).is_finite() { (fine, &cost) } else { (rough, &coarse_cost) };
     let cost_at_scale = cost(scale);
-    if !cost_at_scale.is_finite() {
-        return Ok(None);
-    }
-    let sharpness = 0.5 * (cost(scale * 1.05) + cost(scale / 1.05)) / cost_at_scale.max(f64::MIN_POSITIVE) - 1.0;
+    let sharpness = if cost_at_scale.is_finite() {
+        0.5 * (cost(scale * 1.05) + cost(scale / 1.05)) / cost_at_scale.max(f64::MIN_POSITIVE) - 1.0
+    } else {
+        0.0
+    };
     Ok(Some(ScaleEstimate { scale, cost_at_scale, cost_at_one: cost(1.0), sharpness }))
 }
 

@@ -34,7 +34,7 @@ fn perturbed_tabletop(dir: &Path, frames: usize, sigma_m: f64, sigma_deg: f64) -
 /// trajectory as a whole is aligned to the exact one (where the scene sits
 /// as a whole is not what refinement can know); and the RMS rotation error.
 fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
-    let truth: Vec<DMat4> = exact.frames.iter().map(|f| f.camera_to_world).collect();
+    let truth = exact.poses();
     let align = trajectory_alignment(poses, &truth, 0.7);
     let (mut px, mut count, mut rot) = (0.0, 0usize, 0.0);
     for (p, f) in poses.iter().zip(&exact.frames) {
@@ -59,15 +59,11 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
     ((px / count.max(1) as f64).sqrt(), (rot / poses.len() as f64).sqrt())
 }
 
-fn poses_of(scan: &Scan) -> Vec<DMat4> {
-    scan.frames.iter().map(|f| f.camera_to_world).collect()
-}
-
 #[test]
 fn refinement_recovers_known_pose_perturbations() {
     let dir = tempfile::tempdir().unwrap();
     let (_, scan, exact) = perturbed_tabletop(dir.path(), 36, 0.006, 0.3);
-    let (px0, deg0) = rms_error(&poses_of(&scan), &exact);
+    let (px0, deg0) = rms_error(&scan.poses(), &exact);
     let refined = refine_poses(&scan, &RefineOptions::default()).unwrap().expect("the scan has depth");
     let (px1, deg1) = rms_error(&refined.camera_to_world, &exact);
     eprintln!("reprojection error {px0:.2} px, {deg0:.3} deg -> {px1:.2} px, {deg1:.3} deg");
@@ -103,8 +99,8 @@ fn fit_stores_refined_poses_and_reports_them() {
     let mut labelled = scan.clone();
     let changed = model.apply_fitted_poses(&mut labelled);
     assert!(changed * 10 >= scan.frames.len() * 9, "{changed} of {} poses changed", scan.frames.len());
-    let (px0, _) = rms_error(&poses_of(&scan), &exact);
-    let (px1, _) = rms_error(&poses_of(&labelled), &exact);
+    let (px0, _) = rms_error(&scan.poses(), &exact);
+    let (px1, _) = rms_error(&labelled.poses(), &exact);
     assert!(px1 < 0.7 * px0, "the model's poses: reprojection error {px0:.2} px -> {px1:.2} px");
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("refined.report.json")).unwrap()).unwrap();

@@ -208,7 +208,8 @@ pub struct FitArgs {
     /// ordinary surfaces in the middle of the frame.
     #[arg(long)]
     pub no_unseen_objects: bool,
-    /// Keep the scan's poses exactly as captured. By default every frame's
+    /// Keep the scan's poses as captured (still made metric when they are
+    /// clearly not; see --pose-scale). By default every frame's
     /// pose is first aligned to the depth the other frames measured (frames
     /// whose depth fits better with the aligned pose take it; the scene as a
     /// whole does not move), so that masks line up with the images; the

@@ -109,7 +109,8 @@ pub struct CurvePoint {
 /// Seconds spent in each phase.
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
 pub struct Timings {
-    /// Aligning the poses to the depth (`FitOptions::refine_poses`).
+    /// Making the poses metric and aligning them to the depth
+    /// (`FitOptions::pose_scale`, `FitOptions::refine_poses`).
     #[serde(default)]
     pub pose_refine_s: f64,
     pub bounds_s: f64,
@@ -436,10 +437,7 @@ fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseS
             _ => return Ok(None),
         },
     };
-    let poses: Vec<_> = scan.frames.iter().map(|f| f.camera_to_world).collect();
-    for (frame, pose) in scan.frames.iter_mut().zip(scale_poses(&poses, applied)) {
-        frame.camera_to_world = pose;
-    }
+    scan.set_poses(&scale_poses(&scan.poses(), applied));
     Ok(Some(PoseScaleReport { applied, forced: forced.is_some(), verdict }))
 }
 
@@ -480,9 +478,7 @@ fn run(
     }
     let refinement = if opts.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
     if let Some(r) = &refinement {
-        for (frame, pose) in scan.frames.iter_mut().zip(&r.camera_to_world) {
-            frame.camera_to_world = *pose;
-        }
+        scan.set_poses(&r.camera_to_world);
     }
     let refinement_report = refinement.as_ref().map(PoseRefinementReport::new);
     if let Some(r) = &refinement_report {

@@ -170,7 +170,7 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
     if samples.iter().filter(|s| s.len() >= MIN_CORRESPONDENCES).count() < 2 {
         return Ok(None);
     }
-    let captured: Vec<DMat4> = scan.frames.iter().map(|f| f.camera_to_world).collect();
+    let captured = scan.poses();
     let mut poses = captured.clone();
     let mut previous_scale = f64::INFINITY;
     for _ in 0..opts.rounds {
@@ -549,7 +549,7 @@ mod tests {
             }
             ((t / poses.len() as f64).sqrt(), (r / poses.len() as f64).sqrt())
         };
-        let perturbed: Vec<DMat4> = scan.frames.iter().map(|f| f.camera_to_world).collect();
+        let perturbed = scan.poses();
         let (t0, r0) = error(&perturbed);
         let refined = refine_poses(&scan, &RefineOptions::default()).unwrap().expect("the scan has depth");
         let (t1, r1) = error(&refined.camera_to_world);

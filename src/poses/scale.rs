@@ -100,7 +100,7 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     if samples.iter().filter(|s| !s.is_empty()).count() < 2 {
         return Ok(None);
     }
-    let poses: Vec<DMat4> = scan.frames.iter().map(|f| f.camera_to_world).collect();
+    let poses = scan.poses();
     // Far from the answer, the distance to the nearest point of another
     // frame; near it, the distance to the plane through the nearest points
     // (sharper: it does not bottom out at the sampling spacing).
@@ -193,10 +193,7 @@ mod tests {
         let scan = test_scene::Room { frames: 24, ..Default::default() }.scan();
         for factor in [0.4, 2.5] {
             let mut scaled = scan.clone();
-            let poses = scale_poses(&scaled.frames.iter().map(|f| f.camera_to_world).collect::<Vec<_>>(), factor);
-            for (f, p) in scaled.frames.iter_mut().zip(poses) {
-                f.camera_to_world = p;
-            }
+            scaled.set_poses(&scale_poses(&scan.poses(), factor));
             let e = estimate_pose_scale(&scaled).unwrap().expect("the scan has depth");
             assert!((e.scale * factor - 1.0).abs() < 0.01, "x{factor}: estimated {}", e.scale);
             assert!(!e.looks_metric() && e.is_determined(), "x{factor}: {e:?}");

@@ -167,6 +167,18 @@ impl Scan {
     pub fn size(&self) -> (u32, u32) {
         self.frames.first().map(|f| f.size()).unwrap_or((0, 0))
     }
+
+    /// Every frame's camera-to-world pose, in frame order.
+    pub fn poses(&self) -> Vec<DMat4> {
+        self.frames.iter().map(|f| f.camera_to_world).collect()
+    }
+
+    /// Replace the frames' poses, in frame order.
+    pub fn set_poses(&mut self, poses: &[DMat4]) {
+        for (frame, pose) in self.frames.iter_mut().zip(poses) {
+            frame.camera_to_world = *pose;
+        }
+    }
 }
 
 /// How to read a scan.

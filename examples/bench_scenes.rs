@@ -5,7 +5,7 @@
 //! loose (+2.5 cm, 2 cm into the support), scored against the exact masks.
 //!
 //! Run: `cargo run --release --example bench_scenes -- [--scenes tabletop,clutter,room]
-//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--no-tsdf] [--no-pose-refine]`
+//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--overlap deepest] [--no-tsdf] [--no-pose-refine]`
 //!
 //! Besides the product's sources it labels TSDF fusion (the paper's
 //! baseline: sensor depth fused at 5 mm, ray cast into every frame,
@@ -17,7 +17,7 @@
 //! F-score within 2 px), then the means over scenes as a Markdown table.
 //! Fixtures and models are kept in DIR (default: the temp folder) and reused.
 
-use nerflabel::boxes::{read_boxes, DepthSource, LabelOptions};
+use nerflabel::boxes::{read_boxes, DepthSource, LabelOptions, Overlap};
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, LabelEvaluation};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
 use nerflabel::nerf::fit::{fit, FitOptions};
@@ -41,6 +41,7 @@ struct Args {
     dir: PathBuf,
     objects: bool,
     exact_boxes: bool,
+    overlap: Overlap,
     tsdf: bool,
     refine_poses: bool,
 }
@@ -54,6 +55,7 @@ fn parse_args() -> Result<Args, Error> {
         dir: std::env::temp_dir().join("nerflabel-scenes"),
         objects: false,
         exact_boxes: false,
+        overlap: Overlap::Smallest,
         tsdf: true,
         refine_poses: true,
     };
@@ -74,6 +76,7 @@ fn parse_args() -> Result<Args, Error> {
             "--dir" => args.dir = value("--dir")?.into(),
             "--objects" => args.objects = true,
             "--exact-boxes" => args.exact_boxes = true,
+            "--overlap" => args.overlap = Overlap::parse(&value("--overlap")?).ok_or("--overlap: smallest or deepest")?,
             "--no-tsdf" => args.tsdf = false,
             "--no-pose-refine" => args.refine_poses = false,
             other => return Err(format!("unknown option {other}").into()),
@@ -155,7 +158,7 @@ fn main() -> Result<(), Error> {
                 let scan_for = |s: DepthSource| if s.needs_model() { &fitted_scan } else { &scan };
                 let runs = DepthSource::ALL.into_iter().map(|s| (s.name(), s, scan_for(s))).chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
                 for (name, source, scan) in runs {
-                    let opts = LabelOptions { source, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
+                    let opts = LabelOptions { source, exact_boxes: args.exact_boxes, overlap: args.overlap, ..LabelOptions::default() };
                     let e = evaluate_labels(scan, &boxes, Some(&model), &truth, opts)?;
                     print_line(&scene.to_string(), seed, drawing, name, &e);
                     if args.objects {

@@ -1,6 +1,7 @@
 //! Point-in-box classification and ray/box intervals with the world-to-box
 //! transforms precomputed. A point inside several boxes belongs to the
-//! smallest (ties: the lower instance id).
+//! smallest (FORMATS.md section 2; ties: the lower instance id), or, with
+//! [`Overlap::Deepest`], to the box it lies deepest inside.
 
 use super::parse::BoxSet;
 use glam::{DMat3, DVec3};
@@ -21,11 +22,18 @@ struct Prepared {
 impl Prepared {
     #[inline]
     fn contains(&self, p: DVec3) -> bool {
+        self.depth_of(p).is_some()
+    }
+
+    /// Distance from `p` to the nearest face when `p` is inside (0 on a face).
+    #[inline]
+    fn depth_of(&self, p: DVec3) -> Option<f64> {
         if p.cmplt(self.lo).any() || p.cmpgt(self.hi).any() {
-            return false;
+            return None;
         }
-        let q = (self.world_to_box * (p - self.center)).abs();
-        q.x <= self.half.x && q.y <= self.half.y && q.z <= self.half.z
+        let room = self.half - (self.world_to_box * (p - self.center)).abs();
+        let depth = room.min_element();
+        (depth >= 0.0).then_some(depth)
     }
 
     /// Parameter interval [t0, t1] of `origin + t * dir` inside the box (t unbounded).
@@ -51,16 +59,51 @@ impl Prepared {
     }
 }
 
+/// Which box a point inside several boxes belongs to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Overlap {
+    /// The smallest box (FORMATS.md section 2): a small box drawn inside a
+    /// large one (a lid on a crate) keeps its part.
+    #[default]
+    Smallest,
+    /// The box whose faces are farthest from the point: where boxes of
+    /// neighbouring objects overlap by their margins, each object's faces
+    /// stay with its own box.
+    Deepest,
+}
+
+impl Overlap {
+    /// The command-line spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            Overlap::Smallest => "smallest",
+            Overlap::Deepest => "deepest",
+        }
+    }
+
+    /// Parse the command-line spelling.
+    pub fn parse(s: &str) -> Option<Overlap> {
+        [Overlap::Smallest, Overlap::Deepest].into_iter().find(|o| o.name() == s)
+    }
+}
+
 /// Classifies world points into the boxes of a [`BoxSet`].
 #[derive(Clone, Debug)]
 pub struct BoxClassifier {
-    /// Sorted by volume, then instance id: the first hit is the answer.
+    /// Sorted by volume, then instance id: with [`Overlap::Smallest`] the
+    /// first hit is the answer, and it breaks [`Overlap::Deepest`]'s ties.
     boxes: Vec<Prepared>,
+    overlap: Overlap,
 }
 
 impl BoxClassifier {
-    /// Prepare every box of `set`.
+    /// Prepare every box of `set`; a point in several boxes goes to the smallest.
     pub fn new(set: &BoxSet) -> Self {
+        Self::with_overlap(set, Overlap::Smallest)
+    }
+
+    /// Prepare every box of `set` with the given overlap rule.
+    pub fn with_overlap(set: &BoxSet, overlap: Overlap) -> Self {
         let mut order: Vec<&super::parse::Box3> = set.boxes.iter().collect();
         order.sort_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)));
         let boxes = order
@@ -81,7 +124,7 @@ impl BoxClassifier {
                 }
             })
             .collect();
-        BoxClassifier { boxes }
+        BoxClassifier { boxes, overlap }
     }
 
     /// Number of boxes.
@@ -94,14 +137,27 @@ impl BoxClassifier {
         self.boxes.is_empty()
     }
 
-    /// Instance id of the smallest box holding `p`, 0 = none.
+    /// Instance id of the box holding `p` (by the overlap rule), 0 = none.
     #[inline]
     pub fn classify(&self, p: DVec3) -> u32 {
-        self.boxes.iter().find(|b| b.contains(p)).map_or(0, |b| b.instance_id)
+        match self.overlap {
+            Overlap::Smallest => self.boxes.iter().find(|b| b.contains(p)).map_or(0, |b| b.instance_id),
+            Overlap::Deepest => {
+                let mut best: Option<(f64, u32)> = None;
+                for b in &self.boxes {
+                    if let Some(depth) = b.depth_of(p) {
+                        if best.is_none_or(|(d, _)| depth > d) {
+                            best = Some((depth, b.instance_id));
+                        }
+                    }
+                }
+                best.map_or(0, |(_, id)| id)
+            }
+        }
     }
 
     /// Instance id for the surface point at `t` along the unit ray: the
-    /// smallest box holding it, else the smallest box the ray enters within
+    /// box holding it, else the smallest box the ray enters within
     /// `tolerance` behind it (a surface resolved only to about that much,
     /// met just in front of a box, belongs to what is in the box); 0 = none.
     pub fn classify_on_ray(&self, origin: DVec3, dir: DVec3, t: f64, tolerance: f64) -> u32 {
@@ -215,6 +271,63 @@ mod tests {
         }
         assert!(hits > 5_000, "test points must hit boxes often: {hits}");
         assert!(inside_several > 500, "overlaps must be exercised: {inside_several}");
+    }
+
+    /// The deepest rule: among boxes containing p, the one whose nearest face
+    /// is farthest, then the smallest, then the lowest id.
+    fn brute_force_deepest(set: &BoxSet, p: DVec3) -> u32 {
+        let depth = |b: &Box3| (b.size * 0.5 - b.to_local(p).abs()).min_element();
+        set.boxes
+            .iter()
+            .filter(|b| b.contains(p))
+            .min_by(|a, b| depth(b).total_cmp(&depth(a)).then(a.volume().total_cmp(&b.volume())).then(a.instance_id.cmp(&b.instance_id)))
+            .map_or(0, |b| b.instance_id)
+    }
+
+    #[test]
+    fn deepest_rule_matches_brute_force_on_random_boxes() {
+        let mut rng = Rng::new(12, 0);
+        let mut differs = 0;
+        for round in 0..10 {
+            let set = random_set(&mut rng, 9 + round % 4);
+            let deepest = BoxClassifier::with_overlap(&set, Overlap::Deepest);
+            for _ in 0..5000 {
+                let p = DVec3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
+                let want = brute_force_deepest(&set, p);
+                assert_eq!(deepest.classify(p), want, "round {round} point {p}");
+                differs += (want != brute_force(&set, p)) as usize;
+            }
+        }
+        assert!(differs > 100, "the two rules must disagree somewhere: {differs}");
+    }
+
+    /// Two objects 2 mm apart, boxes drawn 1 cm beyond each: the boxes
+    /// overlap by 1.8 cm. The smallest rule gives the big object's near face
+    /// to the small box; the deepest rule keeps each face with its own box.
+    #[test]
+    fn neighbouring_boxes_keep_their_own_faces_with_the_deepest_rule() {
+        let box_around = |id: u32, lo: f64, hi: f64| Box3 {
+            label: format!("o{id}"),
+            instance_id: id,
+            center: DVec3::new(0.5 * (lo + hi), 0.0, 0.0),
+            size: DVec3::new(hi - lo + 0.02, 0.2, 0.2),
+            rotation: DMat3::IDENTITY,
+        };
+        // Small object x in [0, 0.1], big one x in [0.102, 0.302].
+        let set = BoxSet::from_boxes(vec![box_around(1, 0.0, 0.1), box_around(2, 0.102, 0.302)]);
+        let small_face = DVec3::new(0.1, 0.0, 0.0);
+        let big_face = DVec3::new(0.102, 0.0, 0.0);
+        let smallest = BoxClassifier::new(&set);
+        assert_eq!((smallest.classify(small_face), smallest.classify(big_face)), (1, 1));
+        let deepest = BoxClassifier::with_overlap(&set, Overlap::Deepest);
+        assert_eq!((deepest.classify(small_face), deepest.classify(big_face)), (1, 2));
+        // Outside both, and deep inside each: the rules agree.
+        for (p, id) in [(DVec3::new(-0.02, 0.0, 0.0), 0), (DVec3::new(0.05, 0.0, 0.0), 1), (DVec3::new(0.2, 0.0, 0.0), 2)] {
+            assert_eq!((smallest.classify(p), deepest.classify(p)), (id, id), "{p}");
+        }
+        assert_eq!(Overlap::parse("deepest"), Some(Overlap::Deepest));
+        assert_eq!(Overlap::parse(Overlap::Smallest.name()), Some(Overlap::Smallest));
+        assert_eq!(Overlap::parse("largest"), None);
     }
 
     #[test]

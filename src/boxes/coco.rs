@@ -15,6 +15,8 @@ pub struct CocoInfo {
     pub nerflabel_version: String,
     /// Depth source: nerf, sensor or fused.
     pub source: String,
+    /// Which box a point in several boxes went to: smallest or deepest.
+    pub overlap: String,
     /// Seed of the model's fit (`None` without a model).
     pub seed: Option<u64>,
     pub scan: String,

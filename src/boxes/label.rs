@@ -104,7 +104,9 @@ impl<'a> Labeler<'a> {
             (true, None) => return Err(LabelError::MissingModel(options.source)),
             (false, _) => (None, None, 0.0),
             (true, Some(m)) => {
-                let r = ViewRenderer::new(m)?;
+                // Whole frames: a grid re-estimated from the field skips more
+                // empty space, well worth its set-up over many frames.
+                let r = if options.full_depth { ViewRenderer::pruned(m)? } else { ViewRenderer::new(m)? };
                 let cell_local = 1.0 / m.header.field.grid.finest_resolution.max(1) as f64;
                 let cell_m = r.transform.local_to_world_distance(cell_local);
                 (Some(r), Some(render_options(m, false)), cell_m)
@@ -114,7 +116,7 @@ impl<'a> Labeler<'a> {
         let box_tolerance_m = options.box_tolerance_cells * cell_m;
         Ok(Labeler {
             boxes,
-            classifier: BoxClassifier::new(boxes),
+            classifier: BoxClassifier::with_overlap(boxes, options.overlap),
             options,
             renderer,
             render,
@@ -303,7 +305,7 @@ impl<'a> Labeler<'a> {
         let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
         let scale = renderer.transform.scale;
         let near = opts.rule.min_step;
-        let model = renderer.model;
+        let (field, grid) = (&renderer.model.field, renderer.grid());
         let crossing =
             CrossingOptions { rule: opts.rule, threshold: self.options.surface_opacity, max_samples: opts.max_samples_per_ray };
         jobs.par_chunks(PACKET).zip(depth.par_chunks_mut(PACKET)).for_each_init(
@@ -326,7 +328,7 @@ impl<'a> Labeler<'a> {
                 }
                 out.clear();
                 out.resize(rays.len(), None);
-                first_crossings(&model.field, &model.occupancy, rays, &crossing, ws, out);
+                first_crossings(field, grid, rays, &crossing, ws, out);
                 for (o, &(i, norm)) in out.iter().zip(index.iter()) {
                     if let Some(t) = *o {
                         // Distance along the unit local ray -> local z -> metres.
@@ -369,6 +371,7 @@ pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::boxes::classify::Overlap;
     use crate::boxes::parse::Box3;
     use crate::scan::{DepthMap, Intrinsics};
     use glam::DVec3;
@@ -403,5 +406,33 @@ mod tests {
         assert!(label.box_pixels > 100 && label.box_pixels < 14 * 14, "{}", label.box_pixels);
         assert_eq!(label.rendered_rays, 0);
         assert!(label.depth_m.is_none());
+    }
+
+    /// Two boxes side by side on the wall, overlapping by 10 cm: the
+    /// smallest rule gives the overlap to the smaller box, the deepest rule
+    /// splits it where the two boxes' faces are equally far.
+    #[test]
+    fn overlapping_boxes_follow_the_overlap_rule() {
+        let (w, h) = (64u32, 48u32);
+        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
+        let depth = DepthMap { width: w, height: h, metres: vec![2.0; (w * h) as usize] };
+        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        // Box 1: x in [-0.5, 0.05]; box 2 (larger): x in [-0.05, 0.55].
+        let left = Box3 { label: "a".into(), instance_id: 1, center: DVec3::new(-0.225, 0.0, 2.0), size: DVec3::new(0.55, 0.5, 0.5), rotation: DMat3::IDENTITY };
+        let right = Box3 { label: "b".into(), instance_id: 2, center: DVec3::new(0.25, 0.0, 2.0), size: DVec3::new(0.6, 0.5, 0.5), ..left.clone() };
+        let boxes = BoxSet::from_boxes(vec![left, right]);
+        let id_at = |overlap: Overlap, x: f64| {
+            let opts = LabelOptions { source: DepthSource::Sensor, overlap, ..LabelOptions::default() };
+            let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
+            // Wall point x at 2 m: u = cx + fx * x / 2.
+            let u = (k.cx + k.fx * x / 2.0).round() as usize;
+            label.mask[(h as usize / 2) * w as usize + u]
+        };
+        // The overlap's right part (x = 0.04): the smaller box 1, or box 2 whose faces are farther.
+        assert_eq!(id_at(Overlap::Smallest, 0.04), 1);
+        assert_eq!(id_at(Overlap::Deepest, 0.04), 2);
+        // Its left part (x = -0.04): box 1 either way (the rules agree outside the overlap too).
+        assert_eq!(id_at(Overlap::Deepest, -0.04), 1);
+        assert_eq!((id_at(Overlap::Smallest, -0.3), id_at(Overlap::Deepest, 0.3)), (1, 2));
     }
 }

@@ -25,7 +25,7 @@ pub mod support;
 pub mod surface;
 pub mod tsdf;
 
-pub use classify::BoxClassifier;
+pub use classify::{BoxClassifier, Overlap};
 pub use label::{FrameLabel, InstanceLabel, Labeler};
 pub use output::{write_labels, LabelSummary, OutputOptions};
 pub use options::{DepthSource, FrameRange, LabelError, LabelOptions, DEFAULT_SOURCE};

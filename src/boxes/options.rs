@@ -1,6 +1,7 @@
 //! What `label` is asked to do (depth source, frame range, full depth) and
 //! what can go wrong while doing it.
 
+use super::classify::Overlap;
 use super::parse::BoxError;
 use crate::poses::GeometryError;
 use std::fmt;
@@ -129,6 +130,8 @@ pub struct LabelOptions {
     /// Label exactly what each box encloses: no support or wall plane is
     /// excluded (`Labeler::exclude_supports` does nothing).
     pub exact_boxes: bool,
+    /// Which box a point inside several boxes belongs to.
+    pub overlap: Overlap,
 }
 
 impl Default for LabelOptions {
@@ -140,6 +143,7 @@ impl Default for LabelOptions {
             surface_opacity: 0.5,
             box_tolerance_cells: 2.0,
             exact_boxes: false,
+            overlap: Overlap::Smallest,
             cleanup_fraction: 0.02,
         }
     }

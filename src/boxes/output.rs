@@ -348,7 +348,11 @@ fn stage(
         atomic::write_file(&path, yolo_classes(boxes).as_bytes()).map_err(io_err(&path))?;
     }
     let records: Vec<FrameRecord> = written.iter().map(|w| w.record.clone()).collect();
-    let info = CocoInfo { source: labeler.options().source.name().to_string(), ..options.info.clone() };
+    let info = CocoInfo {
+        source: labeler.options().source.name().to_string(),
+        overlap: labeler.options().overlap.name().to_string(),
+        ..options.info.clone()
+    };
     let coco = assemble(info, boxes, &records);
     let path = staging.join("coco.json");
     let json = serde_json::to_vec(&coco).map_err(|source| LabelError::Json { path: path.clone(), source })?;

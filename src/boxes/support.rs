@@ -16,6 +16,8 @@
 //! A plane counts only when it continues on at least three of the four sides
 //! of the box (a table around an object, a wall beside and above it): the
 //! object's own face, or the faces of neighbours lined up with it, do not.
+//! And it counts only when the box's points off it lie on one side (the
+//! object stands on a support or in front of a wall, never on both sides).
 //!
 //! Limits: an object at a table's corner has the table on two sides only,
 //! so a loose box there keeps the table; an object flat on its support (a sheet of paper) has no point
@@ -42,6 +44,12 @@ const RANSAC_TRIALS: usize = 300;
 const SIDE_SHARE: usize = 20;
 /// Band half-width in robust standard deviations of the plane's residuals.
 const BAND_SIGMAS: f64 = 3.0;
+/// A support or wall has the object on one side: a plane with more than
+/// this share of the box's points on its other side (beyond its band) cuts
+/// through the object (for example a "plane" through the tops of the
+/// neighbours around a taller object). A share of all the box's points, as
+/// the object may be seen by few of them (glass) and edge noise falls on both sides.
+const MAX_FAR_SIDE_SHARE: f64 = 0.1;
 
 /// A plane excluded from one box: `normal . p + offset` is the signed
 /// distance, positive on the object's side.
@@ -122,6 +130,10 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
             continue;
         }
         let above = off.iter().filter(|&&d| d > 0.0).count();
+        let far_side = above.min(off.len() - above);
+        if far_side as f64 > MAX_FAR_SIDE_SHARE * inner.len() as f64 {
+            continue;
+        }
         let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
         planes.push(ExcludedPlane { normal: normal * sign, offset: offset * sign, band });
     }
@@ -291,6 +303,45 @@ mod tests {
         let high = box3(DVec3::new(0.0, 0.0, 0.085), DVec3::new(0.12, 0.12, 0.11));
         let found = excluded_planes(&BoxSet::from_boxes(vec![high]), &points, 1, tolerance).remove(0);
         assert!(found.is_empty(), "{found:?}");
+    }
+
+    /// A 14 cm pack among 9 cm neighbours on all four sides, 2 mm away: the
+    /// neighbours' tops form a plane around the pack's box that cuts through
+    /// the pack. Only the table may be excluded; the pack's top half stays.
+    #[test]
+    fn the_tops_of_shorter_neighbours_are_not_excluded_from_a_taller_object() {
+        let mut rng = Rng::new(6, 0);
+        let noise = |rng: &mut Rng| (rng.f64() - 0.5) * 0.002;
+        let (hx, hy, height) = (0.06, 0.03, 0.14);
+        let pack = |p: DVec3| p.x.abs() <= hx && p.y.abs() <= hy;
+        let mut points = Vec::new();
+        for _ in 0..40_000 {
+            let p = DVec3::new(rng.f64() * 0.6 - 0.3, rng.f64() * 0.6 - 0.3, noise(&mut rng));
+            let neighbour = p.x.abs() <= hx + 0.1 && p.y.abs() <= hy + 0.1;
+            if !neighbour {
+                points.push(p);
+            }
+            // Tops of the neighbours (a 10 cm ring around the pack, 2 mm gap).
+            let top = DVec3::new(p.x, p.y, 0.09 + noise(&mut rng));
+            if neighbour && !(p.x.abs() <= hx + 0.002 && p.y.abs() <= hy + 0.002) {
+                points.push(top);
+            }
+        }
+        for _ in 0..10_000 {
+            // The pack's faces and top.
+            let (u, z) = (rng.f64() * 2.0 - 1.0, rng.f64() * height);
+            points.push(DVec3::new(u * hx, -hy, z));
+            points.push(DVec3::new(u * hx, hy, z));
+            points.push(DVec3::new(u * hx, (rng.f64() * 2.0 - 1.0) * hy, height));
+        }
+        let snug = box3(DVec3::new(0.0, 0.0, 0.0755), DVec3::new(0.14, 0.08, 0.149));
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug]), &points, 1, 0.008).remove(0);
+        assert!(planes.len() <= 1, "{planes:?}");
+        for plane in &planes {
+            assert!(plane.offset.abs() < 0.003, "only the table: {plane:?}");
+        }
+        let upper_face = DVec3::new(0.0, -hy, 0.12);
+        assert!(pack(upper_face) && !planes.iter().any(|p| p.excludes(upper_face)));
     }
 
     #[test]

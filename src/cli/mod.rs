@@ -285,6 +285,13 @@ pub struct LabelArgs {
     /// thinner than the plane's measured noise band is lost to the support.
     #[arg(long)]
     pub exact_boxes: bool,
+    /// Which box a point inside several boxes belongs to: smallest (the
+    /// default, FORMATS.md: a small box inside a large one keeps its part)
+    /// or deepest (the box whose faces are farthest from the point: for
+    /// boxes of neighbouring objects that overlap by their margins, as in
+    /// clutter, each object's faces stay with its own box).
+    #[arg(long, default_value = "smallest", value_parser = ["smallest", "deepest"])]
+    pub overlap: String,
 }
 
 #[derive(Args, Debug)]

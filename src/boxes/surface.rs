@@ -5,7 +5,7 @@
 
 use crate::nerf::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
 use crate::nerf::field::{Field, FieldWorkspace};
-use crate::nerf::march::{march, Segment, StepRule};
+use crate::nerf::march::{march_skipping, Segment, StepRule};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::RenderRay;
 
@@ -69,7 +69,7 @@ pub fn first_crossings(
             let st = &mut ws.state[r];
             let budget = per_ray.min(max_samples.saturating_sub(st.samples as usize));
             let first = ws.segments.len();
-            st.t = march(&rays[r].ray, st.t, rays[r].t_max, grid, rule, 0.0, budget, &mut ws.segments);
+            st.t = march_skipping(&rays[r].ray, st.t, rays[r].t_max, grid, rule, budget, &mut ws.segments);
             let count = ws.segments.len() - first;
             st.samples += count as u32;
             ws.owner.push((r, first, count));

@@ -57,14 +57,15 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     for warning in &summary.warnings {
         eprintln!("warning: {warning}");
     }
-    let work = if source.needs_model() { "rendered" } else { "classified" };
-    println!(
-        "labelled {} frames with {} depth: {} annotations in {}; {work} {:.1} % of the pixels (rays that can meet a box)",
-        summary.frames,
-        source,
-        summary.annotations,
-        summary.out.display(),
-        summary.box_pixel_fraction * 100.0
-    );
+    let work = match (args.depth, source.needs_model()) {
+        (true, true) => "rendered every pixel (--depth)".to_string(),
+        (true, false) => "wrote every pixel's sensor depth (--depth)".to_string(),
+        (false, model) => format!(
+            "{} {:.1} % of the pixels (rays that can meet a box)",
+            if model { "rendered" } else { "classified" },
+            summary.box_pixel_fraction * 100.0
+        ),
+    };
+    println!("labelled {} frames with {} depth: {} annotations in {}; {work}", summary.frames, source, summary.annotations, summary.out.display());
     Ok(())
 }

@@ -1,7 +1,7 @@
 //! Ray marching inside the unit cube: step size growing with distance,
 //! empty cells of the occupancy grid skipped whole.
 
-use super::occupancy::{unit_cube_interval, OccupancyGrid};
+use super::occupancy::{unit_cube_interval, OccupancyGrid, BLOCK};
 
 /// A ray in local (unit-cube) coordinates.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -148,11 +148,13 @@ fn march_impl<const BOUNDED: bool>(
 /// March for rendering: the samples [`march`] takes in occupied cells, but a
 /// run of empty cells is crossed in one jump. From an empty cell the cells
 /// along the ray are walked with a 3D DDA (a compare and an add per cell,
-/// where [`march`] pays a division and a libm call), and marching resumes at
-/// the first step whose middle lies past the run, so at most one step of an
-/// occupied cell is passed over, as with [`march`]. Landing points follow
-/// the current step size, so with growing steps they can differ slightly
-/// from [`march`]'s (rendering only; training keeps [`march`]).
+/// where [`march`] pays a division and a libm call), blocks of
+/// [`BLOCK`]^3 cells without an occupied cell in one step each, and
+/// marching resumes at the first step whose middle lies past the run, so at
+/// most one step of an occupied cell is passed over, as with [`march`].
+/// Landing points follow the current step size, so with growing steps they
+/// can differ slightly from [`march`]'s (rendering only; training keeps
+/// [`march`]).
 pub fn march_skipping(
     ray: &LocalRay,
     t0: f32,
@@ -164,8 +166,6 @@ pub fn march_skipping(
 ) -> f32 {
     let res = grid.resolution();
     let r = res as f32;
-    let last = res as i32 - 1;
-    let dir = ray.dir;
     let mut t = t0;
     let mut taken = 0;
     while t < t1 && taken < max_samples {
@@ -179,50 +179,95 @@ pub fn march_skipping(
             continue;
         }
         // In [0, r) with r <= 512: the i32 conversion is exact.
-        let mut idx = [c[0] as i32, c[1] as i32, c[2] as i32];
-        let cell_of = |i: [i32; 3]| (i[2] as usize * res + i[1] as usize) * res + i[0] as usize;
-        if grid.is_occupied_cell(cell_of(idx)) {
+        let idx = [c[0] as i32, c[1] as i32, c[2] as i32];
+        if grid.is_occupied_cell(cell_index_of(idx, res)) {
             out.push(Segment { t, dt: dt.min(t1 - t) });
             taken += 1;
             t += dt;
             continue;
         }
-        // Distance from `p` to each axis' next cell boundary, and between boundaries.
-        let mut next = [f32::INFINITY; 3];
-        let mut delta = [f32::INFINITY; 3];
-        let mut step = [0i32; 3];
-        for a in 0..3 {
-            if dir[a] > 0.0 {
-                next[a] = ((idx[a] + 1) as f32 / r - p[a]) / dir[a];
-                delta[a] = 1.0 / (r * dir[a]);
-                step[a] = 1;
-            } else if dir[a] < 0.0 {
-                next[a] = (idx[a] as f32 / r - p[a]) / dir[a];
-                delta[a] = -1.0 / (r * dir[a]);
-                step[a] = -1;
-            }
-        }
         // No need to walk past the end of the interval.
-        let limit = t1 - mid;
-        let exit = loop {
-            let a = if next[0] <= next[1] && next[0] <= next[2] {
-                0
-            } else if next[1] <= next[2] {
-                1
-            } else {
-                2
-            };
-            let d = next[a];
-            idx[a] += step[a];
-            if d >= limit || idx[a] < 0 || idx[a] > last || grid.is_occupied_cell(cell_of(idx)) {
-                break d;
-            }
-            next[a] += delta[a];
-        };
+        let exit = empty_run_length(grid, p, ray.dir, idx, t1 - mid);
         let gap = exit.max(0.0) + 0.5 * dt;
         t += ceil_positive(gap / dt).max(1.0) * dt;
     }
     t
+}
+
+#[inline(always)]
+fn cell_index_of(i: [i32; 3], res: usize) -> usize {
+    (i[2] as usize * res + i[1] as usize) * res + i[0] as usize
+}
+
+/// Distance from `p` (in the empty cell `idx`) along `dir` to the first
+/// occupied cell, the grid's edge, or `limit`, whichever comes first: a DDA
+/// over cells that crosses empty blocks in one step each.
+#[inline(always)]
+fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [i32; 3], limit: f32) -> f32 {
+    let res = grid.resolution();
+    let r = res as f32;
+    let last = res as i32 - 1;
+    let block = BLOCK as i32;
+    let block_last = grid.block_resolution() as i32 - 1;
+    let block_size = BLOCK as f32 / r;
+    let mut step = [0i32; 3];
+    for a in 0..3 {
+        step[a] = if dir[a] > 0.0 { 1 } else if dir[a] < 0.0 { -1 } else { 0 };
+    }
+    // Distance from `p` to the boundary ahead of cell or block `i` of size `size` on axis `a`.
+    let boundary = |a: usize, i: i32, size: f32| -> f32 {
+        match step[a] {
+            1 => ((i + 1) as f32 * size - p[a]) / dir[a],
+            -1 => (i as f32 * size - p[a]) / dir[a],
+            _ => f32::INFINITY,
+        }
+    };
+    let axis_of_min = |n: &[f32; 3]| if n[0] <= n[1] && n[0] <= n[2] { 0 } else if n[1] <= n[2] { 1 } else { 2 };
+    let cell_size = 1.0 / r;
+    let delta: [f32; 3] = std::array::from_fn(|a| if step[a] == 0 { f32::INFINITY } else { cell_size / dir[a].abs() });
+    let mut next: [f32; 3] = std::array::from_fn(|a| boundary(a, idx[a], cell_size));
+    loop {
+        let b = idx.map(|i| i / block);
+        if !grid.is_occupied_block(b.map(|i| i as usize)) {
+            // Cross empty blocks whole, then resume cell by cell where the
+            // ray enters a block holding an occupied cell.
+            let block_delta: [f32; 3] = std::array::from_fn(|a| delta[a] * BLOCK as f32);
+            let mut bi = b;
+            let mut block_next: [f32; 3] = std::array::from_fn(|a| boundary(a, bi[a], block_size));
+            let entered = loop {
+                let a = axis_of_min(&block_next);
+                let d = block_next[a];
+                bi[a] += step[a];
+                if d >= limit || bi[a] < 0 || bi[a] > block_last {
+                    return d;
+                }
+                if grid.is_occupied_block(bi.map(|i| i as usize)) {
+                    break d;
+                }
+                block_next[a] += block_delta[a];
+            };
+            // The cell where the ray enters block `bi`, kept inside that block
+            // (the point lies on its face, where rounding may fall either side).
+            for a in 0..3 {
+                let q = (p[a] + entered * dir[a]) * r;
+                let lo = bi[a] * block;
+                let hi = (lo + block - 1).min(last);
+                idx[a] = (q.max(0.0) as i32).clamp(lo, hi);
+            }
+            if grid.is_occupied_cell(cell_index_of(idx, res)) {
+                return entered;
+            }
+            next = std::array::from_fn(|a| boundary(a, idx[a], cell_size));
+            continue;
+        }
+        let a = axis_of_min(&next);
+        let d = next[a];
+        idx[a] += step[a];
+        if d >= limit || idx[a] < 0 || idx[a] > last || grid.is_occupied_cell(cell_index_of(idx, res)) {
+            return d;
+        }
+        next[a] += delta[a];
+    }
 }
 
 /// `OccupancyGrid::distance_to_cell_exit` for a point inside the cube whose
@@ -457,6 +502,50 @@ mod tests {
         }
         assert!(slow_total > 5000 && fast_total as f64 > 0.95 * slow_total as f64, "{fast_total} vs {slow_total}");
         assert!(differing <= 4, "{differing} of 400 rays took other samples than march");
+    }
+
+    /// A 64^3 grid empty but for a spherical shell and a few solid 3^3
+    /// clusters: most blocks are empty, so rays cross them whole.
+    fn shell_grid(rng: &mut crate::rng::Rng) -> OccupancyGrid {
+        let res: usize = 64;
+        let clusters: Vec<[f32; 3]> = (0..30).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
+        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+        for cell in 0..res * res * res {
+            let p = [cell % res, (cell / res) % res, cell / (res * res)].map(|i| (i as f32 + 0.5) / res as f32);
+            let radius = p.iter().map(|v| (v - 0.5) * (v - 0.5)).sum::<f32>().sqrt();
+            let in_cluster = clusters.iter().any(|c| (0..3).all(|a| (p[a] - c[a]).abs() < 1.6 / res as f32));
+            let keep = (radius - 0.3).abs() < 0.03 || in_cluster;
+            if !keep {
+                carved[cell >> 6] |= 1 << (cell & 63);
+            }
+        }
+        OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap()
+    }
+
+    #[test]
+    fn crossing_empty_blocks_whole_takes_the_samples_of_the_cell_by_cell_march() {
+        let mut rng = crate::rng::Rng::new(29, 0);
+        let grid = shell_grid(&mut rng);
+        let empty_blocks = (0..512).filter(|&i| !grid.is_occupied_block([i % 8, (i / 8) % 8, i / 64])).count();
+        assert!(empty_blocks > 100, "the test needs empty blocks: {empty_blocks}");
+        let rule = StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 0.0 };
+        let (mut total, mut differing) = (0, 0);
+        for i in 0..600 {
+            let ray = random_ray(&mut rng, i);
+            let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
+            let (mut fast, mut slow) = (Vec::new(), Vec::new());
+            march_skipping(&ray, t0, t1, &grid, &rule, usize::MAX, &mut fast);
+            march(&ray, t0, t1, &grid, &rule, 0.0, usize::MAX, &mut slow);
+            check_skips(&ray, t0, &grid, &rule, &fast, "march_skipping");
+            // The same step lattice; rounding may move one midpoint lying on a cell face.
+            let on_lattice = |s: &Segment| slow.iter().any(|b| (s.t - b.t).abs() < 1e-5);
+            assert!(fast.iter().all(on_lattice), "ray {i}: samples off the lattice");
+            assert!(fast.len().abs_diff(slow.len()) <= 1, "ray {i}: {} against {}", fast.len(), slow.len());
+            differing += usize::from(fast.len() != slow.len());
+            total += fast.len();
+        }
+        assert!(total > 800, "rays must meet the shell: {total} samples");
+        assert!(differing <= 6, "{differing} of 600 rays took other samples than march");
     }
 
     #[test]

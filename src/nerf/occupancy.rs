@@ -52,12 +52,18 @@ pub struct OccupancyGrid {
     res: usize,
     density: Vec<f32>,
     bits: Vec<u64>,
+    /// One bit per block of BLOCK^3 cells: set when any cell of the block
+    /// is occupied (rendering crosses empty blocks whole).
+    blocks: Vec<u64>,
     /// Cells the sensor saw as free space; they stay empty.
     carved: Vec<u64>,
     occupied: usize,
     /// Which 1/REFRESH_PARTS of the cells the next refresh evaluates.
     refresh_phase: usize,
 }
+
+/// Cells per block edge of the coarse occupancy level.
+pub const BLOCK: usize = 8;
 
 /// A refresh evaluates one of this many interleaved subsets of the cells.
 const REFRESH_PARTS: usize = 8;
@@ -81,6 +87,7 @@ impl OccupancyGrid {
             carved: vec![0; words],
             density: vec![initial; cells],
             bits: vec![0; words],
+            blocks: Vec::new(),
             occupied: 0,
             refresh_phase: 0,
         };
@@ -108,6 +115,37 @@ impl OccupancyGrid {
     #[inline]
     pub fn is_occupied_cell(&self, cell: usize) -> bool {
         (self.bits[cell >> 6] >> (cell & 63)) & 1 == 1
+    }
+
+    /// Blocks per axis of the coarse level (the last may be partial).
+    #[inline]
+    pub fn block_resolution(&self) -> usize {
+        self.res.div_ceil(BLOCK)
+    }
+
+    /// Whether the block with these block coordinates holds an occupied cell.
+    #[inline]
+    pub fn is_occupied_block(&self, block: [usize; 3]) -> bool {
+        let br = self.block_resolution();
+        let i = (block[2] * br + block[1]) * br + block[0];
+        (self.blocks[i >> 6] >> (i & 63)) & 1 == 1
+    }
+
+    /// Count the occupied cells and mark the blocks holding them.
+    fn finish_bits(&mut self) {
+        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        let (res, br) = (self.res, self.block_resolution());
+        self.blocks = vec![0; (br * br * br).div_ceil(64)];
+        for (w, &word) in self.bits.iter().enumerate() {
+            let mut rest = word;
+            while rest != 0 {
+                let cell = w * 64 + rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+                let b = ((z / BLOCK) * br + y / BLOCK) * br + x / BLOCK;
+                self.blocks[b >> 6] |= 1 << (b & 63);
+            }
+        }
     }
 
     /// The density estimate of a cell (local units).
@@ -326,7 +364,7 @@ impl OccupancyGrid {
                 self.bits[i >> 6] |= 1 << (i & 63);
             }
         }
-        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        self.finish_bits();
     }
 
     /// Grid for rendering: every cell re-sampled once more from the model
@@ -367,7 +405,7 @@ impl OccupancyGrid {
                 self.bits[i >> 6] |= 1 << (i & 63);
             }
         }
-        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        self.finish_bits();
     }
 
     /// Carved-cell mask (for the model file).

@@ -125,6 +125,11 @@ impl Model {
 
     /// Serialise to bytes (header sections filled in from the parameters).
     pub fn to_bytes(&self) -> Vec<u8> {
+        self.try_to_bytes().unwrap_or_else(|e| panic!("a model header always serialises: {e}"))
+    }
+
+    /// Serialise to bytes; fails only if the header cannot be written as JSON.
+    fn try_to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
         let mut header = self.header.clone();
         header.field = self.field.config.clone();
         header.occupancy_resolution = self.occupancy.resolution();
@@ -133,7 +138,7 @@ impl Model {
         let carved = self.occupancy.carved_words();
         let [g, d, c, o] = sections.map(|s| s.len());
         header.sections = [g, d, c, o, carved.len()];
-        let json = serde_json::to_vec(&header).unwrap_or_default();
+        let json = serde_json::to_vec(&header)?;
         let floats: usize = sections.iter().map(|s| s.len()).sum();
         let mut bytes = Vec::with_capacity(20 + json.len() + 4 * floats + 8 * carved.len() + 4);
         bytes.extend_from_slice(MAGIC);
@@ -150,12 +155,13 @@ impl Model {
         }
         let crc = crc32fast::hash(&bytes);
         bytes.extend_from_slice(&crc.to_le_bytes());
-        bytes
+        Ok(bytes)
     }
 
     /// Write atomically (temp file + rename).
     pub fn save(&self, path: &Path) -> Result<(), ModelError> {
-        crate::atomic::write_file(path, &self.to_bytes()).map_err(|source| ModelError::Write { path: path.to_path_buf(), source })
+        let bytes = self.try_to_bytes().map_err(|e| ModelError::Write { path: path.to_path_buf(), source: std::io::Error::other(format!("cannot encode the model header: {e}")) })?;
+        crate::atomic::write_file(path, &bytes).map_err(|source| ModelError::Write { path: path.to_path_buf(), source })
     }
 
     /// Read and verify a model file.

@@ -1,6 +1,6 @@
 //! Seeded byte-mutation fuzzing of every parser that reads outside text or
 //! bytes: native `intrinsics.txt` and pose files, nerfstudio
-//! `transforms.json`, TUM `rgb.txt` / `depth.txt` / `groundtruth.txt`,
+//! `transforms.json`, TUM `rgb.txt` / `depth.txt` / `groundtruth.txt`, COLMAP `cameras.txt` / `images.txt`,
 //! `boxes.json`, and model files.
 //!
 //! Each iteration mutates a valid file (bit flips, random bytes, inserted
@@ -154,6 +154,31 @@ fn fuzz_tum(iters: usize) {
     fuzz_scan_file(&scan, &scan.join("groundtruth.txt"), Layout::Tum, iters, 5);
 }
 
+/// A COLMAP text model built from a native fixture: images renamed into
+/// `images/`, world-to-camera poses as quaternions, one PINHOLE camera.
+fn colmap_scan(dir: &Path) -> PathBuf {
+    let scan = fixture(dir, "colmap", &[]);
+    let k = std::fs::read_to_string(scan.join("intrinsics.txt")).unwrap();
+    let k: Vec<f64> = k.split_whitespace().map(|v| v.parse().unwrap()).collect();
+    std::fs::create_dir_all(scan.join("sparse/0")).unwrap();
+    std::fs::write(scan.join("sparse/0/cameras.txt"), format!("# cameras\n1 PINHOLE 16 12 {} {} {} {}\n", k[0], k[4], k[2], k[5])).unwrap();
+    std::fs::rename(scan.join("rgb"), scan.join("images")).unwrap();
+    let mut images = String::from("# images\n");
+    for i in 0..3 {
+        images.push_str(&format!("{} 1 0 0 0 {} 0 1.5 1 {i:06}.png\n\n", 3 - i, -0.1 * i as f64));
+    }
+    std::fs::write(scan.join("sparse/0/images.txt"), images).unwrap();
+    std::fs::remove_dir_all(scan.join("pose")).unwrap();
+    scan
+}
+
+fn fuzz_colmap(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = colmap_scan(dir.path());
+    fuzz_scan_file(&scan, &scan.join("sparse/0/cameras.txt"), Layout::Colmap, iters, 8);
+    fuzz_scan_file(&scan, &scan.join("sparse/0/images.txt"), Layout::Colmap, iters, 9);
+}
+
 fn fuzz_tum_depth(iters: usize) {
     let dir = tempfile::tempdir().unwrap();
     let scan = tum_scan(dir.path());
@@ -291,6 +316,11 @@ fn fuzz_nerfstudio_transforms_json() {
 #[test]
 fn fuzz_tum_rgb_and_groundtruth_lists() {
     fuzz_tum(ITERS);
+}
+
+#[test]
+fn fuzz_colmap_cameras_and_images() {
+    fuzz_colmap(ITERS);
 }
 
 #[test]

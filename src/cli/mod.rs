@@ -51,7 +51,7 @@ pub struct ScanArgs {
     /// Scan folder (any supported layout).
     #[arg(default_value = ".")]
     pub scan: PathBuf,
-    /// Force the layout instead of detecting it: native, tum, nerfstudio, scannet, stray.
+    /// Force the layout instead of detecting it: native, tum, nerfstudio, scannet, stray, colmap.
     #[arg(long, value_name = "LAYOUT")]
     pub format: Option<Layout>,
     /// Re-orthonormalise slightly non-orthonormal pose rotations (with a warning) instead of failing.

@@ -19,16 +19,19 @@ pub enum Layout {
     Scannet,
     /// Stray Scanner with extracted frames: `rgb/` or `frames/`, `odometry.csv`, `camera_matrix.csv`.
     Stray,
+    /// COLMAP text model: `sparse/0/cameras.txt` + `images.txt`, `images/`, optional `depth/`.
+    Colmap,
 }
 
 impl Layout {
     /// Every layout, in detection order.
-    pub const ALL: [Layout; 5] = [
+    pub const ALL: [Layout; 6] = [
         Layout::Native,
         Layout::Nerfstudio,
         Layout::Tum,
         Layout::Scannet,
         Layout::Stray,
+        Layout::Colmap,
     ];
 
     /// Name used by `--format` and in reports.
@@ -39,6 +42,7 @@ impl Layout {
             Layout::Nerfstudio => "nerfstudio",
             Layout::Scannet => "scannet",
             Layout::Stray => "stray",
+            Layout::Colmap => "colmap",
         }
     }
 }
@@ -51,7 +55,7 @@ impl fmt::Display for Layout {
 
 /// A `--format` value that names no layout.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("unknown scan format '{0}' (expected one of: native, tum, nerfstudio, scannet, stray)")]
+#[error("unknown scan format '{0}' (expected one of: native, tum, nerfstudio, scannet, stray, colmap)")]
 pub struct ParseLayoutError(pub String);
 
 impl FromStr for Layout {
@@ -65,6 +69,7 @@ impl FromStr for Layout {
             "nerfstudio" | "instant-ngp" | "ngp" | "transforms" => Ok(Layout::Nerfstudio),
             "scannet" => Ok(Layout::Scannet),
             "stray" | "strayscanner" => Ok(Layout::Stray),
+            "colmap" => Ok(Layout::Colmap),
             _ => Err(ParseLayoutError(s.to_string())),
         }
     }
@@ -89,10 +94,13 @@ pub fn detect_layout(root: &Path) -> Result<Layout, ScanError> {
     if has("odometry.csv") {
         return Ok(Layout::Stray);
     }
+    if super::colmap::model_dir(root).is_some() {
+        return Ok(Layout::Colmap);
+    }
     Err(ScanError::UnknownLayout(
         root.to_path_buf(),
         "expected rgb/ + pose/ (native), transforms.json (nerfstudio), rgb.txt + groundtruth.txt (tum), \
-         color/ + pose/ (scannet) or odometry.csv (stray); force one with --format"
+         color/ + pose/ (scannet), odometry.csv (stray) or sparse/0/cameras.txt + images.txt (colmap); force one with --format"
             .into(),
     ))
 }
@@ -108,7 +116,7 @@ mod tests {
             assert_eq!(layout.to_string(), layout.name());
         }
         assert_eq!("TUM".parse::<Layout>(), Ok(Layout::Tum));
-        assert!("colmap".parse::<Layout>().unwrap_err().to_string().contains("colmap"));
+        assert!("meshroom".parse::<Layout>().unwrap_err().to_string().contains("meshroom"));
     }
 
     #[test]
@@ -116,6 +124,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path();
         assert!(matches!(detect_layout(root), Err(ScanError::UnknownLayout(..))));
+        std::fs::create_dir_all(root.join("sparse/0")).unwrap();
+        std::fs::write(root.join("sparse/0/cameras.txt"), "").unwrap();
+        std::fs::write(root.join("sparse/0/images.txt"), "").unwrap();
+        assert_eq!(detect_layout(root).unwrap(), Layout::Colmap);
         std::fs::write(root.join("odometry.csv"), "").unwrap();
         assert_eq!(detect_layout(root).unwrap(), Layout::Stray);
         std::fs::create_dir(root.join("color")).unwrap();

@@ -10,6 +10,7 @@
 //! outside data.
 
 mod assemble;
+mod colmap;
 mod depth;
 mod detect;
 mod error;
@@ -209,6 +210,7 @@ pub fn load(root: &Path, options: &LoadOptions) -> Result<Scan, ScanError> {
         Layout::Nerfstudio => nerfstudio::list(root)?,
         Layout::Scannet => scannet::list(root)?,
         Layout::Stray => stray::list(root)?,
+        Layout::Colmap => colmap::list(root)?,
     };
     let mut scan = assemble::assemble(listing, options)?;
     scan.frames.sort_by_key(|f| f.id);

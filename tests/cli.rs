@@ -43,9 +43,9 @@ fn missing_scan_folder_is_one_clear_error_with_nonzero_exit() {
 
 #[test]
 fn unknown_format_and_bad_budget_are_rejected_before_work() {
-    let out = nerflabel(&["info", ".", "--format", "colmap"]);
+    let out = nerflabel(&["info", ".", "--format", "meshroom"]);
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("colmap"));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("meshroom"));
     let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     let out = nerflabel(&["fit", fixture.to_str().unwrap(), "--time=-3"]);
     assert!(!out.status.success());

@@ -245,12 +245,22 @@ impl<'a> Labeler<'a> {
         };
         let mut mask = vec![0u16; w as usize * h as usize];
         let mut depth_m = full.then(|| vec![0.0f32; w as usize * h as usize]);
-        for (i, j) in jobs.iter().enumerate() {
-            let z = match (self.options.source, &rendered) {
+        // Camera z of every job's surface (0 = none), for surface normals.
+        let mut z_image = vec![0.0f64; w as usize * h as usize];
+        let depths: Vec<f64> = jobs
+            .iter()
+            .enumerate()
+            .map(|(i, j)| match (self.options.source, &rendered) {
                 (DepthSource::Nerf, Some(r)) => r[i],
                 (DepthSource::Fused, Some(r)) => self.fuse(sensor(j), r[i]),
                 _ => sensor(j),
-            };
+            })
+            .collect();
+        for (j, &z) in jobs.iter().zip(&depths) {
+            z_image[j.y as usize * w as usize + j.x as usize] = z;
+        }
+        let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64) * z);
+        for (j, &z) in jobs.iter().zip(&depths) {
             let index = j.y as usize * w as usize + j.x as usize;
             if let Some(d) = depth_m.as_mut() {
                 d[index] = z as f32;
@@ -262,8 +272,17 @@ impl<'a> Labeler<'a> {
                 let dir = ray / len;
                 let id = self.classifier.classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
                 let point = origin + dir * (z * len);
-                let on_excluded = |planes: &Vec<ExcludedPlane>| planes.iter().any(|p| p.distance(point) <= self.plane_band(p));
-                let excluded = id > 0 && self.excluded.get(id as usize - 1).is_some_and(on_excluded);
+                // On an excluded plane's band: the plane itself, unless the
+                // surface there is steep to it (an object's side meeting its
+                // support); behind the band: always the plane's side.
+                let excluded_by = |plane: &ExcludedPlane| {
+                    let (distance, band) = (plane.distance(point), self.plane_band(plane));
+                    distance < 0.0
+                        || (distance <= band
+                            && !surface_normal(&z_image, w, h, j.x, j.y, &point_at)
+                                .is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
+                };
+                let excluded = id > 0 && self.excluded.get(id as usize - 1).is_some_and(|planes| planes.iter().any(excluded_by));
                 mask[index] = if excluded { 0 } else { id as u16 };
             }
         }
@@ -344,6 +363,35 @@ impl<'a> Labeler<'a> {
     }
 }
 
+/// A surface within an excluded plane's band whose normal is at more than
+/// 45 degrees to the plane's belongs to what stands on the plane, not to it.
+const STEEP_COSINE: f64 = std::f64::consts::FRAC_1_SQRT_2;
+
+/// Unit normal of the surface seen at pixel (x, y) from the camera-z image
+/// `z` (0 = no surface): along each image axis, the difference to the
+/// neighbour nearer in depth, so a depth edge does not tilt it. `None`
+/// without a neighbour on either axis.
+fn surface_normal(z: &[f64], w: u32, h: u32, x: u32, y: u32, point_at: &dyn Fn(u32, u32, f64) -> glam::DVec3) -> Option<glam::DVec3> {
+    let at = |x: u32, y: u32| z[y as usize * w as usize + x as usize];
+    let centre_z = at(x, y);
+    let centre = point_at(x, y, centre_z);
+    // The neighbour along one axis nearer in depth, as a vector from the centre.
+    let tangent = |a: Option<(u32, u32)>, b: Option<(u32, u32)>| -> Option<glam::DVec3> {
+        let near = |p: Option<(u32, u32)>| p.map(|(px, py)| (px, py, at(px, py))).filter(|&(_, _, pz)| pz > 0.0);
+        match (near(a), near(b)) {
+            (Some(p), Some(q)) if (p.2 - centre_z).abs() <= (q.2 - centre_z).abs() => Some(centre - point_at(p.0, p.1, p.2)),
+            (_, Some(q)) => Some(point_at(q.0, q.1, q.2) - centre),
+            (Some(p), None) => Some(centre - point_at(p.0, p.1, p.2)),
+            (None, None) => None,
+        }
+    };
+    let horizontal = tangent(x.checked_sub(1).map(|l| (l, y)), (x + 1 < w).then_some((x + 1, y)))?;
+    let vertical = tangent(y.checked_sub(1).map(|u| (x, u)), (y + 1 < h).then_some((x, y + 1)))?;
+    let n = horizontal.cross(vertical);
+    let length = n.length();
+    (length > 0.0 && length.is_finite()).then(|| n / length)
+}
+
 /// Tight boxes, areas and camera-frame poses of the instances in a mask.
 pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world_to_camera: &DMat4) -> Vec<InstanceLabel> {
     let mut found: std::collections::BTreeMap<u16, (PixelRect, u64)> = std::collections::BTreeMap::new();
@@ -406,6 +454,48 @@ mod tests {
         assert!(label.box_pixels > 100 && label.box_pixels < 14 * 14, "{}", label.box_pixels);
         assert_eq!(label.rendered_rays, 0);
         assert!(label.depth_m.is_none());
+    }
+
+    /// A face standing on a floor, its box dipping 1 cm into the floor, the
+    /// floor excluded with a 1 cm band: the floor inside the box is not
+    /// labelled, the face's foot within the band is (it is steep to the floor).
+    #[test]
+    fn an_objects_foot_in_the_support_band_is_kept_and_the_support_is_not() {
+        let (w, h) = (200u32, 200u32);
+        let k = Intrinsics { fx: 400.0, fy: 400.0, cx: 99.5, cy: 99.5 };
+        // Camera at the origin looking along +z, y down: a face at z = 2 for
+        // |x| <= 0.25 down to the floor at y = 0.3.
+        let surface = |u: u32, v: u32| -> (f64, bool) {
+            let (dx, dy) = ((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy);
+            let on_face = (2.0 * dx).abs() <= 0.25 && 2.0 * dy < 0.3;
+            if on_face || dy <= 0.0 { (if on_face { 2.0 } else { 0.0 }, on_face) } else { (0.3 / dy, false) }
+        };
+        let metres = (0..h).flat_map(|v| (0..w).map(move |u| (u, v))).map(|(u, v)| surface(u, v).0 as f32).collect();
+        let depth = DepthMap { width: w, height: h, metres };
+        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let b = Box3 { label: "face".into(), instance_id: 1, center: DVec3::new(0.0, 0.055, 2.0), size: DVec3::new(0.52, 0.51, 0.2), rotation: DMat3::IDENTITY };
+        let boxes = BoxSet::from_boxes(vec![b.clone()]);
+        let opts = LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() };
+        let mut labeler = Labeler::new(&boxes, None, opts).unwrap();
+        labeler.excluded = vec![vec![ExcludedPlane { normal: DVec3::new(0.0, -1.0, 0.0), offset: 0.3, band: 0.01 }]];
+        let label = labeler.label_frame(&frame);
+        let (mut foot, mut floor_in_box) = (0, 0);
+        for v in 0..h {
+            for u in 0..w {
+                let (z, on_face) = surface(u, v);
+                let p = DVec3::new((u as f64 - k.cx) / k.fx * z, (v as f64 - k.cy) / k.fy * z, z);
+                let labelled = label.mask[(v * w + u) as usize] == 1;
+                if on_face && p.y > 0.29 && u > 2 && u < w - 3 {
+                    foot += 1;
+                    assert!(labelled, "the face's foot at ({u}, {v}), {:.3} m above the floor, is kept", 0.3 - p.y);
+                }
+                if !on_face && z > 0.0 && b.contains(p) {
+                    floor_in_box += 1;
+                    assert!(!labelled, "floor point ({u}, {v}) inside the box is excluded");
+                }
+            }
+        }
+        assert!(foot >= 100 && floor_in_box >= 100, "{foot} foot and {floor_in_box} floor pixels tested");
     }
 
     /// Two boxes side by side on the wall, overlapping by 10 cm: the

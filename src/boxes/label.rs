@@ -245,8 +245,6 @@ impl<'a> Labeler<'a> {
         };
         let mut mask = vec![0u16; w as usize * h as usize];
         let mut depth_m = full.then(|| vec![0.0f32; w as usize * h as usize]);
-        // Camera z of every job's surface (0 = none), for surface normals.
-        let mut z_image = vec![0.0f64; w as usize * h as usize];
         let depths: Vec<f64> = jobs
             .iter()
             .enumerate()
@@ -256,8 +254,14 @@ impl<'a> Labeler<'a> {
                 _ => sensor(j),
             })
             .collect();
-        for (j, &z) in jobs.iter().zip(&depths) {
-            z_image[j.y as usize * w as usize + j.x as usize] = z;
+        // Camera z of every job's surface (0 = none), for the surface normals
+        // the excluded planes need; without planes it is never read.
+        let mut z_image = Vec::new();
+        if self.excluded.iter().any(|planes| !planes.is_empty()) {
+            z_image.resize(w as usize * h as usize, 0.0f64);
+            for (j, &z) in jobs.iter().zip(&depths) {
+                z_image[j.y as usize * w as usize + j.x as usize] = z;
+            }
         }
         let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64) * z);
         for (j, &z) in jobs.iter().zip(&depths) {

@@ -135,15 +135,19 @@ impl OccupancyGrid {
     fn finish_bits(&mut self) {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
         let (res, br) = (self.res, self.block_resolution());
-        self.blocks = vec![0; (br * br * br).div_ceil(64)];
+        self.blocks.clear();
+        self.blocks.resize((br * br * br).div_ceil(64), 0);
         for (w, &word) in self.bits.iter().enumerate() {
             let mut rest = word;
             while rest != 0 {
-                let cell = w * 64 + rest.trailing_zeros() as usize;
-                rest &= rest - 1;
+                let bit = rest.trailing_zeros() as usize;
+                let cell = w * 64 + bit;
                 let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
                 let b = ((z / BLOCK) * br + y / BLOCK) * br + x / BLOCK;
                 self.blocks[b >> 6] |= 1 << (b & 63);
+                // The next cells along x up to the block's edge are in the same block.
+                let run = (BLOCK - x % BLOCK).min(res - x);
+                rest &= if bit + run >= 64 { 0 } else { !0u64 << (bit + run) };
             }
         }
     }
@@ -614,6 +618,34 @@ mod tests {
         // The object may reach into the neighbouring cells that rays crossed.
         assert!(grid.is_occupied(at(13.0)) && grid.is_occupied(at(18.0)), "cells bordering the column stay");
         assert!(!grid.is_occupied(at(12.0)) && !grid.is_occupied(at(19.0)), "one cell of margin, not more");
+    }
+
+    /// Block bits against a cell-by-cell count, on a size that is neither
+    /// a multiple of the block edge nor of the 64-bit word.
+    #[test]
+    fn a_block_is_occupied_exactly_when_one_of_its_cells_is() {
+        let mut rng = Rng::new(31, 0);
+        let res: usize = 44;
+        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+        for cell in 0..res * res * res {
+            if rng.f32() < 0.995 {
+                carved[cell >> 6] |= 1 << (cell & 63);
+            }
+        }
+        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+        let br = grid.block_resolution();
+        let mut want = vec![false; br * br * br];
+        for c in (0..res * res * res).filter(|&c| grid.is_occupied_cell(c)) {
+            let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
+            want[((z / BLOCK) * br + y / BLOCK) * br + x / BLOCK] = true;
+        }
+        let (mut occupied, mut empty) = (0, 0);
+        for (i, &any) in want.iter().enumerate() {
+            let (bx, by, bz) = (i % br, (i / br) % br, i / (br * br));
+            assert_eq!(grid.is_occupied_block([bx, by, bz]), any, "block ({bx}, {by}, {bz})");
+            (occupied, empty) = if any { (occupied + 1, empty) } else { (occupied, empty + 1) };
+        }
+        assert!(occupied > 20 && empty > 20, "{occupied} occupied and {empty} empty blocks");
     }
 
     #[test]

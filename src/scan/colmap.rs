@@ -75,7 +75,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let image_dir = if root.join("images").is_dir() { root.join("images") } else { root.to_path_buf() };
     let depth_dir = root.join("depth");
     let mut listing = Listing::new(root, Layout::Colmap, PoseKind::WorldToCamera, cameras_path.clone());
-    listing.inputs.extend([images_path.clone()]);
+    listing.inputs.push(images_path.clone());
     if depth_dir.is_dir() {
         listing.inputs.push(depth_dir.clone());
     } else {
@@ -113,12 +113,9 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
             images.len()
         ));
     }
-    let names: BTreeMap<&str, usize> = listing.frames.iter().fold(BTreeMap::new(), |mut m, f| {
-        *m.entry(f.name.as_str()).or_default() += 1;
-        m
-    });
-    if let Some((name, _)) = names.iter().find(|(_, &n)| n > 1) {
-        return Err(ScanError::Invalid(images_path, format!("two images share the stem '{name}' (frames are named by stem)")));
+    let mut names = std::collections::HashSet::new();
+    if let Some(f) = listing.frames.iter().find(|f| !names.insert(f.name.as_str())) {
+        return Err(ScanError::Invalid(images_path, format!("two images share the stem '{}' (frames are named by stem)", f.name)));
     }
     Ok(listing)
 }

@@ -5,10 +5,11 @@
 //! cargo run --release --example bench_fit -- [FIXTURE_DIR] [--time SECS | --steps N] [--preset P] [--seed N]
 
 use nerflabel::evaluate::score_holdout;
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::config::Preset;
-use nerflabel::nerf::dataset::is_holdout;
-use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::train::settings::Preset;
+use nerflabel::nerf::train::dataset::is_holdout;
+use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::scan::{load, LoadOptions};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -24,7 +25,7 @@ fn main() -> anyhow::Result<()> {
                 steps = Some(args.next().unwrap_or_default().parse()?);
                 time = None;
             }
-            "--preset" => preset = args.next().unwrap_or_default().parse().map_err(anyhow::Error::msg)?,
+            "--preset" => preset = clap::ValueEnum::from_str(&args.next().unwrap_or_default(), true).map_err(anyhow::Error::msg)?,
             "--seed" => seed = args.next().unwrap_or_default().parse()?,
             other => dir = PathBuf::from(other),
         }
@@ -35,7 +36,7 @@ fn main() -> anyhow::Result<()> {
         println!("generated the tabletop fixture in {}", dir.display());
     }
     let mut scan = load(&dir, &LoadOptions::default())?;
-    let options = FitOptions { time, steps, seed, preset, ..FitOptions::default() };
+    let options = FitOptions { settings: FitSettings { seed, preset, ..FitSettings::default() }, time, steps, ..FitOptions::default() };
     let stop = AtomicBool::new(false);
     let outcome = fit(&mut scan, &options, &stop, &mut |e| {
         if let FitEvent::Eval(p) = e {
@@ -85,7 +86,7 @@ fn main() -> anyhow::Result<()> {
         100.0 * c.rays_without_depth as f64 / c.rays.max(1) as f64,
         c.samples_without_depth as f64 / c.rays_without_depth.max(1) as f64
     );
-    if let Some(floor) = sensor_noise_floor(&scan, &dir, options.holdout_every)? {
+    if let Some(floor) = sensor_noise_floor(&scan, &dir, options.settings.holdout_every)? {
         println!("sensor depth vs exact depth on the same held-out frames (the floor of the depth MAE above): {:.1} mm", floor * 1e3);
     }
     Ok(())

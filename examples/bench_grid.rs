@@ -5,8 +5,8 @@
 //!
 //! Run: `cargo run --release --example bench_grid`
 
-use nerflabel::nerf::hash_grid::{GridGrad, HashGrid, HashGridConfig};
-use nerflabel::nerf::simd::grid as simd;
+use nerflabel::nerf::field::hash_grid::{GridGrad, HashGrid, HashGridConfig};
+use nerflabel::nerf::field::simd::grid as simd;
 use nerflabel::rng::Rng;
 use std::time::Instant;
 

@@ -22,9 +22,10 @@
 //! labelled but not in the reference, blue = missed, yellow = wrong id).
 
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, read_gray16};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, Frame, LoadOptions, Scan};
 use glam::DMat3;
@@ -130,7 +131,7 @@ fn model_for(scan: &mut Scan, path: &Path, seconds: f64, refine_poses: bool) -> 
         return Ok(model);
     }
     eprintln!("fitting for {seconds} s ...");
-    let opts = FitOptions { time: Some(seconds), holdout_every: 0, refine_poses, ..FitOptions::default() };
+    let opts = FitOptions { settings: FitSettings { holdout_every: 0, refine_poses, ..FitSettings::default() }, time: Some(seconds), ..FitOptions::default() };
     let t = Instant::now();
     let out = fit(scan, &opts, &AtomicBool::new(false), &mut |e| {
         if let FitEvent::Prepared { train_views, .. } = e {

@@ -12,8 +12,8 @@
 use std::hint::black_box;
 use std::time::Instant;
 
-use nerflabel::nerf::mlp::{Mlp, MlpConfig, MlpKernel, MlpWorkspace};
-use nerflabel::nerf::simd;
+use nerflabel::nerf::field::mlp::{Mlp, MlpConfig, MlpKernel, MlpWorkspace};
+use nerflabel::nerf::field::simd;
 use nerflabel::rng::Rng;
 
 /// Best and median seconds of one call of `f` over about `budget` seconds.

@@ -5,12 +5,13 @@
 //!
 //! cargo run --release --example bench_nerf
 
-use nerflabel::nerf::fit::{fit, render_options, FitOptions};
-use nerflabel::nerf::hash_grid::{GridGrad, HashGrid, HashGridConfig};
-use nerflabel::nerf::mlp::{Mlp, MlpConfig, MlpWorkspace};
-use nerflabel::nerf::render::render_pixels;
-use nerflabel::nerf::simd;
-use nerflabel::nerf::view::ViewRenderer;
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::nerf::field::hash_grid::{GridGrad, HashGrid, HashGridConfig};
+use nerflabel::nerf::field::mlp::{Mlp, MlpConfig, MlpWorkspace};
+use nerflabel::nerf::render::rays::render_pixels;
+use nerflabel::nerf::field::simd;
+use nerflabel::nerf::render::view::ViewRenderer;
 use nerflabel::rng::Rng;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
@@ -67,7 +68,7 @@ fn main() -> anyhow::Result<()> {
 
     let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     let mut scan = nerflabel::scan::load(&fixture, &Default::default())?;
-    let options = FitOptions { steps: Some(200), time: None, holdout_every: 0, ..FitOptions::default() };
+    let options = FitOptions { settings: FitSettings { holdout_every: 0, ..FitSettings::default() }, steps: Some(200), time: None, ..FitOptions::default() };
     let outcome = fit(&mut scan, &options, &AtomicBool::new(false), &mut |_| {})?;
     let r = &outcome.report;
     println!(
@@ -83,7 +84,7 @@ fn main() -> anyhow::Result<()> {
     let (w, h) = frame.size();
     let cam = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
     let pixels: Vec<(f32, f32)> = (0..h).flat_map(|v| (0..w).map(move |u| (u as f32, v as f32))).collect();
-    let opts = render_options(&outcome.model, false);
+    let opts = outcome.model.render_options(false);
     let mut samples = 0u64;
     let secs = best_of(5, || {
         let out = render_pixels(&outcome.model.field, &outcome.model.occupancy, &opts, &cam, &pixels);

@@ -18,9 +18,10 @@
 //! Fixtures and models are kept in DIR (default: the temp folder) and reused.
 
 use nerflabel::boxes::{read_boxes, DepthSource, LabelOptions, Overlap};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, LabelEvaluation};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
-use nerflabel::nerf::fit::{fit, FitOptions};
+use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, LoadOptions};
 use std::collections::BTreeMap;
@@ -122,7 +123,7 @@ fn main() -> Result<(), Error> {
                 Model::load(&model_path)?
             } else {
                 eprintln!("fitting {scene} seed {seed} for {} s", args.fit_seconds);
-                let opts = FitOptions { time: Some(args.fit_seconds), seed, refine_poses: args.refine_poses, ..FitOptions::default() };
+                let opts = FitOptions { settings: FitSettings { seed, refine_poses: args.refine_poses, ..FitSettings::default() }, time: Some(args.fit_seconds), ..FitOptions::default() };
                 let t = Instant::now();
                 let out = fit(&mut fitted_scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
                 eprintln!("  {} steps in {:.0} s", out.model.header.steps, t.elapsed().as_secs_f64());

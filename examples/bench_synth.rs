@@ -22,14 +22,13 @@ use glam::DMat4;
 use image::DynamicImage;
 use nerflabel::boxes::read_boxes;
 use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
-use nerflabel::nerf::fit::{fit, FitOptions};
-use nerflabel::nerf::metrics::{depth_mae, psnr, ssim};
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::metrics::{depth_mae, psnr, ssim};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, Intrinsics, LoadOptions};
 use nerflabel::boxes::BoxClassifier;
-use nerflabel::nerf::fit::render_options;
-use nerflabel::nerf::render::render_image;
-use nerflabel::nerf::view::ViewRenderer;
+use nerflabel::nerf::render::rays::render_image;
+use nerflabel::nerf::render::view::ViewRenderer;
 use nerflabel::synth::render::{clean_instances, instance_mask};
 use nerflabel::synth::{png, read_poses, synthesize, Instances, SynthOptions, SynthProgress, SynthSummary, ViewSpec};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
@@ -294,7 +293,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t_png += t.elapsed().as_secs_f64();
         rays += view.depth_m.len();
         let camera = renderer.local_camera(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height);
-        let out = render_image(&model.field, renderer.grid(), &render_options(&model, true), &camera);
+        let out = render_image(&model.field, renderer.grid(), &model.render_options(true), &camera);
         samples += out.iter().map(|o| u64::from(o.samples)).sum::<u64>();
         opaque += view.opacity.iter().filter(|&&a| a > 0.5).count();
     }

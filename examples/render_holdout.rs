@@ -5,7 +5,7 @@
 
 use nerflabel::fixture::{read_meta, trajectory};
 use nerflabel::nerf::model_file::Model;
-use nerflabel::nerf::view::ViewRenderer;
+use nerflabel::nerf::render::view::ViewRenderer;
 use std::path::PathBuf;
 
 fn main() -> anyhow::Result<()> {

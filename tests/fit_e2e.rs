@@ -3,6 +3,7 @@
 //! fixture's held-out views.
 
 use nerflabel::evaluate::score_holdout;
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::model_file::Model;
 use std::path::Path;
 use std::process::Command;
@@ -34,12 +35,12 @@ fn fit_on_the_small_fixture_meets_depth_and_colour_bounds() {
 
 #[test]
 fn same_seed_gives_the_same_model_bytes() {
-    use nerflabel::nerf::fit::{fit, FitOptions};
+    use nerflabel::nerf::train::fit::{fit, FitOptions};
     use std::sync::atomic::AtomicBool;
     let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     let scan = nerflabel::scan::load(&fixture, &Default::default()).unwrap();
     let run = |seed| {
-        let options = FitOptions { steps: Some(12), time: None, seed, holdout_every: 0, ..FitOptions::default() };
+        let options = FitOptions { settings: FitSettings { seed, holdout_every: 0, ..FitSettings::default() }, steps: Some(12), time: None, ..FitOptions::default() };
         fit(&mut scan.clone(), &options, &AtomicBool::new(false), &mut |_| {}).unwrap().model.to_bytes()
     };
     let (a, b, c) = (run(4), run(4), run(5));

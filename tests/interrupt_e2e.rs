@@ -11,7 +11,7 @@
 //! them.
 
 use arrow_array::RecordBatch;
-use nerflabel::nerf::checkpoint::Checkpoint;
+use nerflabel::nerf::train::checkpoint::Checkpoint;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::rng::Rng;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;

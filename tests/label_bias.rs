@@ -6,6 +6,7 @@
 //! the tolerance in front of a box, the support plane), not from a model.
 
 use nerflabel::boxes::{read_boxes, DepthSource, LabelOptions};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::evaluate::{evaluate_labels, fixture_truth};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
 use nerflabel::scan::{load, LoadOptions};
@@ -38,14 +39,14 @@ fn exact_depth_gives_masks_of_the_true_size() {
 /// their boundary pixels lie within 2 px of the true boundary.
 #[test]
 fn fitted_model_gives_masks_of_the_true_size() {
-    use nerflabel::nerf::fit::{fit, FitOptions};
+    use nerflabel::nerf::train::fit::{fit, FitOptions};
     let dir = tempfile::tempdir().unwrap();
     let mut o = FixtureOptions::new(SceneKind::Small);
     (o.width, o.height, o.frames, o.holdout) = (320, 240, Some(24), Some(0));
     o.corruptions = Corruptions { low_res_depth: true, ..Corruptions::none() };
     generate(dir.path(), &o).unwrap();
     let mut scan = load(dir.path(), &LoadOptions::default()).unwrap();
-    let opts = FitOptions { steps: Some(500), time: None, holdout_every: 0, seed: 1, ..FitOptions::default() };
+    let opts = FitOptions { settings: FitSettings { holdout_every: 0, seed: 1, ..FitSettings::default() }, steps: Some(500), time: None, ..FitOptions::default() };
     let model = fit(&mut scan, &opts, &std::sync::atomic::AtomicBool::new(false), &mut |_| {}).unwrap().model;
     let truth = fixture_truth(dir.path(), &scan, 2).unwrap();
     let boxes = read_boxes(&dir.path().join("gt/boxes_user.json")).unwrap();

@@ -4,10 +4,11 @@
 //! FORMATS.md section 3 (and with pycocotools when Python has it).
 
 use nerflabel::boxes::metrics::MaskScores;
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::boxes::{read_boxes, write_labels, BoxSet, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::config::Preset;
-use nerflabel::nerf::fit::{fit, FitOptions};
+use nerflabel::nerf::train::settings::Preset;
+use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, LoadOptions, Scan};
 use serde_json::Value;
@@ -22,7 +23,7 @@ fn fixture(dir: &Path, scene: SceneKind, w: u32, h: u32, frames: usize) -> Scan 
 }
 
 fn fit_steps(scan: &mut Scan, steps: u64) -> Model {
-    let opts = FitOptions { steps: Some(steps), time: None, holdout_every: 0, preset: Preset::Fast, ..FitOptions::default() };
+    let opts = FitOptions { settings: FitSettings { holdout_every: 0, preset: Preset::Fast, ..FitSettings::default() }, steps: Some(steps), time: None, ..FitOptions::default() };
     fit(scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model
 }
 

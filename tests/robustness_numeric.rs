@@ -4,11 +4,13 @@
 //! sample caps respected), never that something merely ran.
 
 use glam::Vec3;
-use nerflabel::nerf::adam::Adam;
-use nerflabel::nerf::composite::{optical_depth_backward, weights_from_optical_depth};
+use nerflabel::nerf::train::adam::Adam;
+use nerflabel::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use nerflabel::nerf::field::density_activation;
-use nerflabel::nerf::march::{march, ray_interval, LocalRay, StepRule};
-use nerflabel::nerf::occupancy::{unit_cube_interval, OccupancyGrid};
+use nerflabel::nerf::render::march::{march, ray_interval, StepRule};
+use nerflabel::nerf::camera::LocalRay;
+use nerflabel::nerf::camera::unit_cube_interval;
+use nerflabel::nerf::occupancy::OccupancyGrid;
 use nerflabel::poses::Aabb;
 use nerflabel::rng::Rng;
 

@@ -11,10 +11,11 @@
 //! `cargo test --release --test robustness_training -- --ignored`
 
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::checkpoint::Checkpoint;
-use nerflabel::nerf::config::Preset;
+use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::nerf::train::checkpoint::Checkpoint;
+use nerflabel::nerf::train::settings::Preset;
 use nerflabel::nerf::field::Field;
-use nerflabel::nerf::fit::{fit, prepare, resume, FitError, FitEvent, FitOptions, Prepared};
+use nerflabel::nerf::train::fit::{fit, prepare, resume, FitError, FitEvent, FitOptions, Prepared};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, LoadOptions, Scan};
 use std::path::{Path, PathBuf};
@@ -51,14 +52,7 @@ fn assert_model_finite(model: &Model, what: &str) {
 fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     let scan = small_scan();
     let dir = tempfile::tempdir().unwrap();
-    let opts = |name: &str| FitOptions {
-        steps: Some(40),
-        preset: Preset::Fast,
-        holdout_every: 12,
-        seed: 2,
-        checkpoint: Some(dir.path().join(name)),
-        ..FitOptions::default()
-    };
+    let opts = |name: &str| FitOptions { settings: FitSettings { preset: Preset::Fast, holdout_every: 12, seed: 2, ..FitSettings::default() }, steps: Some(40), checkpoint: Some(dir.path().join(name)), ..FitOptions::default() };
     let whole = fit(&mut scan.clone(), &opts("whole.checkpoint"), &AtomicBool::new(false), &mut |_| {}).unwrap();
 
     // Stop after step 15 of 40, as Ctrl-C does.
@@ -81,10 +75,7 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     // Other settings or another scan are refused, naming what differs.
     let err = resume(
         &mut scan.clone(),
-        &FitOptions {
-            seed: 3,
-            ..opts("x.checkpoint")
-        },
+        &FitOptions { settings: FitSettings { seed: 3, ..FitSettings::default() }, ..opts("x.checkpoint") },
         ckpt,
         &stop,
         &mut |_| {},
@@ -302,13 +293,7 @@ fn norms(field: &Field) -> [(f64, f64); 3] {
 /// `settle`, the grid's RMS and max at the end are at most that factor
 /// above their values half-way: the grid has stopped drifting.
 fn long_run(scan: &Scan, steps: u64, every: u64, grid_caps: (f64, f64), settle: Option<f64>) {
-    let opts = FitOptions {
-        steps: Some(steps),
-        preset: Preset::Fast,
-        holdout_every: 0,
-        seed: 7,
-        ..FitOptions::default()
-    };
+    let opts = FitOptions { settings: FitSettings { preset: Preset::Fast, holdout_every: 0, seed: 7, ..FitSettings::default() }, steps: Some(steps), ..FitOptions::default() };
     let Prepared { data, mut trainer, .. } = prepare(scan, &opts).unwrap();
     let start = norms(&trainer.field);
     let (mut first_loss, mut last_loss) = (Vec::new(), Vec::new());

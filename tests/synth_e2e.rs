@@ -5,13 +5,14 @@
 //! agree with the fixture's exact ground truth.
 
 use arrow_array::cast::AsArray;
+use nerflabel::nerf::train::settings::FitSettings;
 use arrow_array::types::{Float32Type, Float64Type, Int32Type};
 use arrow_array::{Array, RecordBatch};
 use glam::DMat4;
 use image::DynamicImage;
 use nerflabel::fixture::{generate, Corruptions, read_meta, FixtureOptions, Render, SceneKind};
-use nerflabel::nerf::fit::{fit, FitOptions};
-use nerflabel::nerf::metrics::psnr;
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::metrics::psnr;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, Intrinsics, LoadOptions, Scan};
 use nerflabel::boxes::read_boxes;
@@ -51,7 +52,7 @@ fn fitted() -> &'static Fitted {
         o.corruptions = Corruptions::none();
         generate(&scan_dir, &o).unwrap();
         let mut scan = load(&scan_dir, &LoadOptions::default()).unwrap();
-        let opts = FitOptions { steps: Some(STEPS), time: None, holdout_every: 0, ..FitOptions::default() };
+        let opts = FitOptions { settings: FitSettings { holdout_every: 0, ..FitSettings::default() }, steps: Some(STEPS), time: None, ..FitOptions::default() };
         let outcome = fit(&mut scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap();
         Fitted { _dir: dir, scan_dir, scan, model: outcome.model }
     })

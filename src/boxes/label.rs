@@ -13,16 +13,15 @@ use super::options::{DepthSource, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
 use crate::nerf::camera::LocalCamera;
-use crate::nerf::fit::render_options;
-use crate::nerf::march::ray_interval;
+use crate::nerf::render::march::ray_interval;
 use crate::nerf::model_file::Model;
-use crate::nerf::render::{RenderOptions, RenderRay};
+use crate::nerf::render::rays::{RenderOptions, RenderRay};
 use super::support::{excluded_planes, ExcludedPlane};
 use super::tsdf::BoxTsdf;
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use crate::poses::sample_depth_points;
 use crate::scan::Scan;
-use crate::nerf::view::ViewRenderer;
+use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Frame;
 use glam::{DMat3, DMat4};
 use rayon::prelude::*;
@@ -109,7 +108,7 @@ impl<'a> Labeler<'a> {
                 let r = if options.full_depth { ViewRenderer::pruned(m)? } else { ViewRenderer::new(m)? };
                 let cell_local = 1.0 / m.header.field.grid.finest_resolution.max(1) as f64;
                 let cell_m = r.transform.local_to_world_distance(cell_local);
-                (Some(r), Some(render_options(m, false)), cell_m)
+                (Some(r), Some(m.render_options(false)), cell_m)
             }
         };
         let fused_tolerance_m = options.fused_tolerance_cells * cell_m;

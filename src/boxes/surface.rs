@@ -3,11 +3,11 @@
 //! accumulated opacity crosses a threshold (the surface point), so no sample
 //! behind the surface is ever evaluated.
 
-use crate::nerf::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
+use crate::nerf::render::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
 use crate::nerf::field::{Field, FieldWorkspace};
-use crate::nerf::march::{march_skipping, Segment, StepRule};
+use crate::nerf::render::march::{march_skipping, Segment, StepRule};
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::render::RenderRay;
+use crate::nerf::render::rays::RenderRay;
 
 /// Samples evaluated per round across all active rays.
 const ROUND_SAMPLES: usize = 8192;
@@ -109,9 +109,10 @@ pub fn first_crossings(
 mod tests {
     use super::*;
     use crate::nerf::field::{FieldConfig, GridSpec};
-    use crate::nerf::hash_grid::HashGridConfig;
-    use crate::nerf::march::{ray_interval, LocalRay};
-    use crate::nerf::render::{render_rays, RayOutput, RenderOptions, RenderWorkspace};
+    use crate::nerf::field::hash_grid::HashGridConfig;
+    use crate::nerf::render::march::ray_interval;
+    use crate::nerf::camera::LocalRay;
+    use crate::nerf::render::rays::{render_rays, RayOutput, RenderOptions, RenderWorkspace};
     use crate::rng::Rng;
 
     /// At opacity 0.5 the early-stopping renderer finds exactly the median

@@ -9,7 +9,7 @@ use nerflabel::boxes::{read_boxes, write_labels, DepthSource, LabelOptions, Labe
 use nerflabel::evaluate::score_holdout;
 use nerflabel::synth::{synthesize, SynthOptions};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::scan::{load, LoadOptions};
 use std::time::Instant;
 
@@ -46,7 +46,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let model_path = super::common::model_path(&scan_dir, None);
     outcome.model.save(&model_path)?;
     let json = serde_json::to_vec_pretty(&outcome.report)?;
-    nerflabel::atomic::write_file(&nerflabel::nerf::fit::report_path(&model_path), &json)?;
+    nerflabel::atomic::write_file(&nerflabel::nerf::train::report::report_path(&model_path), &json)?;
     println!(
         "2. fit: {} steps in {:.1} s, {:.0} k samples/s; model {}",
         outcome.report.counters.steps,

@@ -3,28 +3,20 @@
 use super::common::{load_scan, model_path, progress_bar, stop_flag};
 use super::FitArgs;
 use anyhow::{bail, Context};
-use nerflabel::nerf::config::Preset;
-use nerflabel::nerf::checkpoint::{checkpoint_path, Checkpoint};
-use nerflabel::nerf::fit::{fit, report_path, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
+use nerflabel::nerf::train::checkpoint::{checkpoint_path, Checkpoint};
+use nerflabel::nerf::train::fit::{fit, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
+use nerflabel::nerf::train::report::report_path;
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     // `--time` is the wall time of the whole command, loading the scan included.
     let started = std::time::Instant::now();
-    let preset: Preset = args.preset.parse().map_err(anyhow::Error::msg)?;
     let model_path = model_path(&args.scan.scan, args.model.as_ref());
     let checkpoint = checkpoint_path(&model_path);
     let options = FitOptions {
         time: args.time,
         steps: args.steps,
-        seed: args.seed,
-        preset,
-        holdout_every: args.holdout,
-        lambda_depth: args.lambda_depth,
-        learning_rate: args.learning_rate,
-        unseen_objects: !args.no_unseen_objects,
-        refine_poses: !args.no_pose_refine,
-        pose_scale: args.pose_scale,
+        settings: args.settings.clone(),
         checkpoint: Some(checkpoint.clone()),
         started: Some(started),
         ..FitOptions::default()
@@ -57,7 +49,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         (None, Some(s)) => format!("{s} steps"),
         (None, None) => format!("{DEFAULT_TIME_S} s"),
     };
-    eprintln!("fitting {} frames of {} ({budget}, preset {})", scan.frames.len(), args.scan.scan.display(), args.preset);
+    eprintln!("fitting {} frames of {} ({budget}, preset {})", scan.frames.len(), args.scan.scan.display(), args.settings.preset);
     let bar = progress_bar(1000, "{spinner} [{elapsed_precise}] [{bar:30}] {msg} (ETA {eta})");
     let stop = stop_flag();
     let mut last_eval = String::new();

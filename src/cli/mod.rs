@@ -12,6 +12,7 @@ mod synth;
 
 use clap::{Args, Parser, Subcommand};
 pub use common::interrupted_status;
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{Layout, LoadOptions};
 use std::path::PathBuf;
 
@@ -182,56 +183,18 @@ pub struct FitArgs {
     /// Stop after this many steps.
     #[arg(long)]
     pub steps: Option<u64>,
-    /// Random seed.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
     /// Model file (default SCAN/nerflabel/model.nlf).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Quality/speed preset: fast, default or quality.
-    #[arg(long, default_value = "default")]
-    pub preset: String,
-    /// Hold out every K-th frame for evaluation (0 = none).
-    #[arg(long, default_value_t = 10)]
-    pub holdout: usize,
-    /// Weight of the depth loss.
-    #[arg(long)]
-    pub lambda_depth: Option<f32>,
-    /// Adam learning rate (default 0.01).
-    #[arg(long)]
-    pub learning_rate: Option<f32>,
-    /// Do not read wide regions without depth as objects the sensor cannot
-    /// see. By default a region without depth that is enclosed by measured
-    /// depth, and is not a projector shadow beside a depth edge, is taken as
-    /// an object (glass, some black plastics) and the model is kept from
-    /// looking through it. Turn it off for a scan whose depth drops out on
-    /// ordinary surfaces in the middle of the frame.
-    #[arg(long)]
-    pub no_unseen_objects: bool,
-    /// Keep the scan's poses as captured (still made metric when they are
-    /// clearly not; see --pose-scale). By default every frame's
-    /// pose is first aligned to the depth the other frames measured (frames
-    /// whose depth fits better with the aligned pose take it; the scene as a
-    /// whole does not move), so that masks line up with the images; the
-    /// model keeps the aligned poses for `label` and `synth`, and the report
-    /// lists each frame's correction.
-    #[arg(long)]
-    pub no_pose_refine: bool,
-    /// Multiply every camera position by this factor before fitting, for
-    /// poses known only up to scale (structure from motion). By default the
-    /// scale is estimated from the depth and applied, with a warning, when
-    /// the poses are clearly not metric; `--pose-scale 1` keeps them as they
-    /// are. Boxes are given in the metric frame that results (same origin
-    /// and axes as the poses).
-    #[arg(long, value_name = "S")]
-    pub pose_scale: Option<f64>,
+    #[command(flatten)]
+    pub settings: FitSettings,
     /// Continue from the checkpoint beside the model (MODEL with extension .checkpoint).
     ///
     /// Every fit writes that checkpoint every ~10 s of training and at the end, and keeps it.
     /// --steps and --time count what was already trained; without them the original budget
     /// applies. So an interrupted fit finishes where it would have, and a finished one is
-    /// extended by a larger budget. The scan, --seed, --preset, --holdout, --lambda-depth,
-    /// --learning-rate and --no-unseen-objects must be the same. Delete the checkpoint to reclaim its disk space.
+    /// extended by a larger budget. The scan and every setting above that shapes training
+    /// (--seed to --pose-scale) must be the same. Delete the checkpoint to reclaim its disk space.
     #[arg(long)]
     pub resume: bool,
 }

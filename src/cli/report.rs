@@ -3,7 +3,7 @@
 use super::common::model_path;
 use super::ReportArgs;
 use anyhow::Context;
-use nerflabel::nerf::fit::{legacy_report_path, report_path, CurvePoint, FitReport};
+use nerflabel::nerf::train::report::{legacy_report_path, report_path, CurvePoint, FitReport};
 use nerflabel::plot::{render_panels, write_png, Panel, Series};
 
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {

@@ -2,9 +2,9 @@
 //! exact ground truth renders.
 
 use crate::fixture::{read_meta, trajectory, FixtureError};
-use crate::nerf::metrics::{depth_mae, psnr, ssim};
+use crate::nerf::train::metrics::{depth_mae, psnr, ssim};
 use crate::nerf::model_file::Model;
-use crate::nerf::view::ViewRenderer;
+use crate::nerf::render::view::ViewRenderer;
 use crate::poses::GeometryError;
 use std::path::Path;
 

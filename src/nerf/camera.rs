@@ -1,6 +1,6 @@
-//! Cameras and training views expressed in the NeRF's local unit cube.
+//! Cameras and rays in the NeRF's local unit cube, shared by the occupancy
+//! grid, rendering and training.
 
-use super::march::LocalRay;
 use crate::scan::Intrinsics;
 use glam::DMat4;
 
@@ -62,16 +62,65 @@ impl LocalCamera {
     }
 }
 
-/// One training or evaluation view: camera, colour and optional depth.
-#[derive(Clone, Debug)]
-pub struct View {
-    pub camera: LocalCamera,
-    /// RGB8, row-major.
-    pub rgb: Vec<u8>,
-    /// Z-depth in local units per pixel, 0 = no measurement.
-    pub depth: Option<Vec<f32>>,
-    /// Pixels where the sensor returned nothing, away from any measured
-    /// pixel (not a speck or an edge dropout): something the sensor cannot
-    /// see may be there. `None` when the view's missing depth says nothing.
-    pub no_return: Option<Vec<bool>>,
+/// A ray in local (unit-cube) coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalRay {
+    pub origin: [f32; 3],
+    /// Unit direction.
+    pub dir: [f32; 3],
+}
+
+impl LocalRay {
+    /// Point at distance `t`.
+    #[inline]
+    pub fn at(&self, t: f32) -> [f32; 3] {
+        [self.origin[0] + t * self.dir[0], self.origin[1] + t * self.dir[1], self.origin[2] + t * self.dir[2]]
+    }
+}
+
+/// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
+pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
+    let mut t0 = 0.0f32;
+    let mut t1 = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            // Parallel: inside the slab or a clean miss (an origin on a face counts as inside).
+            if !(o[a] >= 0.0 && o[a] <= 1.0) {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d[a];
+        let (mut ta, mut tb) = ((0.0 - o[a]) * inv, (1.0 - o[a]) * inv);
+        if ta > tb {
+            std::mem::swap(&mut ta, &mut tb);
+        }
+        t0 = t0.max(ta);
+        t1 = t1.min(tb);
+    }
+    if t0 <= t1 && t1.is_finite() && t0.is_finite() {
+        Some((t0, t1))
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unit_cube_interval_handles_parallel_rays_faces_and_misses() {
+        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
+        // Parallel to a face with the origin on it.
+        assert_eq!(unit_cube_interval([0.0, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
+        assert_eq!(unit_cube_interval([-0.1, 0.5, -1.0], [0.0, 0.0, 1.0]), None);
+        // Looking away.
+        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, -1.0]), None);
+        // Inside.
+        let (t0, t1) = unit_cube_interval([0.5, 0.5, 0.5], [1.0, 0.0, 0.0]).unwrap();
+        assert_eq!(t0, 0.0);
+        assert!((t1 - 0.5).abs() < 1e-6);
+        assert_eq!(unit_cube_interval([f32::NAN, 0.5, 0.5], [1.0, 0.0, 0.0]), None);
+    }
 }

@@ -3,9 +3,12 @@
 //! of everything before it. Written atomically; every defect on load is a
 //! clear error.
 
-use super::field::{Field, FieldConfig};
-use super::occupancy::OccupancyGrid;
-use super::train::{StepSpec, TrainConfig};
+use crate::nerf::field::{Field, FieldConfig};
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::march::StepRule;
+use crate::nerf::render::rays::{RenderOptions, RENDER_MAX_SAMPLES_PER_RAY};
+use crate::poses::{GeometryError, SceneTransform};
+use crate::nerf::train::step::TrainConfig;
 use crate::scan::fingerprint::scan_fingerprint;
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
@@ -33,7 +36,7 @@ pub struct ModelHeader {
     pub units_per_metre: f64,
     pub occupancy_resolution: usize,
     pub background: [f32; 3],
-    pub render_step: StepSpec,
+    pub render_step: StepRule,
     pub steps: u64,
     pub seed: u64,
     pub scan: String,
@@ -59,6 +62,29 @@ pub struct Model {
     pub header: ModelHeader,
     pub field: Field,
     pub occupancy: OccupancyGrid,
+}
+
+impl Model {
+    /// Render settings stored with the model.
+    pub fn render_options(&self, color: bool) -> RenderOptions {
+        RenderOptions {
+            color,
+            rule: self.header.render_step,
+            max_samples_per_ray: RENDER_MAX_SAMPLES_PER_RAY,
+            background: self.header.background,
+        }
+    }
+
+    /// The world-to-local scene transform stored in the model.
+    pub fn scene_transform(&self) -> Result<SceneTransform, GeometryError> {
+        let values: [f64; SceneTransform::ARRAY_LEN] = self
+            .header
+            .scene_transform
+            .as_slice()
+            .try_into()
+            .map_err(|_| GeometryError::InvalidTransform("the model's scene transform has the wrong length".into()))?;
+        SceneTransform::from_array(&values)
+    }
 }
 
 /// Whether a model was fitted to a scan.
@@ -231,7 +257,7 @@ fn damaged(path: &Path, what: String) -> ModelError {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::train::tests::small_config;
+    use crate::nerf::train::step::tests::small_config;
 
     fn sample_model() -> Model {
         let (field_cfg, train) = small_config(3);

@@ -8,7 +8,7 @@ use super::png::{encode_depth_mm, encode_mask, encode_rgb};
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
 use super::poses_file::ViewSpec;
-use crate::nerf::view::ViewRenderer;
+use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Intrinsics;
 use glam::{DMat4, DVec3};
 

@@ -10,7 +10,7 @@ use super::sampling::{Cloud, PoseSampler, Target};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet};
 use crate::nerf::model_file::Model;
-use crate::nerf::view::ViewRenderer;
+use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
 use crate::scan::{Scan, MAX_IMAGE_SIDE};
 use glam::DVec3;

@@ -13,11 +13,10 @@ use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
 use super::render::Instances;
 use super::sampling::{Candidate, PoseSampler};
-use crate::nerf::fit::render_options;
-use crate::nerf::march::LocalRay;
+use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::render::render_pixels;
-use crate::nerf::view::ViewRenderer;
+use crate::nerf::render::rays::render_pixels;
+use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Intrinsics;
 use glam::DMat4;
 use rayon::prelude::*;
@@ -74,7 +73,7 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
     let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
     let pixels: Vec<(f32, f32)> = (0..ph).flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32))).collect();
     let model = renderer.model;
-    let out = render_pixels(&model.field, renderer.grid(), &render_options(model, false), &camera, &pixels);
+    let out = render_pixels(&model.field, renderer.grid(), &model.render_options(false), &camera, &pixels);
     // Observed space is what the sensor saw free: the model's own grid.
     let grid = &model.occupancy;
     // Without any carved cell (a scan without depth) opacity is all there is to go by.

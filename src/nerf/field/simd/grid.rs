@@ -7,7 +7,7 @@
 //! contraction), so their results are bit-identical to `GridLevel::corners`
 //! and the scalar encode.
 
-use crate::nerf::hash_grid::{GridLevel, PRIMES};
+use crate::nerf::field::hash_grid::{GridLevel, PRIMES};
 
 /// True when the AVX2+FMA kernels can run on this CPU.
 pub fn available() -> bool {
@@ -325,7 +325,7 @@ mod avx2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::hash_grid::HashGridConfig;
+    use crate::nerf::field::hash_grid::HashGridConfig;
 
     fn levels() -> Vec<GridLevel> {
         HashGridConfig { levels: 3, features_per_level: 2, log2_table_size: 10, base_resolution: 4, finest_resolution: 30 }.level_layout()

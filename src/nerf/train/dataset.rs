@@ -1,12 +1,26 @@
 //! Scan frames turned into training and held-out views in local
 //! coordinates, plus the depth rays that seed the occupancy grid.
 
-use super::camera::{LocalCamera, View};
-use super::occupancy::{CameraSpace, DepthRay};
+use crate::nerf::camera::LocalCamera;
+use crate::nerf::occupancy::{CameraSpace, DepthRay};
 use crate::poses::SceneTransform;
 use crate::mask::{components, dilate_mask};
 use crate::scan::{Frame, Scan};
 use rayon::prelude::*;
+
+/// One training or evaluation view: camera, colour and optional depth.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub camera: LocalCamera,
+    /// RGB8, row-major.
+    pub rgb: Vec<u8>,
+    /// Z-depth in local units per pixel, 0 = no measurement.
+    pub depth: Option<Vec<f32>>,
+    /// Pixels where the sensor returned nothing, away from any measured
+    /// pixel (not a speck or an edge dropout): something the sensor cannot
+    /// see may be there. `None` when the view's missing depth says nothing.
+    pub no_return: Option<Vec<bool>>,
+}
 
 /// Views of a scan split into training and held-out sets.
 pub struct Dataset {

@@ -2,7 +2,7 @@
 //! differences, the SIMD kernels and the gradient buffer's bookkeeping.
 
 use super::*;
-use crate::nerf::simd::grid as simd;
+use crate::nerf::field::simd::grid as simd;
 
 /// Grid with parameters U(-1, 1) so outputs are far from rounding noise.
 fn grid(config: HashGridConfig, seed: u64) -> HashGrid {

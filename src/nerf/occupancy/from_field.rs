@@ -14,8 +14,8 @@
 //! held-out PSNR (0.01 dB) and depth error (0.1 mm), for a set-up of
 //! (2 x 128 + 1)^3 density evaluations.
 
-use super::field::{Field, FieldWorkspace};
-use super::occupancy::{OccupancyGrid, RENDER_MIN_CELL_OPTICAL_DEPTH};
+use crate::nerf::field::{Field, FieldWorkspace};
+use crate::nerf::occupancy::{OccupancyGrid, RENDER_MIN_CELL_OPTICAL_DEPTH};
 use rayon::prelude::*;
 
 /// Lattice steps per cell edge: 2 (half-cell spacing) matched 3 within
@@ -98,7 +98,7 @@ fn cell_peaks(field: &Field, res: usize, steps: usize) -> Vec<f32> {
 mod tests {
     use super::*;
     use crate::nerf::field::{FieldConfig, GridSpec};
-    use crate::nerf::hash_grid::HashGridConfig;
+    use crate::nerf::field::hash_grid::HashGridConfig;
     use crate::rng::Rng;
 
     fn random_field(seed: u64) -> Field {

@@ -10,7 +10,7 @@
 //! The level loop is outermost, so one level's table (at most a few MiB) stays
 //! in cache while all positions visit it, in blocks of 256 SIMD-friendly columns. With
 //! AVX2+FMA, 2-feature levels use the gather kernels of
-//! [`crate::nerf::simd::grid`]; their results are bit-identical to the scalar
+//! [`crate::nerf::field::simd::grid`]; their results are bit-identical to the scalar
 //! path, so outputs do not depend on the CPU.
 
 mod backward;
@@ -21,7 +21,7 @@ mod tests;
 
 pub use grad::GridGrad;
 
-use crate::nerf::simd::grid as simd;
+use crate::nerf::field::simd::grid as simd;
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;

@@ -19,14 +19,18 @@
 //! depth (opacity 0.5) is always found before; a tenth of the samples of a
 //! typical ray are saved.
 
-use super::camera::LocalCamera;
-use super::composite::{sanitize_tau, MIN_SURFACE_WEIGHT};
-use super::field::{density_activation, Field, DENSITY_OUTPUTS};
-use super::march::{march_skipping, ray_interval, LocalRay, Segment, StepRule};
-use super::mlp::MlpWorkspace;
-use super::occupancy::OccupancyGrid;
-use super::sh::{self, SH_COEFFS};
+use crate::nerf::camera::{LocalCamera, LocalRay};
+use crate::nerf::render::composite::{sanitize_tau, MIN_SURFACE_WEIGHT};
+use crate::nerf::field::{density_activation, Field, DENSITY_OUTPUTS};
+use crate::nerf::render::march::{march_skipping, ray_interval, Segment, StepRule};
+use crate::nerf::field::mlp::MlpWorkspace;
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::field::sh::{self, SH_COEFFS};
 use std::cell::RefCell;
+
+/// Most samples a ray takes when rendering views: enough to cross the unit
+/// cube at the finest step of any scene this tool sizes.
+pub const RENDER_MAX_SAMPLES_PER_RAY: usize = 4096;
 
 /// Transmittance below which a rendered ray is absorbed (see the module doc).
 pub const ABSORBED_TRANSMITTANCE: f32 = 1e-2;
@@ -448,9 +452,9 @@ pub fn render_image(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, c
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::composite::TERMINATION_TRANSMITTANCE;
+    use crate::nerf::render::composite::TERMINATION_TRANSMITTANCE;
     use crate::nerf::field::{FieldConfig, FieldWorkspace, GridSpec};
-    use crate::nerf::hash_grid::HashGridConfig;
+    use crate::nerf::field::hash_grid::HashGridConfig;
     use crate::rng::Rng;
     use crate::scan::Intrinsics;
     use glam::{DMat4, DVec3};

@@ -4,23 +4,23 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
-use super::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
-use super::config::{settings_for_scene, NerfSettings, Preset, NO_RETURN_WEIGHT};
-use super::dataset::{self, Dataset};
-use super::evaluate::{evaluate, EvalResult};
-use super::field::Field;
-use super::measured::MeasuredSurfaces;
-use super::model_file::{Model, ModelHeader};
-use super::occupancy::OccupancyGrid;
-use super::render::RenderOptions;
-use super::train::{StepStats, TrainCounters, Trainer};
+use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
+use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
+use crate::nerf::train::dataset::{self, Dataset};
+use crate::nerf::train::holdout::{evaluate, EvalResult};
+use crate::nerf::field::Field;
+use crate::nerf::occupancy::measured::MeasuredSurfaces;
+use crate::nerf::model_file::{Model, ModelHeader};
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::rays::RenderOptions;
+use crate::nerf::train::report::{CurvePoint, FitReport, PoseRefinementReport, PoseScaleReport, Timings};
+use crate::nerf::train::step::{StepStats, Trainer};
 use crate::poses::{
-    estimate_pose_scale, normalize, refine_poses, scale_poses, scene_bounds, BoundsOptions, FrameCorrection, GeometryError, NormalizeOptions, PoseRefinement,
+    estimate_pose_scale, normalize, refine_poses, scale_poses, scene_bounds, BoundsOptions, GeometryError, NormalizeOptions,
     RefineOptions, SceneTransform,
 };
 use crate::rng::Rng;
 use crate::scan::Scan;
-use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -33,23 +33,8 @@ pub struct FitOptions {
     pub time: Option<f64>,
     /// Step budget.
     pub steps: Option<u64>,
-    pub seed: u64,
-    pub preset: Preset,
-    /// Hold out every K-th frame (0 = none).
-    pub holdout_every: usize,
-    pub lambda_depth: Option<f32>,
-    /// Adam learning rate instead of the settings' (1e-2).
-    pub learning_rate: Option<f32>,
-    /// Read wide regions without depth, enclosed by measured depth, as
-    /// objects the sensor cannot see (the no-return term, `train.rs`).
-    pub unseen_objects: bool,
-    /// Align every frame's pose to the other frames' depth before training
-    /// (`poses::refine_poses`); the model keeps the refined poses.
-    pub refine_poses: bool,
-    /// Multiply every camera position by this (poses known only up to
-    /// scale); `None`: estimated from the depth and applied when the poses
-    /// are clearly not metric.
-    pub pose_scale: Option<f64>,
+    /// What shapes training (flags, defaults, resume check).
+    pub settings: FitSettings,
     /// Training seconds between held-out evaluations (and checkpoints).
     pub eval_interval_s: f64,
     /// Longer side of the evaluation pixel grid.
@@ -66,14 +51,7 @@ impl Default for FitOptions {
         FitOptions {
             time: None,
             steps: None,
-            seed: 0,
-            preset: Preset::Default,
-            holdout_every: 10,
-            lambda_depth: None,
-            learning_rate: None,
-            unseen_objects: true,
-            refine_poses: true,
-            pose_scale: None,
+            settings: FitSettings::default(),
             eval_interval_s: 10.0,
             eval_max_side: 160,
             checkpoint: None,
@@ -92,185 +70,11 @@ const MAX_EVAL_SPACING: f64 = 3.0;
 /// Default training time when neither `time` nor `steps` is given.
 pub const DEFAULT_TIME_S: f64 = 120.0;
 
-/// One point of the error-against-run-time curve.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct CurvePoint {
-    /// Wall time of the fit so far (preparation, training, earlier
-    /// evaluations and checkpoints; this point's own evaluation excluded).
-    pub seconds: f64,
-    pub step: u64,
-    pub psnr: f64,
-    pub ssim: f64,
-    pub depth_mae_m: Option<f64>,
-    /// Training throughput since the previous point.
-    pub samples_per_s: f64,
-}
-
-/// Seconds spent in each phase.
-#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
-pub struct Timings {
-    /// Making the poses metric and aligning them to the depth
-    /// (`FitOptions::pose_scale`, `FitOptions::refine_poses`).
-    #[serde(default)]
-    pub pose_refine_s: f64,
-    pub bounds_s: f64,
-    pub views_s: f64,
-    pub occupancy_seed_s: f64,
-    pub train_s: f64,
-    pub eval_s: f64,
-    /// Writing checkpoints.
-    #[serde(default)]
-    pub checkpoint_s: f64,
-    /// Wall time of the whole fit (what `--time` bounds), all runs of a resumed fit together.
-    #[serde(default)]
-    pub wall_s: f64,
-}
-
-/// Where the report of a model lives: `model.nlf` -> `model.report.json`,
-/// so two models in one folder keep their own reports.
-pub fn report_path(model: &std::path::Path) -> std::path::PathBuf {
-    model.with_extension("report.json")
-}
-
-/// The report name of earlier versions (one per folder), read when a model
-/// has no report of its own.
-pub fn legacy_report_path(model: &std::path::Path) -> std::path::PathBuf {
-    model.with_file_name("fit_report.json")
-}
-
-/// Contents of a fit report (`MODEL.report.json`).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct FitReport {
-    pub nerflabel_version: String,
-    pub scan: String,
-    pub seed: u64,
-    pub preset: Preset,
-    pub threads: usize,
-    pub train_frames: usize,
-    pub holdout_frames: Vec<String>,
-    pub metres_per_unit: f64,
-    pub param_count: usize,
-    pub field: super::field::FieldConfig,
-    pub train: super::train::TrainConfig,
-    pub timings: Timings,
-    pub counters: TrainCounters,
-    /// Step-size scale the divergence guard left: 1 when it never backed
-    /// off, halved for every skipped batch (`counters.skipped_batches`).
-    #[serde(default = "one")]
-    pub lr_scale: f32,
-    pub interrupted: bool,
-    /// Steps at which this fit was resumed from its checkpoint.
-    #[serde(default)]
-    pub resumed_from: Vec<u64>,
-    pub occupied_fraction: f64,
-    /// The scale applied to the camera positions, when not 1.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub pose_scale: Option<PoseScaleReport>,
-    /// What pose refinement changed; `None` when it was off or the scan has
-    /// too little depth.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub pose_refinement: Option<PoseRefinementReport>,
-    pub curve: Vec<CurvePoint>,
-}
-
-/// The report's account of the poses' scale.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct PoseScaleReport {
-    /// Factor the camera positions were multiplied by.
-    pub applied: f64,
-    /// Given with `--pose-scale` rather than estimated.
-    pub forced: bool,
-    pub verdict: String,
-}
-
-/// The report's account of pose refinement.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct PoseRefinementReport {
-    pub frames_refined: usize,
-    /// Median over frames of the median distance between a frame's depth
-    /// and the other frames' depth, with the captured and the fitted poses
-    /// (absent when no frame's depth overlaps another's).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub median_disagreement_before_m: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub median_disagreement_after_m: Option<f64>,
-    /// Largest change of a camera centre (m) and orientation (degrees).
-    pub largest_translation_m: f64,
-    pub largest_rotation_deg: f64,
-    /// How well the captured poses agreed with the depth, in a sentence.
-    pub verdict: String,
-    pub frames: Vec<FrameCorrection>,
-}
-
-impl PoseRefinementReport {
-    pub fn new(r: &PoseRefinement) -> PoseRefinementReport {
-        let (before, after) = r.median_residuals();
-        let (translation, rotation) = r.largest_correction();
-        PoseRefinementReport {
-            frames_refined: r.refined_count(),
-            median_disagreement_before_m: before.is_finite().then_some(before),
-            median_disagreement_after_m: after.is_finite().then_some(after),
-            largest_translation_m: translation,
-            largest_rotation_deg: rotation,
-            verdict: r.verdict(),
-            frames: r.frames.clone(),
-        }
-    }
-}
-
-fn one() -> f32 {
-    1.0
-}
-
-impl FitReport {
-    /// Why this fit gave no usable model, if it did not: the divergence
-    /// guard skipped most batches, no sample was trained, or the held-out
-    /// error is absurd (not finite, or a depth error larger than the whole
-    /// scene, the diagonal of the unit cube the scene was mapped into).
-    pub fn failure(&self) -> Option<String> {
-        let c = &self.counters;
-        if c.steps > 0 && c.skipped_batches * 2 > c.steps {
-            return Some(format!(
-                "the divergence guard skipped {} of {} batches (a learning rate far too high, or data the field cannot fit)",
-                c.skipped_batches, c.steps
-            ));
-        }
-        if c.steps > 0 && c.samples == 0 {
-            return Some("no training sample fell inside the scene: the scene bounds miss what the cameras see".into());
-        }
-        let point = self.curve.last()?;
-        if !point.psnr.is_finite() {
-            return Some(format!("the held-out PSNR is {}", point.psnr));
-        }
-        let scene_m = self.metres_per_unit * 3f64.sqrt();
-        match point.depth_mae_m {
-            Some(mae) if !(mae <= scene_m) => Some(format!(
-                "the held-out depth error ({mae:.3} m) is larger than the whole scene ({scene_m:.3} m)"
-            )),
-            _ => None,
-        }
-    }
-}
-
 impl FitOptions {
     /// Refuse settings no fit can train with, naming the setting.
     pub fn validate(&self) -> Result<(), FitError> {
-        let bad = |name: &'static str, reason: String| Err(FitError::Setting { name, reason });
-        if let Some(s) = self.pose_scale {
-            if !(s.is_finite() && s > 0.0) {
-                return bad("--pose-scale", format!("must be a positive factor, got {s}"));
-            }
-        }
-        if let Some(l) = self.lambda_depth {
-            if !(l.is_finite() && l >= 0.0) {
-                return bad("--lambda-depth", format!("must be a finite number >= 0, got {l}"));
-            }
-        }
-        if let Some(lr) = self.learning_rate {
-            if !(lr.is_finite() && lr > 0.0) {
-                return bad("--learning-rate", format!("must be a positive finite number, got {lr}"));
-            }
-        }
+        self.settings.validate()?;
+        let bad = |flag: &'static str, reason: String| Err(FitError::Setting(SettingError { flag, reason }));
         if let Some(t) = self.time {
             if !(t.is_finite() && t > 0.0) {
                 return bad("--time", format!("must be a positive number of seconds, got {t}"));
@@ -317,31 +121,10 @@ pub enum FitError {
     Geometry(#[from] GeometryError),
     #[error("the scan has no frame left for training")]
     NoTrainingFrames,
-    #[error("{name} {reason}")]
-    Setting { name: &'static str, reason: String },
+    #[error(transparent)]
+    Setting(#[from] SettingError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-}
-
-/// Render settings stored with a model.
-pub fn render_options(model: &Model, color: bool) -> RenderOptions {
-    RenderOptions {
-        color,
-        rule: model.header.render_step.into(),
-        max_samples_per_ray: 4096,
-        background: model.header.background,
-    }
-}
-
-/// The scene transform stored in a model.
-pub fn model_transform(model: &Model) -> Result<SceneTransform, GeometryError> {
-    let values: [f64; SceneTransform::ARRAY_LEN] = model
-        .header
-        .scene_transform
-        .as_slice()
-        .try_into()
-        .map_err(|_| GeometryError::InvalidTransform("the model's scene transform has the wrong length".into()))?;
-    SceneTransform::from_array(&values)
 }
 
 /// Metres covered by one pixel at the typical viewing distance: the median
@@ -387,8 +170,8 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     timings.bounds_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let mut data: Dataset = dataset::build(scan, &transform, opts.holdout_every);
-    if opts.unseen_objects {
+    let mut data: Dataset = dataset::build(scan, &transform, opts.settings.holdout_every);
+    if opts.settings.unseen_objects {
         dataset::mark_no_return(&mut data, scan);
     }
     if data.train.is_empty() {
@@ -397,13 +180,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     timings.views_s = t.elapsed().as_secs_f64();
 
     let footprint = pixel_footprint(scan, &bounds);
-    let mut settings = settings_for_scene(metres_per_unit, footprint, opts.preset, opts.seed, opts.lambda_depth);
-    if let Some(lr) = opts.learning_rate {
-        settings.train.learning_rate = lr;
-    }
-    if opts.unseen_objects {
-        settings.train.lambda_no_return = NO_RETURN_WEIGHT;
-    }
+    let settings = settings_for_scene(metres_per_unit, footprint, &opts.settings);
     let t = Instant::now();
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     if seed_occupancy {
@@ -413,10 +190,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     }
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();
 
-    let mut rng = Rng::new(opts.seed, 0);
+    let mut rng = Rng::new(opts.settings.seed, 0);
     let field = Field::new(settings.field.clone(), &mut rng);
     let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
-    if opts.unseen_objects {
+    if opts.settings.unseen_objects {
         let measured = dataset::depth_rays(&data.train, 2);
         if !measured.is_empty() {
             let res = settings.field.grid.finest_resolution as usize / 2;
@@ -442,7 +219,7 @@ fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseS
 }
 
 /// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable
-/// model. With `opts.refine_poses` the scan's poses are first aligned to its
+/// model. With `opts.settings.refine_poses` the scan's poses are first aligned to its
 /// depth, in place; the model records them (`Model::apply_fitted_poses`).
 pub fn fit(scan: &mut Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
     run(scan, opts, None, stop, on_event)
@@ -472,11 +249,11 @@ fn run(
     // Models and checkpoints name the scan as captured.
     let captured_fingerprint = crate::scan::fingerprint::scan_fingerprint(scan);
     let t = Instant::now();
-    let scale_report = apply_pose_scale(scan, opts.pose_scale)?;
+    let scale_report = apply_pose_scale(scan, opts.settings.pose_scale)?;
     if let Some(r) = &scale_report {
         on_event(FitEvent::PosesScaled(r));
     }
-    let refinement = if opts.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
+    let refinement = if opts.settings.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
     if let Some(r) = &refinement {
         scan.set_poses(&r.camera_to_world);
     }
@@ -521,7 +298,7 @@ fn run(
     let step_budget = identity.steps;
     let render_opts = RenderOptions {
         color: true,
-        rule: settings.render_step.into(),
+        rule: settings.render_step,
         max_samples_per_ray: 4096,
         background: data.background,
     };
@@ -631,7 +408,7 @@ fn run(
         background: data.background,
         render_step: settings.render_step,
         steps: trainer.counters.steps,
-        seed: opts.seed,
+        seed: opts.settings.seed,
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
@@ -642,8 +419,8 @@ fn run(
     let report = FitReport {
         nerflabel_version: header.nerflabel_version.clone(),
         scan: header.scan.clone(),
-        seed: opts.seed,
-        preset: opts.preset,
+        seed: opts.settings.seed,
+        preset: opts.settings.preset,
         threads: rayon::current_num_threads(),
         train_frames: data.train.len(),
         holdout_frames: data.holdout_frames.iter().map(|&i| scan.frames[i].name.clone()).collect(),

@@ -3,9 +3,14 @@
 //! Batched, feature-major, with reusable workspaces; a density-only path
 //! skips the colour branch entirely.
 
-use super::hash_grid::{GridGrad, HashGrid, HashGridConfig};
-use super::mlp::{Mlp, MlpConfig, MlpWorkspace};
-use super::sh::{self, SH_COEFFS};
+pub mod hash_grid;
+pub mod mlp;
+pub mod sh;
+pub mod simd;
+
+use hash_grid::{GridGrad, HashGrid, HashGridConfig};
+use mlp::{Mlp, MlpConfig, MlpWorkspace};
+use sh::SH_COEFFS;
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
 

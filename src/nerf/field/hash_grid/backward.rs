@@ -10,7 +10,7 @@
 //! multiply and sum in the same order, so their results are bit-identical.
 
 use super::{Block, GridGrad, GridLevel, BLOCK};
-use crate::nerf::simd::grid as simd;
+use crate::nerf::field::simd::grid as simd;
 
 /// What one level's backward reads: its geometry and its F rows of d_out.
 struct LevelInput<'a> {

@@ -5,7 +5,7 @@
 //! that would end on a surface the sensor measured from elsewhere most
 //! likely ends earlier, on something the sensor cannot see (glass).
 
-use super::occupancy::{cell_index, DepthRay};
+use crate::nerf::occupancy::{cell_index, DepthRay};
 
 /// Cells per axis at most (512^3 bits = 16 MiB).
 pub const MAX_RESOLUTION: usize = 512;

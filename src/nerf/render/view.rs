@@ -2,14 +2,14 @@
 //! colour (optional), metric z-depth and opacity per pixel.
 //!
 //! For many views of one model, [`ViewRenderer::pruned`] first re-estimates
-//! from the field which cells hold density ([`super::render_grid`]).
+//! from the field which cells hold density ([`crate::nerf::occupancy::from_field`]).
 
-use super::camera::LocalCamera;
-use super::fit::{model_transform, render_options};
-use super::model_file::Model;
-use super::occupancy::OccupancyGrid;
-use super::render::{render_image, render_pixels, RayOutput};
-use super::render_grid::lattice_pruned;
+use crate::nerf::camera::LocalCamera;
+
+use crate::nerf::model_file::Model;
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
+use crate::nerf::occupancy::from_field::lattice_pruned;
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
 use glam::DMat4;
@@ -44,14 +44,14 @@ fn to_u8(c: f32) -> u8 {
 impl<'a> ViewRenderer<'a> {
     /// Renderer for `model` (fails if its stored transform is invalid).
     pub fn new(model: &'a Model) -> Result<Self, GeometryError> {
-        Ok(ViewRenderer { model, transform: model_transform(model)?, pruned: None })
+        Ok(ViewRenderer { model, transform: model.scene_transform()?, pruned: None })
     }
 
     /// Renderer for `model` through [`lattice_pruned`]'s grid (worth it for
     /// many views: the set-up costs about as much as rendering five 320x240
     /// views with the model's own grid).
     pub fn pruned(model: &'a Model) -> Result<Self, GeometryError> {
-        let transform = model_transform(model)?;
+        let transform = model.scene_transform()?;
         Ok(ViewRenderer { model, transform, pruned: Some(lattice_pruned(&model.field, &model.occupancy)) })
     }
 
@@ -80,7 +80,7 @@ impl<'a> ViewRenderer<'a> {
         pixels: &[(f32, f32)],
         color: bool,
     ) -> (Vec<[u8; 3]>, Vec<f32>, Vec<f32>) {
-        let opts = render_options(self.model, color);
+        let opts = self.model.render_options(color);
         let out = render_pixels(&self.model.field, self.grid(), &opts, camera, pixels);
         let rgb = if color { out.iter().map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
         let depth = out.iter().zip(pixels).map(|(o, &(u, v))| self.depth_m(camera, o, u, v)).collect();
@@ -98,7 +98,7 @@ impl<'a> ViewRenderer<'a> {
         color: bool,
     ) -> ViewRender {
         let camera = self.local_camera(camera_to_world, k, width, height);
-        let opts = render_options(self.model, color);
+        let opts = self.model.render_options(color);
         let out = render_image(&self.model.field, self.grid(), &opts, &camera);
         let w = width.max(1) as usize;
         let rgb = if color { out.iter().flat_map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };

@@ -1,11 +1,11 @@
 //! Held-out evaluation: render a regular subsample of each held-out view's
 //! pixels and compare with its colour and sensor depth.
 
-use super::camera::View;
-use super::field::Field;
-use super::metrics;
-use super::occupancy::OccupancyGrid;
-use super::render::{render_pixels, RenderOptions};
+use crate::nerf::train::dataset::View;
+use crate::nerf::field::Field;
+use crate::nerf::train::metrics;
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::rays::{render_pixels, RenderOptions};
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

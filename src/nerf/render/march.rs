@@ -1,23 +1,8 @@
 //! Ray marching inside the unit cube: step size growing with distance,
 //! empty cells of the occupancy grid skipped whole.
 
-use super::occupancy::{unit_cube_interval, OccupancyGrid, BLOCK};
-
-/// A ray in local (unit-cube) coordinates.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct LocalRay {
-    pub origin: [f32; 3],
-    /// Unit direction.
-    pub dir: [f32; 3],
-}
-
-impl LocalRay {
-    /// Point at distance `t`.
-    #[inline]
-    pub fn at(&self, t: f32) -> [f32; 3] {
-        [self.origin[0] + t * self.dir[0], self.origin[1] + t * self.dir[1], self.origin[2] + t * self.dir[2]]
-    }
-}
+use crate::nerf::camera::{unit_cube_interval, LocalRay};
+use crate::nerf::occupancy::{OccupancyGrid, BLOCK};
 
 /// One volume-rendering sample: interval [t, t + dt), evaluated at its middle.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -34,8 +19,8 @@ impl Segment {
     }
 }
 
-/// How far apart samples are.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// How far apart samples are (stored in the model file as is).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StepRule {
     /// Smallest step (local units), about half the finest grid cell.
     pub min_step: f32,

@@ -4,7 +4,10 @@
 //! camera and the space no training camera sees; refreshed from the model
 //! during training with a decaying maximum of sampled density.
 
-use super::camera::LocalCamera;
+pub mod from_field;
+pub mod measured;
+
+use crate::nerf::camera::{unit_cube_interval, LocalCamera};
 use crate::rng::Rng;
 use rayon::prelude::*;
 
@@ -536,33 +539,6 @@ impl Frustum {
     }
 }
 
-/// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
-pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
-    let mut t0 = 0.0f32;
-    let mut t1 = f32::INFINITY;
-    for a in 0..3 {
-        if d[a] == 0.0 {
-            // Parallel: inside the slab or a clean miss (an origin on a face counts as inside).
-            if !(o[a] >= 0.0 && o[a] <= 1.0) {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d[a];
-        let (mut ta, mut tb) = ((0.0 - o[a]) * inv, (1.0 - o[a]) * inv);
-        if ta > tb {
-            std::mem::swap(&mut ta, &mut tb);
-        }
-        t0 = t0.max(ta);
-        t1 = t1.min(tb);
-    }
-    if t0 <= t1 && t1.is_finite() && t0.is_finite() {
-        Some((t0, t1))
-    } else {
-        None
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -787,21 +763,6 @@ mod tests {
         let mut untouched = OccupancyGrid::full(res);
         untouched.carve_unseen(&[]);
         assert_eq!(untouched.occupied, res * res * res);
-    }
-
-    #[test]
-    fn unit_cube_interval_handles_parallel_rays_faces_and_misses() {
-        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
-        // Parallel to a face with the origin on it.
-        assert_eq!(unit_cube_interval([0.0, 0.5, -1.0], [0.0, 0.0, 1.0]), Some((1.0, 2.0)));
-        assert_eq!(unit_cube_interval([-0.1, 0.5, -1.0], [0.0, 0.0, 1.0]), None);
-        // Looking away.
-        assert_eq!(unit_cube_interval([0.5, 0.5, -1.0], [0.0, 0.0, -1.0]), None);
-        // Inside.
-        let (t0, t1) = unit_cube_interval([0.5, 0.5, 0.5], [1.0, 0.0, 0.0]).unwrap();
-        assert_eq!(t0, 0.0);
-        assert!((t1 - 0.5).abs() < 1e-6);
-        assert_eq!(unit_cube_interval([f32::NAN, 0.5, 0.5], [1.0, 0.0, 0.0]), None);
     }
 
     #[test]

@@ -4,13 +4,13 @@
 //! divergence. Chunks map to threads deterministically for a given seed and
 //! thread count.
 
-use super::adam::Adam;
-use super::camera::View;
-use super::composite::{optical_depth_backward, weights_from_optical_depth};
-use super::field::{Field, FieldGrad, FieldWorkspace};
-use super::march::{march, march_until, ray_interval, Segment, StepRule};
-use super::measured::MeasuredSurfaces;
-use super::occupancy::OccupancyGrid;
+use crate::nerf::train::adam::Adam;
+use crate::nerf::train::dataset::View;
+use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
+use crate::nerf::field::{Field, FieldGrad, FieldWorkspace};
+use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule};
+use crate::nerf::occupancy::measured::MeasuredSurfaces;
+use crate::nerf::occupancy::OccupancyGrid;
 use crate::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -69,24 +69,10 @@ pub struct TrainConfig {
     /// sensor measured from elsewhere (see `measured.rs`).
     #[serde(default)]
     pub lambda_no_return: f32,
-    pub step: StepSpec,
+    pub step: StepRule,
     pub occupancy_every: u64,
     pub occupancy_decay: f32,
     pub seed: u64,
-}
-
-/// Serialisable [`StepRule`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StepSpec {
-    pub min_step: f32,
-    pub max_step: f32,
-    pub cone: f32,
-}
-
-impl From<StepSpec> for StepRule {
-    fn from(s: StepSpec) -> Self {
-        StepRule { min_step: s.min_step, max_step: s.max_step, cone: s.cone }
-    }
 }
 
 /// What one step did.
@@ -256,7 +242,7 @@ impl Trainer {
         let threads = self.chunks.len();
         let budget = (self.config.samples_per_step / threads).max(64);
         let coverage = *self.depth_coverage.get_or_insert_with(|| depth_coverage(views));
-        let rule: StepRule = self.config.step.into();
+        let rule = self.config.step;
         let (colour_only, colour_only_cap) = if coverage >= COLOUR_ONLY_COARSE_MIN_COVERAGE {
             (coarser(&rule, COLOUR_ONLY_STEP_FACTOR), self.config.max_samples_per_ray / 16)
         } else {
@@ -667,9 +653,9 @@ pub(crate) mod tests {
     use super::*;
     use crate::nerf::camera::LocalCamera;
     use crate::nerf::field::{FieldConfig, GridSpec};
-    use crate::nerf::composite::optical_depth_backward;
+    use crate::nerf::render::composite::optical_depth_backward;
     use crate::nerf::occupancy::DepthRay;
-    use crate::nerf::render::{render_pixels, RenderOptions};
+    use crate::nerf::render::rays::{render_pixels, RenderOptions};
     use crate::scan::Intrinsics;
     use glam::{DMat4, DVec3};
 
@@ -708,9 +694,9 @@ pub(crate) mod tests {
     }
 
     pub(crate) fn small_config(seed: u64) -> (FieldConfig, TrainConfig) {
-        let grid = crate::nerf::hash_grid::HashGridConfig::for_scene(1.0, 1.0 / 128.0);
+        let grid = crate::nerf::field::hash_grid::HashGridConfig::for_scene(1.0, 1.0 / 128.0);
         let field = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![64], color_hidden: vec![64, 64] };
-        let step = StepSpec { min_step: 1.0 / 160.0, max_step: 1.0 / 32.0, cone: 0.0 };
+        let step = StepRule { min_step: 1.0 / 160.0, max_step: 1.0 / 32.0, cone: 0.0 };
         let train = TrainConfig {
             samples_per_step: 1 << 14,
             max_samples_per_ray: 512,
@@ -730,7 +716,7 @@ pub(crate) mod tests {
 
     /// Mean depth error (local units) of the trained plane seen from view 0.
     fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
-        let opts = RenderOptions { color: true, rule: train_cfg.step.into(), max_samples_per_ray: 4096, background: [0.5; 3] };
+        let opts = RenderOptions { color: true, rule: train_cfg.step, max_samples_per_ray: 4096, background: [0.5; 3] };
         let cam = views[0].camera;
         let pixels: Vec<(f32, f32)> = (8..40).step_by(4).flat_map(|v| (8..40).step_by(4).map(move |u| (u as f32, v as f32))).collect();
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
@@ -804,7 +790,7 @@ pub(crate) mod tests {
                     }
                 }
             }
-            view.no_return = crate::nerf::dataset::no_return_mask(depth, size, size, 1.0);
+            view.no_return = crate::nerf::train::dataset::no_return_mask(depth, size, size, 1.0);
         }
         views
     }
@@ -828,7 +814,7 @@ pub(crate) mod tests {
         for s in 0..200 {
             trainer.step(&views, s as f32 / 200.0);
         }
-        let opts = RenderOptions { color: false, rule: train_cfg.step.into(), max_samples_per_ray: 4096, background: [0.5; 3] };
+        let opts = RenderOptions { color: false, rule: train_cfg.step, max_samples_per_ray: 4096, background: [0.5; 3] };
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
         let mut err: Vec<f32> = out
             .iter()

@@ -6,11 +6,12 @@
 //! settings is a clear error. Same container as the model file (magic,
 //! version, JSON header, little-endian sections, CRC32), written atomically.
 
-use super::config::{NerfSettings, Preset};
-use super::field::{Field, FieldConfig};
-use super::fit::{CurvePoint, FitOptions, Timings};
-use super::occupancy::OccupancyGrid;
-use super::train::{TrainCounters, Trainer};
+use crate::nerf::train::settings::{FitSettings, NerfSettings};
+use crate::nerf::field::{Field, FieldConfig};
+use crate::nerf::train::fit::FitOptions;
+use crate::nerf::train::report::{CurvePoint, Timings};
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::train::step::{TrainCounters, Trainer};
 use crate::scan::fingerprint::{scan_fingerprint, Fnv};
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
@@ -43,23 +44,6 @@ pub fn checkpoint_path(model: &Path) -> PathBuf {
     model.with_extension("checkpoint")
 }
 
-/// The fit options that shape training; a resumed fit must use the same.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FitSettings {
-    pub seed: u64,
-    pub preset: Preset,
-    pub holdout_every: usize,
-    pub lambda_depth: Option<f32>,
-    pub learning_rate: Option<f32>,
-    #[serde(default)]
-    pub unseen_objects: bool,
-    /// Checkpoints of earlier versions trained on the captured poses.
-    #[serde(default)]
-    pub refine_poses: bool,
-    #[serde(default)]
-    pub pose_scale: Option<f64>,
-}
-
 /// What a checkpoint must match to be resumed: scan, settings and budget.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FitIdentity {
@@ -89,16 +73,7 @@ impl FitIdentity {
         FitIdentity {
             scan_fingerprint: scan_fingerprint(scan),
             frames: scan.frames.len(),
-            settings: FitSettings {
-                seed: opts.seed,
-                preset: opts.preset,
-                holdout_every: opts.holdout_every,
-                lambda_depth: opts.lambda_depth,
-                learning_rate: opts.learning_rate,
-                unseen_objects: opts.unseen_objects,
-                refine_poses: opts.refine_poses,
-                pose_scale: opts.pose_scale,
-            },
+            settings: opts.settings.clone(),
             settings_fingerprint: h.finish(),
             time: opts.time,
             steps: opts.steps,
@@ -419,48 +394,7 @@ impl Checkpoint {
                 ),
             });
         }
-        let (a, b) = (&saved.settings, &identity.settings);
-        let opt = |v: Option<f32>| v.map_or_else(|| "default".to_string(), |x| x.to_string());
-        let close = |x: Option<f32>, y: Option<f32>| match (x, y) {
-            (Some(x), Some(y)) => (x - y).abs() <= 1e-6 * x.abs().max(y.abs()),
-            (x, y) => x.is_none() && y.is_none(),
-        };
-        let mut diffs = Vec::new();
-        if a.seed != b.seed {
-            diffs.push(format!("--seed {} (this run: {})", a.seed, b.seed));
-        }
-        if a.preset != b.preset {
-            diffs.push(format!("--preset {:?} (this run: {:?})", a.preset, b.preset).to_lowercase());
-        }
-        if a.holdout_every != b.holdout_every {
-            diffs.push(format!("--holdout {} (this run: {})", a.holdout_every, b.holdout_every));
-        }
-        if !close(a.lambda_depth, b.lambda_depth) {
-            diffs.push(format!(
-                "--lambda-depth {} (this run: {})",
-                opt(a.lambda_depth),
-                opt(b.lambda_depth)
-            ));
-        }
-        if !close(a.learning_rate, b.learning_rate) {
-            diffs.push(format!(
-                "--learning-rate {} (this run: {})",
-                opt(a.learning_rate),
-                opt(b.learning_rate)
-            ));
-        }
-        if a.unseen_objects != b.unseen_objects {
-            let flag = |on: bool| if on { "without --no-unseen-objects" } else { "with --no-unseen-objects" };
-            diffs.push(format!("{} (this run: {})", flag(a.unseen_objects), flag(b.unseen_objects)));
-        }
-        if a.pose_scale != b.pose_scale {
-            let scale = |v: Option<f64>| v.map_or_else(|| "estimated".to_string(), |x| x.to_string());
-            diffs.push(format!("--pose-scale {} (this run: {})", scale(a.pose_scale), scale(b.pose_scale)));
-        }
-        if a.refine_poses != b.refine_poses {
-            let flag = |on: bool| if on { "without --no-pose-refine" } else { "with --no-pose-refine" };
-            diffs.push(format!("{} (this run: {})", flag(a.refine_poses), flag(b.refine_poses)));
-        }
+        let diffs = saved.settings.differences(&identity.settings);
         if !diffs.is_empty() {
             return Err(CheckpointError::OtherSettings {
                 path: self.path.clone(),
@@ -505,7 +439,8 @@ impl Checkpoint {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::train::tests::{plane_views, small_config};
+    use crate::nerf::train::settings::Preset;
+    use crate::nerf::train::step::tests::{plane_views, small_config};
     use crate::rng::Rng;
 
     fn trained(steps: usize) -> Trainer {
@@ -527,11 +462,9 @@ mod tests {
                 seed: 9,
                 preset: Preset::Fast,
                 holdout_every: 0,
-                lambda_depth: Some(0.3),
-                learning_rate: None,
+                lambda_depth: 0.3,
                 unseen_objects: false,
-                refine_poses: true,
-                pose_scale: None,
+                ..FitSettings::default()
             },
             settings_fingerprint: 11,
             time: None,
@@ -602,16 +535,25 @@ mod tests {
         assert!(m.contains("other poses"), "{m}");
         let mut other = identity();
         other.settings.seed = 1;
-        other.settings.learning_rate = Some(10.0);
+        other.settings.learning_rate = 10.0;
+        other.settings.preset = Preset::Quality;
+        other.settings.pose_scale = Some(2.0);
         let m = msg(other);
         assert!(
-            m.contains("--seed 9 (this run: 1)") && m.contains("--learning-rate default (this run: 10)"),
+            m.contains("--seed 9 (this run: 1)")
+                && m.contains("--learning-rate 0.01 (this run: 10)")
+                && m.contains("--preset fast (this run: quality)")
+                && m.contains("--pose-scale not given (this run: 2)"),
             "{m}"
         );
         let mut other = identity();
         other.settings.unseen_objects = true;
         let m = msg(other);
         assert!(m.contains("with --no-unseen-objects (this run: without --no-unseen-objects)"), "{m}");
+        let mut other = identity();
+        other.settings.refine_poses = false;
+        let m = msg(other);
+        assert!(m.contains("without --no-pose-refine (this run: with --no-pose-refine)"), "{m}");
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

@@ -13,8 +13,8 @@
 
 use thiserror::Error;
 
-use crate::nerf::simd::mlp_tile::{self, Epilogue, COL_BLOCK, LANES};
-pub use crate::nerf::simd::mlp_tile::MlpKernel;
+use crate::nerf::field::simd::mlp_tile::{self, Epilogue, COL_BLOCK, LANES};
+pub use crate::nerf::field::simd::mlp_tile::MlpKernel;
 use crate::rng::Rng;
 
 /// Samples per tile (a multiple of the kernels' column block).

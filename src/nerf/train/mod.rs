@@ -1,0 +1,13 @@
+//! Fitting a scan: settings derived from the scene, training views, the
+//! training step and its optimiser, held-out evaluation, the fit driver and
+//! its resumable checkpoint.
+
+pub mod adam;
+pub mod checkpoint;
+pub mod dataset;
+pub mod fit;
+pub mod holdout;
+pub mod metrics;
+pub mod report;
+pub mod settings;
+pub mod step;

@@ -1,0 +1,169 @@
+//! The fit report (`MODEL.report.json`): settings, phase timings, counters,
+//! pose corrections and the error-against-run-time curve of one fit.
+
+use crate::nerf::field::FieldConfig;
+use crate::nerf::train::settings::Preset;
+use crate::nerf::train::step::{TrainConfig, TrainCounters};
+use crate::poses::{FrameCorrection, PoseRefinement};
+use serde::{Deserialize, Serialize};
+
+/// One point of the error-against-run-time curve.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CurvePoint {
+    /// Wall time of the fit so far (preparation, training, earlier
+    /// evaluations and checkpoints; this point's own evaluation excluded).
+    pub seconds: f64,
+    pub step: u64,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub depth_mae_m: Option<f64>,
+    /// Training throughput since the previous point.
+    pub samples_per_s: f64,
+}
+
+/// Seconds spent in each phase.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct Timings {
+    /// Making the poses metric and aligning them to the depth
+    /// (`FitOptions::pose_scale`, `FitOptions::refine_poses`).
+    #[serde(default)]
+    pub pose_refine_s: f64,
+    pub bounds_s: f64,
+    pub views_s: f64,
+    pub occupancy_seed_s: f64,
+    pub train_s: f64,
+    pub eval_s: f64,
+    /// Writing checkpoints.
+    #[serde(default)]
+    pub checkpoint_s: f64,
+    /// Wall time of the whole fit (what `--time` bounds), all runs of a resumed fit together.
+    #[serde(default)]
+    pub wall_s: f64,
+}
+
+/// Where the report of a model lives: `model.nlf` -> `model.report.json`,
+/// so two models in one folder keep their own reports.
+pub fn report_path(model: &std::path::Path) -> std::path::PathBuf {
+    model.with_extension("report.json")
+}
+
+/// The report name of earlier versions (one per folder), read when a model
+/// has no report of its own.
+pub fn legacy_report_path(model: &std::path::Path) -> std::path::PathBuf {
+    model.with_file_name("fit_report.json")
+}
+
+/// Contents of a fit report (`MODEL.report.json`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FitReport {
+    pub nerflabel_version: String,
+    pub scan: String,
+    pub seed: u64,
+    pub preset: Preset,
+    pub threads: usize,
+    pub train_frames: usize,
+    pub holdout_frames: Vec<String>,
+    pub metres_per_unit: f64,
+    pub param_count: usize,
+    pub field: FieldConfig,
+    pub train: TrainConfig,
+    pub timings: Timings,
+    pub counters: TrainCounters,
+    /// Step-size scale the divergence guard left: 1 when it never backed
+    /// off, halved for every skipped batch (`counters.skipped_batches`).
+    #[serde(default = "one")]
+    pub lr_scale: f32,
+    pub interrupted: bool,
+    /// Steps at which this fit was resumed from its checkpoint.
+    #[serde(default)]
+    pub resumed_from: Vec<u64>,
+    pub occupied_fraction: f64,
+    /// The scale applied to the camera positions, when not 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_scale: Option<PoseScaleReport>,
+    /// What pose refinement changed; `None` when it was off or the scan has
+    /// too little depth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_refinement: Option<PoseRefinementReport>,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// The report's account of the poses' scale.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseScaleReport {
+    /// Factor the camera positions were multiplied by.
+    pub applied: f64,
+    /// Given with `--pose-scale` rather than estimated.
+    pub forced: bool,
+    pub verdict: String,
+}
+
+/// The report's account of pose refinement.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseRefinementReport {
+    pub frames_refined: usize,
+    /// Median over frames of the median distance between a frame's depth
+    /// and the other frames' depth, with the captured and the fitted poses
+    /// (absent when no frame's depth overlaps another's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub median_disagreement_before_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub median_disagreement_after_m: Option<f64>,
+    /// Largest change of a camera centre (m) and orientation (degrees).
+    pub largest_translation_m: f64,
+    pub largest_rotation_deg: f64,
+    /// How well the captured poses agreed with the depth, in a sentence.
+    pub verdict: String,
+    pub frames: Vec<FrameCorrection>,
+}
+
+impl PoseRefinementReport {
+    pub fn new(r: &PoseRefinement) -> PoseRefinementReport {
+        let (before, after) = r.median_residuals();
+        let (translation, rotation) = r.largest_correction();
+        PoseRefinementReport {
+            frames_refined: r.refined_count(),
+            median_disagreement_before_m: before.is_finite().then_some(before),
+            median_disagreement_after_m: after.is_finite().then_some(after),
+            largest_translation_m: translation,
+            largest_rotation_deg: rotation,
+            verdict: r.verdict(),
+            frames: r.frames.clone(),
+        }
+    }
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+impl FitReport {
+    /// Why this fit gave no usable model, if it did not: the divergence
+    /// guard skipped most batches, no sample was trained, or the held-out
+    /// error is absurd (not finite, or a depth error larger than the whole
+    /// scene, the diagonal of the unit cube the scene was mapped into).
+    pub fn failure(&self) -> Option<String> {
+        let c = &self.counters;
+        if c.steps > 0 && c.skipped_batches * 2 > c.steps {
+            return Some(format!(
+                "the divergence guard skipped {} of {} batches (a learning rate far too high, or data the field cannot fit)",
+                c.skipped_batches, c.steps
+            ));
+        }
+        if c.steps > 0 && c.samples == 0 {
+            return Some("no training sample fell inside the scene: the scene bounds miss what the cameras see".into());
+        }
+        let point = self.curve.last()?;
+        if !point.psnr.is_finite() {
+            return Some(format!("the held-out PSNR is {}", point.psnr));
+        }
+        let scene_m = self.metres_per_unit * 3f64.sqrt();
+        match point.depth_mae_m {
+            Some(mae) if !(mae <= scene_m) => Some(format!(
+                "the held-out depth error ({mae:.3} m) is larger than the whole scene ({scene_m:.3} m)"
+            )),
+            _ => None,
+        }
+    }
+}
+

@@ -3,6 +3,7 @@
 //! smallest (FORMATS.md section 2; ties: the lower instance id), or, with
 //! [`Overlap::Deepest`], to the box it lies deepest inside.
 
+use crate::poses::DAabb;
 use super::parse::BoxSet;
 use glam::{DMat3, DVec3};
 
@@ -41,21 +42,7 @@ impl Prepared {
     fn ray(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let o = self.world_to_box * (origin - self.center);
         let d = self.world_to_box * dir;
-        let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-        for a in 0..3 {
-            let h = self.half[a];
-            if d[a] == 0.0 {
-                if o[a].abs() > h {
-                    return None;
-                }
-                continue;
-            }
-            let inv = 1.0 / d[a];
-            let (ta, tb) = ((-h - o[a]) * inv, (h - o[a]) * inv);
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
-        }
-        (t0 <= t1).then_some((t0, t1))
+        DAabb::new(-self.half, self.half).line_crossing(o, d).map(|c| (c.t_near, c.t_far))
     }
 }
 

@@ -5,6 +5,7 @@
 //! put it. The benchmarks also use it alone, as the TSDF baseline of the
 //! NeRFing-it paper.
 
+use crate::poses::DAabb;
 use super::parse::BoxSet;
 use crate::scan::Frame;
 use glam::{DMat3, DVec3};
@@ -63,19 +64,7 @@ impl Block {
     /// Ray parameters where the ray is inside the block.
     fn interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let hi = self.origin + DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
-        let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
-        for a in 0..3 {
-            if dir[a].abs() < 1e-15 {
-                if origin[a] < self.origin[a] || origin[a] > hi[a] {
-                    return None;
-                }
-                continue;
-            }
-            let (ta, tb) = ((self.origin[a] - origin[a]) / dir[a], (hi[a] - origin[a]) / dir[a]);
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
-        }
-        (t0 < t1).then_some((t0, t1))
+        DAabb::new(self.origin, hi).ray_interval(origin, dir).filter(|(t0, t1)| t0 < t1)
     }
 }
 

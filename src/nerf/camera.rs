@@ -1,7 +1,9 @@
 //! Cameras and rays in the NeRF's local unit cube, shared by the occupancy
 //! grid, rendering and training.
 
+use crate::poses::Aabb;
 use crate::scan::Intrinsics;
+use glam::Vec3;
 use glam::DMat4;
 
 /// A pinhole camera in local coordinates (OpenCV axes).
@@ -80,29 +82,7 @@ impl LocalRay {
 
 /// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
 pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
-    let mut t0 = 0.0f32;
-    let mut t1 = f32::INFINITY;
-    for a in 0..3 {
-        if d[a] == 0.0 {
-            // Parallel: inside the slab or a clean miss (an origin on a face counts as inside).
-            if !(o[a] >= 0.0 && o[a] <= 1.0) {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d[a];
-        let (mut ta, mut tb) = ((0.0 - o[a]) * inv, (1.0 - o[a]) * inv);
-        if ta > tb {
-            std::mem::swap(&mut ta, &mut tb);
-        }
-        t0 = t0.max(ta);
-        t1 = t1.min(tb);
-    }
-    if t0 <= t1 && t1.is_finite() && t0.is_finite() {
-        Some((t0, t1))
-    } else {
-        None
-    }
+    Aabb::UNIT.ray_interval(Vec3::from(o), Vec3::from(d))
 }
 
 #[cfg(test)]

@@ -8,7 +8,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::march::StepRule;
 use crate::nerf::render::rays::{RenderOptions, RENDER_MAX_SAMPLES_PER_RAY};
 use crate::poses::{GeometryError, SceneTransform};
-use crate::nerf::train::step::TrainConfig;
+use crate::nerf::train::settings::TrainConfig;
 use crate::scan::fingerprint::scan_fingerprint;
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};

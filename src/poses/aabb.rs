@@ -4,6 +4,16 @@
 
 use glam::{DVec3, Vec3};
 
+/// Where a line crosses a box: parameters of entry and exit and the axes
+/// of the faces crossed there (see `line_crossing`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SlabCrossing<T> {
+    pub t_near: T,
+    pub t_far: T,
+    pub near_axis: usize,
+    pub far_axis: usize,
+}
+
 macro_rules! aabb_type {
     ($name:ident, $vec:ident, $t:ident, $doc:literal) => {
         #[doc = $doc]
@@ -113,43 +123,55 @@ macro_rules! aabb_type {
                 })
             }
 
-            /// Parameters `[t_near, t_far]` where the ray `origin + t * dir`
-            /// (t >= 0) is inside the closed box, or `None` for a miss.
-            ///
-            /// `t_near` is 0 for origins inside; both ends are finite (`t_far`
-            /// is capped at the largest finite value) and never NaN. Rays that
-            /// only touch an edge or run along a face count as hits. A zero
-            /// direction, a non-finite input or an invalid box is a miss.
-            pub fn ray_interval(&self, origin: $vec, dir: $vec) -> Option<($t, $t)> {
-                if !self.is_valid() || !origin.is_finite() || !dir.is_finite() {
-                    return None;
-                }
+            /// Where the whole line `origin + t * dir` (any sign of t) is
+            /// inside the closed box, with the axes of the faces it enters
+            /// and leaves by; `None` for a miss. Axes the line runs parallel
+            /// to (a zero component, or one so small its reciprocal
+            /// overflows) only decide hit or miss, so nothing is NaN.
+            #[inline]
+            pub fn line_crossing(&self, origin: $vec, dir: $vec) -> Option<SlabCrossing<$t>> {
                 let (o, d) = (origin.to_array(), dir.to_array());
                 let (lo, hi) = (self.min.to_array(), self.max.to_array());
-                let mut t_near: $t = 0.0;
-                let mut t_far: $t = $t::INFINITY;
-                let mut moving = false;
+                let mut c = SlabCrossing { t_near: $t::NEG_INFINITY, t_far: $t::INFINITY, near_axis: 0, far_axis: 0 };
                 for a in 0..3 {
-                    if d[a] == 0.0 {
-                        // Parallel to this slab (also for -0.0): inside it or never.
-                        if o[a] < lo[a] || o[a] > hi[a] {
+                    // One reciprocal per axis: this runs for every training ray.
+                    let inv = 1.0 / d[a];
+                    if d[a] == 0.0 || !inv.is_finite() {
+                        if !(o[a] >= lo[a] && o[a] <= hi[a]) {
                             return None;
                         }
                         continue;
                     }
-                    moving = true;
-                    // Divide rather than multiply by 1/d: 0 * inf would be NaN
-                    // for an origin on a face with a subnormal component.
-                    let ta = (lo[a] - o[a]) / d[a];
-                    let tb = (hi[a] - o[a]) / d[a];
-                    t_near = t_near.max(ta.min(tb));
-                    t_far = t_far.min(ta.max(tb));
+                    let (ta, tb) = ((lo[a] - o[a]) * inv, (hi[a] - o[a]) * inv);
+                    let (near, far) = if ta > tb { (tb, ta) } else { (ta, tb) };
+                    if near > c.t_near {
+                        c.t_near = near;
+                        c.near_axis = a;
+                    }
+                    if far < c.t_far {
+                        c.t_far = far;
+                        c.far_axis = a;
+                    }
                 }
-                if !moving || t_near > t_far || t_near == $t::INFINITY {
+                (c.t_near <= c.t_far).then_some(c)
+            }
+
+            /// Parameters `[t_near, t_far]` where the ray `origin + t * dir`
+            /// (t >= 0) is inside the closed box, or `None` for a miss.
+            ///
+            /// `t_near` is 0 for origins inside; both ends are finite and
+            /// never NaN. Rays that only touch an edge or run along a face
+            /// count as hits. A zero direction, a non-finite input or an
+            /// invalid box is a miss.
+            #[inline]
+            pub fn ray_interval(&self, origin: $vec, dir: $vec) -> Option<($t, $t)> {
+                if !self.is_valid() || !origin.is_finite() || !dir.is_finite() {
                     return None;
                 }
-                // `+ 0.0` turns a -0.0 entry into +0.0.
-                Some((t_near + 0.0, t_far.min($t::MAX)))
+                let c = self.line_crossing(origin, dir)?;
+                let t_near = c.t_near.max(0.0);
+                // `+ 0.0` turns a -0.0 into +0.0.
+                (t_near <= c.t_far && c.t_far.is_finite() && t_near.is_finite()).then_some((t_near + 0.0, c.t_far))
             }
         }
     };
@@ -249,10 +271,12 @@ mod tests {
     #[test]
     fn subnormal_and_huge_inputs_stay_finite_and_nan_free() {
         let b = Aabb::UNIT;
-        // Origin on a face with a subnormal component: 1/d would be inf.
-        let (t0, t1) = b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)).unwrap();
-        assert_eq!(t0, 0.0);
-        assert!(t1.is_finite() && t1 == f32::MAX);
+        // Origin on a face with a subnormal direction: 1/d would be inf; a
+        // direction too small to move along any axis is a miss, like zero.
+        assert_eq!(b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)), None);
+        // With another axis moving, the subnormal one is parallel.
+        let (t0, t1) = b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 1.0)).unwrap();
+        assert_eq!((t0, t1), (0.0, 0.5));
         let (t0, t1) = b.ray_interval(Vec3::new(-1.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)).map_or((0.0, 0.0), |x| x);
         assert!(!t0.is_nan() && !t1.is_nan());
         let far = Vec3::new(-f32::MAX, 0.5, 0.5);

@@ -13,7 +13,7 @@ mod scale;
 #[cfg(test)]
 mod test_scene;
 
-pub use aabb::{Aabb, DAabb};
+pub use aabb::{Aabb, DAabb, SlabCrossing};
 pub use bounds::{
     sample_depth_points, scene_bounds, BoundsOptions, BoundsSource, DepthSamples, PointStats, SceneBounds,
 };

@@ -3,7 +3,8 @@
 
 use crate::nerf::field::FieldConfig;
 use crate::nerf::train::settings::Preset;
-use crate::nerf::train::step::{TrainConfig, TrainCounters};
+use crate::nerf::train::settings::TrainConfig;
+use crate::nerf::train::step::TrainCounters;
 use crate::poses::{FrameCorrection, PoseRefinement};
 use serde::{Deserialize, Serialize};
 

@@ -7,7 +7,6 @@ use crate::nerf::field::{FieldConfig, GridSpec};
 use crate::nerf::field::hash_grid::HashGridConfig;
 use crate::nerf::occupancy::DEFAULT_RESOLUTION;
 use crate::nerf::render::march::StepRule;
-use crate::nerf::train::step::TrainConfig;
 use serde::{Deserialize, Deserializer, Serialize};
 
 /// Speed/quality trade-off.
@@ -209,6 +208,31 @@ impl FitSettings {
         }
         out
     }
+}
+
+/// Training hyper-parameters (local units where lengths are involved).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    pub samples_per_step: usize,
+    pub max_samples_per_ray: usize,
+    pub learning_rate: f32,
+    pub warmup_steps: u64,
+    /// Weight of the L1 loss on expected depth.
+    pub lambda_depth: f32,
+    /// Weight of the line-of-sight terms (empty space before the surface,
+    /// all weight within the surface window).
+    pub lambda_line_of_sight: f32,
+    /// Half-width of the surface window around measured depth (local units).
+    pub surface_window: f32,
+    /// Weight of the no-return term: a ray the sensor could not measure is
+    /// penalised by the light it lets through to the first surface the
+    /// sensor measured from elsewhere (see `measured.rs`).
+    #[serde(default)]
+    pub lambda_no_return: f32,
+    pub step: StepRule,
+    pub occupancy_every: u64,
+    pub occupancy_decay: f32,
+    pub seed: u64,
 }
 
 /// Everything needed to build and train a model for one scene.

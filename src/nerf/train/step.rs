@@ -5,6 +5,7 @@
 //! thread count.
 
 use crate::nerf::train::adam::Adam;
+use crate::nerf::train::settings::TrainConfig;
 use crate::nerf::train::dataset::View;
 use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use crate::nerf::field::{Field, FieldGrad, FieldWorkspace};
@@ -49,31 +50,6 @@ const MLP_WEIGHT_DECAY: f32 = 1e-6;
 /// otherwise move by the learning rate at every step for ever (Adam eps is
 /// 1e-15); the prior holds them near `gradient / decay` instead.
 const GRID_PRIOR: f32 = 1e-3;
-
-/// Training hyper-parameters (local units where lengths are involved).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct TrainConfig {
-    pub samples_per_step: usize,
-    pub max_samples_per_ray: usize,
-    pub learning_rate: f32,
-    pub warmup_steps: u64,
-    /// Weight of the L1 loss on expected depth.
-    pub lambda_depth: f32,
-    /// Weight of the line-of-sight terms (empty space before the surface,
-    /// all weight within the surface window).
-    pub lambda_line_of_sight: f32,
-    /// Half-width of the surface window around measured depth (local units).
-    pub surface_window: f32,
-    /// Weight of the no-return term: a ray the sensor could not measure is
-    /// penalised by the light it lets through to the first surface the
-    /// sensor measured from elsewhere (see `measured.rs`).
-    #[serde(default)]
-    pub lambda_no_return: f32,
-    pub step: StepRule,
-    pub occupancy_every: u64,
-    pub occupancy_decay: f32,
-    pub seed: u64,
-}
 
 /// What one step did.
 #[derive(Clone, Copy, Debug, Default)]

@@ -77,7 +77,7 @@ fn parse_args() -> Result<Args, Error> {
             "--dir" => args.dir = value("--dir")?.into(),
             "--objects" => args.objects = true,
             "--exact-boxes" => args.exact_boxes = true,
-            "--overlap" => args.overlap = Overlap::parse(&value("--overlap")?).ok_or("--overlap: smallest or deepest")?,
+            "--overlap" => args.overlap = clap::ValueEnum::from_str(&value("--overlap")?, true)?,
             "--no-tsdf" => args.tsdf = false,
             "--no-pose-refine" => args.refine_poses = false,
             other => return Err(format!("unknown option {other}").into()),

@@ -19,3 +19,36 @@ pub mod atomic;
 pub mod mask;
 pub mod outputs;
 pub mod rng;
+
+/// The names an option enum takes on the command line, for error messages
+/// of the library's own parsers (`native, tum, ...`): the same list `--help`
+/// shows, from the one `clap::ValueEnum` declaration.
+pub fn value_names<T: clap::ValueEnum>() -> String {
+    let names: Vec<String> =
+        T::value_variants().iter().filter_map(|v| v.to_possible_value()).map(|v| v.get_name().to_string()).collect();
+    names.join(", ")
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::ValueEnum;
+
+    /// `name()` (outputs, meta files) and the command line spell every value alike.
+    fn spelled_alike<T: ValueEnum + Copy + std::fmt::Debug>(name: fn(T) -> &'static str) {
+        for v in T::value_variants() {
+            let value = v.to_possible_value().unwrap_or_else(|| panic!("{v:?} is skipped"));
+            assert_eq!(value.get_name(), name(*v), "{v:?}");
+            assert!(T::from_str(&name(*v).to_uppercase(), true).is_ok());
+        }
+    }
+
+    #[test]
+    fn option_enums_have_one_spelling_for_names_and_flags() {
+        spelled_alike(crate::scan::Layout::name);
+        spelled_alike(crate::fixture::SceneKind::name);
+        spelled_alike(crate::fixture::FixtureLayout::name);
+        spelled_alike(crate::boxes::DepthSource::name);
+        spelled_alike(crate::boxes::Overlap::name);
+        assert_eq!(super::value_names::<crate::boxes::Overlap>(), "smallest, deepest");
+    }
+}

@@ -47,7 +47,7 @@ impl Prepared {
 }
 
 /// Which box a point inside several boxes belongs to.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum Overlap {
     /// The smallest box (FORMATS.md section 2): a small box drawn inside a
     /// large one (a lid on a crate) keeps its part.
@@ -66,11 +66,6 @@ impl Overlap {
             Overlap::Smallest => "smallest",
             Overlap::Deepest => "deepest",
         }
-    }
-
-    /// Parse the command-line spelling.
-    pub fn parse(s: &str) -> Option<Overlap> {
-        [Overlap::Smallest, Overlap::Deepest].into_iter().find(|o| o.name() == s)
     }
 }
 
@@ -312,9 +307,10 @@ mod tests {
         for (p, id) in [(DVec3::new(-0.02, 0.0, 0.0), 0), (DVec3::new(0.05, 0.0, 0.0), 1), (DVec3::new(0.2, 0.0, 0.0), 2)] {
             assert_eq!((smallest.classify(p), deepest.classify(p)), (id, id), "{p}");
         }
-        assert_eq!(Overlap::parse("deepest"), Some(Overlap::Deepest));
-        assert_eq!(Overlap::parse(Overlap::Smallest.name()), Some(Overlap::Smallest));
-        assert_eq!(Overlap::parse("largest"), None);
+        use clap::ValueEnum;
+        assert_eq!(Overlap::from_str("deepest", false), Ok(Overlap::Deepest));
+        assert_eq!(Overlap::from_str(Overlap::Smallest.name(), false), Ok(Overlap::Smallest));
+        assert!(Overlap::from_str("largest", false).is_err());
     }
 
     #[test]

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::str::FromStr;
 
 /// Where the surface depth behind each pixel comes from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum DepthSource {
     /// First surface crossing rendered from the trained NeRF.
     Nerf,
@@ -50,12 +50,9 @@ impl fmt::Display for DepthSource {
 impl FromStr for DepthSource {
     type Err = LabelError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s.trim().to_ascii_lowercase().as_str() {
-            "nerf" => Ok(DepthSource::Nerf),
-            "sensor" => Ok(DepthSource::Sensor),
-            "fused" => Ok(DepthSource::Fused),
-            _ => Err(LabelError::Option(format!("unknown depth source `{s}`: expected nerf, sensor or fused"))),
-        }
+        <DepthSource as clap::ValueEnum>::from_str(s.trim(), true).map_err(|_| {
+            LabelError::Option(format!("unknown depth source `{s}`: expected one of {}", crate::value_names::<DepthSource>()))
+        })
     }
 }
 

@@ -2,19 +2,18 @@
 
 use super::FixtureArgs;
 use anyhow::Context;
-use nerflabel::fixture::{generate, Corruptions, FixtureOptions, FixtureSummary, SceneKind};
+use nerflabel::fixture::{generate, Corruptions, FixtureOptions, FixtureSummary};
 
 /// Options from the command-line flags.
 pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
-    let scene: SceneKind = args.scene.parse().map_err(|e| anyhow::anyhow!("--scene: {e}"))?;
-    let mut options = FixtureOptions::new(scene);
+    let mut options = FixtureOptions::new(args.scene);
     options.width = args.width;
     options.height = args.height;
     options.frames = args.frames;
     options.holdout = args.holdout;
     options.seed = args.seed;
     options.scale = args.scale;
-    options.layout = args.layout.parse().map_err(|e| anyhow::anyhow!("--layout: {e}"))?;
+    options.layout = args.layout;
     options.overwrite = args.overwrite;
     options.supersample = !args.no_supersample;
     let mut c = match (args.clean, args.realistic) {

@@ -3,15 +3,12 @@
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir};
 use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
-use nerflabel::boxes::{read_boxes, write_labels, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions, Overlap, DEFAULT_SOURCE};
+use nerflabel::boxes::{read_boxes, write_labels, FrameRange, LabelOptions, Labeler, OutputOptions};
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
-    let source: DepthSource = match &args.source {
-        Some(s) => s.parse()?,
-        None => DEFAULT_SOURCE,
-    };
+    let source = args.source;
     let frames: Option<FrameRange> = args.frames.as_deref().map(str::parse).transpose()?;
     let boxes = read_boxes(&args.boxes)?;
     let model_path = model_path(scan_dir, args.model.as_ref());
@@ -29,8 +26,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         check_model_scan(model, &model_path, &mut scan, args.force)?;
     }
     let _lock = lock_output(&out, "these labels")?;
-    let overlap = Overlap::parse(&args.overlap).ok_or_else(|| anyhow::anyhow!("--overlap must be smallest or deepest, not {:?}", args.overlap))?;
-    let options = LabelOptions { source, full_depth: args.depth, exact_boxes: args.exact_boxes, overlap, ..LabelOptions::default() };
+    let options = LabelOptions { source, full_depth: args.depth, exact_boxes: args.exact_boxes, overlap: args.overlap, ..LabelOptions::default() };
     let mut labeler = Labeler::new(&boxes, model.as_ref(), options)?;
     let planes = labeler.exclude_supports(&scan)?;
     if planes > 0 {
@@ -41,7 +37,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         description: "nerflabel instance labels".into(),
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),
         source: source.name().into(),
-        overlap: overlap.name().into(),
+        overlap: args.overlap.name().into(),
         seed: model.as_ref().map(|m| m.header.seed),
         scan: scan_dir.display().to_string(),
         boxes: args.boxes.display().to_string(),

@@ -13,6 +13,8 @@ mod synth;
 use clap::{Args, Parser, Subcommand};
 pub use common::interrupted_status;
 use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::boxes::{DepthSource, Overlap, DEFAULT_SOURCE};
+use nerflabel::fixture::{FixtureLayout, SceneKind};
 use nerflabel::scan::{Layout, LoadOptions};
 use std::path::PathBuf;
 
@@ -52,8 +54,8 @@ pub struct ScanArgs {
     /// Scan folder (any supported layout).
     #[arg(default_value = ".")]
     pub scan: PathBuf,
-    /// Force the layout instead of detecting it: native, tum, nerfstudio, scannet, stray, colmap.
-    #[arg(long, value_name = "LAYOUT")]
+    /// Force the layout instead of detecting it.
+    #[arg(long, value_name = "LAYOUT", value_enum, ignore_case = true)]
     pub format: Option<Layout>,
     /// Re-orthonormalise slightly non-orthonormal pose rotations (with a warning) instead of failing.
     #[arg(long)]
@@ -91,9 +93,9 @@ pub struct CloudArgs {
 pub struct FixtureArgs {
     /// Output folder for the scan (ground truth goes to OUT/gt).
     pub out: PathBuf,
-    /// Scene: tabletop, small, cabinet, clutter (6 objects 2 mm apart on a table) or room (objects on a table, the floor and a shelf).
-    #[arg(long, default_value = "tabletop")]
-    pub scene: String,
+    /// Scene to generate.
+    #[arg(long, value_enum, ignore_case = true, default_value_t = SceneKind::Tabletop)]
+    pub scene: SceneKind,
     /// Number of scan frames (default: tabletop 120, small 24, cabinet 60).
     #[arg(long)]
     pub frames: Option<usize>,
@@ -112,9 +114,9 @@ pub struct FixtureArgs {
     /// Multiply all geometry by this factor.
     #[arg(long, default_value_t = 1.0)]
     pub scale: f64,
-    /// Layout to write: native or nerfstudio (use nerfstudio when millimetre PNG depth cannot hold the scale).
-    #[arg(long, default_value = "native")]
-    pub layout: String,
+    /// Layout to write (nerfstudio when millimetre PNG depth cannot hold the scale).
+    #[arg(long, value_enum, ignore_case = true, default_value_t = FixtureLayout::Native)]
+    pub layout: FixtureLayout,
     /// No depth noise.
     #[arg(long)]
     pub no_depth_noise: bool,
@@ -231,9 +233,9 @@ pub struct LabelArgs {
     /// Only frames A..B (ids, inclusive start, exclusive end).
     #[arg(long)]
     pub frames: Option<String>,
-    /// Depth source: nerf (rendered), sensor (raw depth, no model needed) or fused (default: sensor depth where it agrees with the rendered depth, rendered elsewhere).
-    #[arg(long)]
-    pub source: Option<String>,
+    /// Depth source.
+    #[arg(long, value_enum, ignore_case = true, default_value_t = DEFAULT_SOURCE)]
+    pub source: DepthSource,
     /// Also write YOLO txt boxes.
     #[arg(long)]
     pub yolo: bool,
@@ -248,13 +250,9 @@ pub struct LabelArgs {
     /// thinner than the plane's measured noise band is lost to the support.
     #[arg(long)]
     pub exact_boxes: bool,
-    /// Which box a point inside several boxes belongs to: smallest (the
-    /// default, FORMATS.md: a small box inside a large one keeps its part)
-    /// or deepest (the box whose faces are farthest from the point: for
-    /// boxes of neighbouring objects that overlap by their margins, as in
-    /// clutter, each object's faces stay with its own box).
-    #[arg(long, default_value = "smallest", value_parser = ["smallest", "deepest"])]
-    pub overlap: String,
+    /// Which box a point inside several boxes belongs to.
+    #[arg(long, value_enum, default_value_t = Overlap::Smallest)]
+    pub overlap: Overlap,
 }
 
 #[derive(Args, Debug)]

@@ -7,17 +7,21 @@ use std::path::Path;
 use std::str::FromStr;
 
 /// Supported scan layouts (FORMATS.md section 1).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Layout {
     /// nerflabel / autolabel: `rgb/`, `depth/`, `pose/` (world-to-camera), `intrinsics.txt`.
+    #[value(alias = "autolabel")]
     Native,
     /// TUM RGB-D: `rgb.txt`, `depth.txt`, `groundtruth.txt`.
+    #[value(alias = "tum-rgbd")]
     Tum,
     /// nerfstudio / instant-ngp `transforms.json`.
+    #[value(aliases = ["instant-ngp", "ngp", "transforms"])]
     Nerfstudio,
     /// ScanNet export: `color/`, `depth/`, `pose/`, `intrinsic/`.
     Scannet,
     /// Stray Scanner with extracted frames: `rgb/` or `frames/`, `odometry.csv`, `camera_matrix.csv`.
+    #[value(alias = "strayscanner")]
     Stray,
     /// COLMAP text model: `sparse/0/cameras.txt` + `images.txt`, `images/`, optional `depth/`.
     Colmap,
@@ -55,7 +59,7 @@ impl fmt::Display for Layout {
 
 /// A `--format` value that names no layout.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("unknown scan format '{0}' (expected one of: native, tum, nerfstudio, scannet, stray, colmap)")]
+#[error("unknown scan format '{0}' (expected one of: {names})", names = crate::value_names::<Layout>())]
 pub struct ParseLayoutError(pub String);
 
 impl FromStr for Layout {
@@ -63,15 +67,7 @@ impl FromStr for Layout {
 
     /// Accepts the names of [`Layout::name`] (case-insensitive) and a few aliases.
     fn from_str(s: &str) -> Result<Layout, ParseLayoutError> {
-        match s.trim().to_ascii_lowercase().as_str() {
-            "native" | "autolabel" => Ok(Layout::Native),
-            "tum" | "tum-rgbd" => Ok(Layout::Tum),
-            "nerfstudio" | "instant-ngp" | "ngp" | "transforms" => Ok(Layout::Nerfstudio),
-            "scannet" => Ok(Layout::Scannet),
-            "stray" | "strayscanner" => Ok(Layout::Stray),
-            "colmap" => Ok(Layout::Colmap),
-            _ => Err(ParseLayoutError(s.to_string())),
-        }
+        <Layout as clap::ValueEnum>::from_str(s.trim(), true).map_err(|_| ParseLayoutError(s.to_string()))
     }
 }
 

@@ -50,6 +50,32 @@ const MLP_WEIGHT_DECAY: f32 = 1e-6;
 /// otherwise move by the learning rate at every step for ever (Adam eps is
 /// 1e-15); the prior holds them near `gradient / decay` instead.
 const GRID_PRIOR: f32 = 1e-3;
+/// Learning-rate decay knots over the budget: full rate for the first half,
+/// a third until three quarters, a tenth to the end (Instant-NGP-style
+/// step decay: late steps refine rather than move).
+const LR_DECAY: [(f32, f32); 2] = [(0.5, 0.33), (0.75, 0.1)];
+/// The divergence guard watches only after this many steps (early losses
+/// swing widely while the field is still empty).
+const DIVERGENCE_GRACE_STEPS: u64 = 50;
+/// A step whose loss exceeds this multiple of the running average (plus
+/// [`DIVERGENCE_FLOOR`]) is taken as diverging and skipped.
+const DIVERGENCE_RATIO: f64 = 20.0;
+/// Absolute slack of the divergence test, for losses near zero.
+const DIVERGENCE_FLOOR: f64 = 1e-3;
+/// Weight of the newest loss in the running loss average (about a
+/// 20-step memory).
+const LOSS_EMA_WEIGHT: f64 = 0.05;
+/// A skipped batch halves the step size, never below this fraction.
+const MIN_LR_SCALE: f32 = 1e-4;
+/// RNG streams: step s, chunk c draws from `1 + s * STEP_STREAMS + c`
+/// (up to this many chunks per step); occupancy refreshes count down from
+/// `u64::MAX`, the rendering grid uses `u64::MAX / 2`, so none overlap.
+const STEP_STREAMS: u64 = 1024;
+const RENDERING_GRID_STREAM: u64 = u64::MAX / 2;
+/// The first occupancy refresh after warm-up visits every cell: this many
+/// passes of the random subset a later refresh covers.
+const FIRST_REFRESH_PASSES: usize = 8;
+
 
 /// What one step did.
 #[derive(Clone, Copy, Debug, Default)]
@@ -200,13 +226,7 @@ impl Trainer {
     fn schedule(&self, progress: f32) -> f32 {
         let warm = self.config.warmup_steps.max(1) as f32;
         let warmup = ((self.counters.steps as f32 + 1.0) / warm).min(1.0);
-        let decay = if progress < 0.5 {
-            1.0
-        } else if progress < 0.75 {
-            0.33
-        } else {
-            0.1
-        };
+        let decay = LR_DECAY.iter().rev().find(|(from, _)| progress >= *from).map_or(1.0, |(_, factor)| *factor);
         warmup * decay
     }
 
@@ -241,7 +261,7 @@ impl Trainer {
             .par_iter_mut()
             .enumerate()
             .map(|(c, chunk)| {
-                let mut rng = Rng::new(seed, 1 + step_index * 1024 + c as u64);
+                let mut rng = Rng::new(seed, 1 + step_index * STEP_STREAMS + c as u64);
                 chunk.grad.clear();
                 run_chunk(&ctx, chunk, &mut rng, budget)
             })
@@ -271,7 +291,9 @@ impl Trainer {
         self.counters.samples_without_depth += total.samples_without_depth as u64;
 
         let grad = &first[0].grad;
-        let diverged = self.counters.steps > 50 && self.loss_ema > 0.0 && total.loss > 20.0 * self.loss_ema + 1e-3;
+        let diverged = self.counters.steps > DIVERGENCE_GRACE_STEPS
+            && self.loss_ema > 0.0
+            && total.loss > DIVERGENCE_RATIO * self.loss_ema + DIVERGENCE_FLOOR;
         let lr = self.config.learning_rate * schedule * self.lr_scale;
         total.learning_rate = lr;
         let finite = total.loss.is_finite() && grad.all_finite();
@@ -287,10 +309,14 @@ impl Trainer {
             // size that diverged.
             total.skipped = true;
             self.counters.skipped_batches += 1;
-            self.lr_scale = (self.lr_scale * 0.5).max(1e-4);
+            self.lr_scale = (self.lr_scale * 0.5).max(MIN_LR_SCALE);
             return total;
         }
-        self.loss_ema = if self.loss_ema == 0.0 { total.loss } else { 0.95 * self.loss_ema + 0.05 * total.loss };
+        self.loss_ema = if self.loss_ema == 0.0 {
+            total.loss
+        } else {
+            (1.0 - LOSS_EMA_WEIGHT) * self.loss_ema + LOSS_EMA_WEIGHT * total.loss
+        };
         let grid_decay = GRID_PRIOR * touched_rms(&grad.grid.values, grad.grid.touched());
         let touched = grad.grid.touched();
         self.adam_grid.step_sparse_decayed(&mut self.field.grid.params, &grad.grid.values, touched, lr, grid_decay);
@@ -303,7 +329,7 @@ impl Trainer {
     /// re-evaluated, untrained space dropped.
     pub fn rendering_occupancy(&mut self) -> OccupancyGrid {
         let mut grid = self.occupancy.clone();
-        let mut rng = Rng::new(self.config.seed, u64::MAX / 2);
+        let mut rng = Rng::new(self.config.seed, RENDERING_GRID_STREAM);
         let field = &self.field;
         grid.prune_for_rendering(&mut rng, &mut self.occupancy_positions, &mut self.occupancy_sigmas, |p, s| {
             density_batched(field, p, s)
@@ -318,7 +344,7 @@ impl Trainer {
             return;
         }
         // The first refresh after warm-up covers every cell; later ones a subset each.
-        let passes = if step == warmup { 8 } else { 1 };
+        let passes = if step == warmup { FIRST_REFRESH_PASSES } else { 1 };
         let mut rng = Rng::new(self.config.seed, u64::MAX - step);
         for _ in 0..passes {
             let field = &self.field;

@@ -150,7 +150,9 @@ fn parse_cameras(text: &str) -> Result<BTreeMap<u64, Camera>, TextError> {
                 )))
             }
         };
-        if !(fx > 0.0 && fy > 0.0) || ![cx, cy, k1, k2, p1, p2].iter().all(|v| v.is_finite()) {
+        // Written so that NaN fails too.
+        let positive = fx > 0.0 && fy > 0.0;
+        if !positive || ![cx, cy, k1, k2, p1, p2].iter().all(|v| v.is_finite()) {
             return Err(err(format!("camera {id}: focal lengths must be positive and all parameters finite")));
         }
         // Displacement at the farthest image corner, in pixels.

@@ -268,6 +268,8 @@ fn density_round(field: &Field, ws: &mut RenderWorkspace) {
 
 /// Composite the round's samples ray by ray (a ray's samples are contiguous
 /// and in marching order) and pick the samples to shade.
+// `i` indexes six parallel per-sample arrays of the workspace.
+#[allow(clippy::needless_range_loop)]
 fn composite_round(ws: &mut RenderWorkspace, color: bool) {
     let n = ws.positions.len();
     let shade = sized(&mut ws.shade, n);

@@ -38,7 +38,7 @@ pub struct Dataset {
 /// The held-out frames are the last of each group of `every`, so the first
 /// frame of a scan always trains.
 pub fn is_holdout(index: usize, every: usize) -> bool {
-    every > 1 && (index + 1) % every == 0
+    every > 1 && (index + 1).is_multiple_of(every)
 }
 
 /// The camera of a scan frame in local coordinates.

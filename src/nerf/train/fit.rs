@@ -207,7 +207,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
 /// from the depth when the poses are clearly not metric. `None`: unchanged.
 fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseScaleReport>, FitError> {
     let (applied, verdict) = match forced {
-        Some(s) if s == 1.0 => return Ok(None),
+        Some(1.0) => return Ok(None),
         Some(s) => (s, format!("camera positions multiplied by {s} (--pose-scale)")),
         None => match estimate_pose_scale(scan)? {
             Some(e) if e.is_determined() && !e.looks_metric() => (e.scale, e.verdict()),

@@ -340,7 +340,7 @@ impl Trainer {
     fn maybe_refresh_occupancy(&mut self, step: u64) {
         let warmup = self.config.warmup_steps;
         let every = self.config.occupancy_every.max(1);
-        if step < warmup || (step - warmup) % every != 0 {
+        if step < warmup || !(step - warmup).is_multiple_of(every) {
             return;
         }
         // The first refresh after warm-up covers every cell; later ones a subset each.
@@ -530,6 +530,8 @@ fn sized<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
     &mut buf[..len]
 }
 
+// A ray's samples `i` sit at `o + i` in the sub-batch arrays.
+#[allow(clippy::needless_range_loop)]
 fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usize>, stats: &mut ChunkStats) {
     let cfg = ctx.config;
     let base = chunk.rays[rays.start].first;

@@ -61,7 +61,7 @@ fn entries_reachable(level: &GridLevel) -> Option<usize> {
 pub fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) -> bool {
     let n = out0.len();
     let padded = xyz[0].len();
-    let shapes_ok = padded % 8 == 0
+    let shapes_ok = padded.is_multiple_of(8)
         && padded >= n
         && xyz[1].len() == padded
         && xyz[2].len() == padded

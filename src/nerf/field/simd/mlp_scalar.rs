@@ -26,7 +26,7 @@ pub(super) fn gemm_tile(
     y: &mut [f32],
     ldy: usize,
 ) {
-    debug_assert!(cols % COL_BLOCK == 0);
+    debug_assert!(cols.is_multiple_of(COL_BLOCK));
     for c0 in (0..cols).step_by(HALF) {
         for r0 in (0..rows).step_by(MR) {
             let mr = MR.min(rows - r0);

@@ -90,7 +90,7 @@ pub fn gemm_tile(
     y: &mut [f32],
     ldy: usize,
 ) {
-    assert!(cols % COL_BLOCK == 0, "gemm_tile: cols {cols} not a multiple of {COL_BLOCK}");
+    assert!(cols.is_multiple_of(COL_BLOCK), "gemm_tile: cols {cols} not a multiple of {COL_BLOCK}");
     if rows == 0 || cols == 0 {
         return;
     }
@@ -153,7 +153,7 @@ pub fn grad_tile(
     cols: usize,
     dwv: &mut [f32],
 ) {
-    assert!(cols % LANES == 0, "grad_tile: cols {cols} not a multiple of {LANES}");
+    assert!(cols.is_multiple_of(LANES), "grad_tile: cols {cols} not a multiple of {LANES}");
     if out == 0 || inp == 0 || cols == 0 {
         return;
     }
@@ -182,7 +182,7 @@ pub fn grad_tile(
 
 /// Bias-gradient partials: `dbv[r * 8 + l] += sum_j dz[r][8j + l]`.
 pub fn rowsum_tile(kernel: MlpKernel, dz: &[f32], ldz: usize, rows: usize, cols: usize, dbv: &mut [f32]) {
-    assert!(cols % LANES == 0, "rowsum_tile: cols {cols} not a multiple of {LANES}");
+    assert!(cols.is_multiple_of(LANES), "rowsum_tile: cols {cols} not a multiple of {LANES}");
     if rows == 0 || cols == 0 {
         return;
     }

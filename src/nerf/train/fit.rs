@@ -7,7 +7,7 @@
 use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
 use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
 use crate::nerf::train::dataset::{self, Dataset};
-use crate::nerf::train::holdout::{evaluate, EvalResult};
+use crate::nerf::train::validation::{validate, Validation};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::model_file::{Model, ModelHeader};
@@ -320,7 +320,7 @@ fn run(
         let wall = spent();
         let t = Instant::now();
         let grid = trainer.rendering_occupancy();
-        let r: EvalResult = evaluate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
+        let r: Validation = validate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
         state.timings.eval_s += t.elapsed().as_secs_f64();
         let samples = trainer.counters.samples;
         let dt = (state.train_seconds - state.last_point.0).max(1e-9);

@@ -1,5 +1,6 @@
-//! Held-out evaluation: render a regular subsample of each held-out view's
-//! pixels and compare with its colour and sensor depth.
+//! Validation during a fit (held-out evaluation): render a regular
+//! subsample of each held-out view's pixels and compare with its colour and
+//! sensor depth.
 
 use crate::nerf::train::dataset::View;
 use crate::nerf::field::Field;
@@ -9,7 +10,7 @@ use crate::nerf::render::rays::{render_pixels, RenderOptions};
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct EvalResult {
+pub struct Validation {
     pub psnr: f64,
     pub ssim: f64,
     /// Mean absolute depth error in metres where both the sensor and the
@@ -34,7 +35,7 @@ pub fn subsample_grid(width: u32, height: u32, max_side: u32) -> (usize, usize, 
 }
 
 /// Evaluate on `views`; `metres_per_unit` converts local depth to metres.
-pub fn evaluate(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, views: &[View], metres_per_unit: f64, max_side: u32) -> EvalResult {
+pub fn validate(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, views: &[View], metres_per_unit: f64, max_side: u32) -> Validation {
     let (mut psnr, mut ssim) = (0.0, 0.0);
     let (mut depth_sum, mut depth_n) = (0.0, 0usize);
     for view in views {
@@ -62,5 +63,5 @@ pub fn evaluate(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, views
         ssim += metrics::ssim(&rendered, &truth, w, h);
     }
     let n = views.len().max(1) as f64;
-    EvalResult { psnr: psnr / n, ssim: ssim / n, depth_mae_m: (depth_n > 0).then(|| depth_sum / depth_n as f64) }
+    Validation { psnr: psnr / n, ssim: ssim / n, depth_mae_m: (depth_n > 0).then(|| depth_sum / depth_n as f64) }
 }

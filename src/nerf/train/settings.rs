@@ -226,7 +226,7 @@ pub struct TrainConfig {
     pub surface_window: f32,
     /// Weight of the no-return term: a ray the sensor could not measure is
     /// penalised by the light it lets through to the first surface the
-    /// sensor measured from elsewhere (see `measured.rs`).
+    /// sensor measured from elsewhere (see `occupancy/measured.rs`).
     #[serde(default)]
     pub lambda_no_return: f32,
     pub step: StepRule,

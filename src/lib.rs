@@ -18,4 +18,5 @@ pub mod synth;
 pub mod atomic;
 pub mod mask;
 pub mod outputs;
+pub mod png_encode;
 pub mod rng;

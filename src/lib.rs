@@ -18,6 +18,7 @@ pub mod synth;
 pub mod atomic;
 pub mod mask;
 pub mod outputs;
+pub mod png_encode;
 pub mod rng;
 
 /// The names an option enum takes on the command line, for error messages

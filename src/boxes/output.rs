@@ -12,9 +12,9 @@ use super::label::{FrameLabel, Labeler};
 use super::options::{FrameRange, LabelError};
 use super::parse::BoxSet;
 use crate::atomic;
+use crate::png_encode::{encode_depth, encode_mask, quantise_depth, MILLIMETRE};
 use crate::scan::{Frame, Scan};
-use image::codecs::png::PngEncoder;
-use image::{ExtendedColorType, ImageEncoder};
+use image::ImageError;
 use rayon::prelude::*;
 use std::collections::BTreeSet;
 use std::fs;
@@ -58,46 +58,22 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LabelError + '_ {
     move |source| LabelError::Io { path: path.to_path_buf(), source }
 }
 
-/// Encode a single-channel PNG and write it atomically.
-fn write_png(path: &Path, bytes: &[u8], w: u32, h: u32, colour: ExtendedColorType) -> Result<(), LabelError> {
-    let mut png = Vec::new();
-    PngEncoder::new(&mut png)
-        .write_image(bytes, w, h, colour)
-        .map_err(|source| LabelError::Encode { path: path.to_path_buf(), source })?;
+/// Write an encoder's PNG atomically.
+fn write_png(path: &Path, encoded: Result<Vec<u8>, ImageError>) -> Result<(), LabelError> {
+    let png = encoded.map_err(|source| LabelError::Encode { path: path.to_path_buf(), source })?;
     atomic::write_file(path, &png).map_err(io_err(path))
 }
 
 /// Instance mask: 8-bit when the box set has at most 255 boxes, else 16-bit.
-pub fn write_mask(path: &Path, mask: &[u16], w: u32, h: u32, sixteen_bit: bool) -> Result<(), LabelError> {
-    if sixteen_bit {
-        let bytes: Vec<u8> = mask.iter().flat_map(|v| v.to_ne_bytes()).collect();
-        write_png(path, &bytes, w, h, ExtendedColorType::L16)
-    } else {
-        let bytes: Vec<u8> = mask.iter().map(|&v| v.min(255) as u8).collect();
-        write_png(path, &bytes, w, h, ExtendedColorType::L8)
-    }
+pub fn write_mask(path: &Path, mask: &[u16], w: u32, h: u32, box_count: usize) -> Result<(), LabelError> {
+    write_png(path, encode_mask(mask, box_count, w, h))
 }
 
 /// Depth in millimetres as 16-bit PNG (0 = no surface); returns how many
 /// depths beyond 65.535 m were written as 0.
 pub fn write_depth_mm(path: &Path, depth_m: &[f32], w: u32, h: u32) -> Result<usize, LabelError> {
-    let mut overflow = 0;
-    let bytes: Vec<u8> = depth_m
-        .iter()
-        .flat_map(|&z| {
-            let mm = (z as f64 * 1000.0).round();
-            let v = if mm.is_nan() || mm <= 0.0 {
-                0
-            } else if mm > u16::MAX as f64 {
-                overflow += 1;
-                0
-            } else {
-                mm as u16
-            };
-            v.to_ne_bytes()
-        })
-        .collect();
-    write_png(path, &bytes, w, h, ExtendedColorType::L16)?;
+    let (mm, overflow) = quantise_depth(depth_m, MILLIMETRE);
+    write_png(path, encode_depth(&mm, w, h))?;
     Ok(overflow)
 }
 
@@ -281,14 +257,14 @@ fn stage(
     frames: &[&Frame],
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<LabelSummary, LabelError> {
-    let sixteen_bit = boxes.boxes.len() > 255;
+    let box_count = boxes.boxes.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let written: Vec<Written> = frames
         .par_iter()
         .map(|frame| {
             let label: FrameLabel = labeler.label_frame(frame);
             let (w, h) = (label.width, label.height);
-            write_mask(&staging.join("masks").join(format!("{}.png", label.name)), &label.mask, w, h, sixteen_bit)?;
+            write_mask(&staging.join("masks").join(format!("{}.png", label.name)), &label.mask, w, h, box_count)?;
             let depth_overflow = match &label.depth_m {
                 Some(d) => write_depth_mm(&staging.join("depth").join(format!("{}.png", label.name)), d, w, h)?,
                 None => 0,
@@ -404,11 +380,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mask = [0u16, 3, 300, 65535];
         let p8 = dir.path().join("m8.png");
-        write_mask(&p8, &mask[..2], 2, 1, false).unwrap();
+        write_mask(&p8, &mask[..2], 2, 1, 255).unwrap();
         let img = image::open(&p8).unwrap();
         assert_eq!(img.as_luma8().unwrap().as_raw(), &vec![0u8, 3]);
         let p16 = dir.path().join("m16.png");
-        write_mask(&p16, &mask, 2, 2, true).unwrap();
+        write_mask(&p16, &mask, 2, 2, 256).unwrap();
         assert_eq!(image::open(&p16).unwrap().as_luma16().unwrap().as_raw(), &mask.to_vec());
         let pd = dir.path().join("d.png");
         let overflow = write_depth_mm(&pd, &[0.0, 1.2344, 70.0, f32::NAN], 2, 2).unwrap();

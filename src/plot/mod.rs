@@ -18,7 +18,7 @@ mod ticks;
 
 use std::path::{Path, PathBuf};
 
-use image::{ImageEncoder, RgbImage};
+use image::RgbImage;
 
 use canvas::{Canvas, Rect};
 
@@ -103,13 +103,10 @@ pub fn render_panels(panels: &[Panel], width: u32, height: u32) -> RgbImage {
 
 /// Encode and write atomically with crate::atomic::write_file.
 pub fn write_png(path: &Path, img: &RgbImage) -> Result<(), PlotError> {
-    let mut bytes = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut bytes)
-        .write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
-        .map_err(|source| PlotError::Encode {
-            path: path.to_path_buf(),
-            source,
-        })?;
+    let bytes = crate::png_encode::encode_rgb(img.as_raw(), img.width(), img.height()).map_err(|source| PlotError::Encode {
+        path: path.to_path_buf(),
+        source,
+    })?;
     crate::atomic::write_file(path, &bytes).map_err(|source| PlotError::Write {
         path: path.to_path_buf(),
         source,

@@ -6,7 +6,6 @@
 
 mod error;
 pub mod parquet;
-pub mod png;
 pub mod poses_file;
 pub mod render;
 pub mod sampling;

@@ -4,9 +4,9 @@
 //! visible instance, and the three PNG blobs.
 
 use super::error::SynthError;
-use super::png::{encode_depth_mm, encode_mask, encode_rgb};
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
+use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use super::poses_file::ViewSpec;
 use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Intrinsics;
@@ -75,7 +75,7 @@ pub fn instance_mask(
     k: &Intrinsics,
     width: u32,
     classify: &(dyn Fn(DVec3) -> u32 + Sync),
-) -> Vec<u32> {
+) -> Vec<u16> {
     let w = width.max(1) as usize;
     depth_m
         .iter()
@@ -85,25 +85,21 @@ pub fn instance_mask(
                 return 0;
             }
             let (u, v) = ((i % w) as f64, (i / w) as f64);
-            classify(camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z)))
+            let id = classify(camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z)));
+            // Ids fit in 16 bits: parsing caps the box count at 65535.
+            id.min(65_535) as u16
         })
         .collect()
 }
 
 /// Fill small holes in and drop small specks of each instance, with the
 /// fraction `label` uses by default; returns the pixels changed.
-pub fn clean_instances(mask: &mut [u32], width: u32, height: u32) -> usize {
-    // Ids fit in 16 bits: parsing caps the box count at 65535.
-    let mut ids: Vec<u16> = mask.iter().map(|&id| id.min(65_535) as u16).collect();
-    let changed = clean_mask(&mut ids, width, height, LabelOptions::default().cleanup_fraction);
-    for (m, &id) in mask.iter_mut().zip(&ids) {
-        *m = u32::from(id);
-    }
-    changed
+pub fn clean_instances(mask: &mut [u16], width: u32, height: u32) -> usize {
+    clean_mask(mask, width, height, LabelOptions::default().cleanup_fraction)
 }
 
 /// Tight pixel boxes of every id in `1..=max_id` present in `mask`.
-pub fn tight_boxes(mask: &[u32], width: u32, instances: &Instances) -> Vec<Box2d> {
+pub fn tight_boxes(mask: &[u16], width: u32, instances: &Instances) -> Vec<Box2d> {
     let w = width.max(1) as usize;
     let max_id = instances.max_id() as usize;
     // (min x, min y, max x, max y) per id; ids beyond the labels are ignored.
@@ -147,8 +143,8 @@ pub fn render_view(
     Ok(SynthView {
         spec: *spec,
         rgb_png: encode_rgb(&view.rgb, w, h).map_err(png("colour"))?,
-        depth_png: encode_depth_mm(&view.depth_m, w, h).map_err(png("depth"))?,
-        mask_png: encode_mask(&mask, instances.max_id(), w, h).map_err(png("mask"))?,
+        depth_png: encode_depth(&depth_mm_saturating(&view.depth_m), w, h).map_err(png("depth"))?,
+        mask_png: encode_mask(&mask, instances.max_id() as usize, w, h).map_err(png("mask"))?,
         boxes: tight_boxes(&mask, w, instances),
     })
 }
@@ -178,7 +174,7 @@ mod tests {
     #[test]
     fn cleaning_fills_an_enclosed_hole_and_drops_a_detached_speck() {
         let (w, h) = (40u32, 30u32);
-        let mut mask = vec![0u32; (w * h) as usize];
+        let mut mask = vec![0u16; (w * h) as usize];
         for y in 5..25 {
             for x in 5..25 {
                 mask[y * w as usize + x] = 2;

@@ -29,7 +29,7 @@ use nerflabel::scan::{load, Intrinsics, LoadOptions};
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
-use nerflabel::synth::render::{clean_instances, instance_mask};
+use nerflabel::synth::triplet::{clean_instances, instance_mask};
 use nerflabel::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use nerflabel::synth::{read_poses, synthesize, Instances, SynthOptions, SynthProgress, SynthSummary, ViewSpec};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;

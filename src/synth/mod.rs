@@ -7,13 +7,13 @@
 mod error;
 pub mod parquet;
 pub mod poses_file;
-pub mod render;
+pub mod triplet;
 pub mod sampling;
 
 pub use error::{PosesFileError, Rejections, SynthError};
 pub use parquet::{synth_schema, SynthWriter};
 pub use poses_file::{parse_poses, read_poses, ViewSpec};
-pub use render::{Box2d, Instances, SynthView};
+pub use triplet::{Box2d, Instances, SynthView};
 pub use sampling::{Candidate, Cloud, PoseSampler, Target};
 pub mod synthesize;
 pub mod viewpoints;

@@ -4,7 +4,7 @@
 //! only when complete, so an interrupted run leaves nothing at the path.
 
 use super::error::SynthError;
-use super::render::SynthView;
+use super::triplet::SynthView;
 use arrow_array::builder::OffsetBufferBuilder;
 use arrow_array::{
     ArrayRef, BinaryArray, FixedSizeListArray, Float32Array, Float64Array, Int32Array, ListArray, RecordBatch,
@@ -207,7 +207,7 @@ fn boxes_column(views: &[SynthView]) -> Result<ArrayRef, SynthError> {
         .map(|b| i32::try_from(b.instance_id))
         .collect::<Result<Vec<i32>, _>>()
         .map_err(|_| SynthError::Options("an instance id does not fit the int32 column".into()))?;
-    let coord = |f: fn(&super::render::Box2d) -> f32| -> ArrayRef { Arc::new(Float32Array::from_iter_values(all().map(f))) };
+    let coord = |f: fn(&super::triplet::Box2d) -> f32| -> ArrayRef { Arc::new(Float32Array::from_iter_values(all().map(f))) };
     let children: Vec<ArrayRef> = vec![
         Arc::new(Int32Array::from(ids)),
         Arc::new(StringArray::from_iter_values(all().map(|b| b.label.as_str()))),
@@ -240,7 +240,7 @@ mod tests {
     use super::*;
     use crate::scan::Intrinsics;
     use crate::synth::poses_file::ViewSpec;
-    use crate::synth::render::Box2d;
+    use crate::synth::triplet::Box2d;
     use arrow_array::cast::AsArray;
     use arrow_array::types::{Float32Type, Float64Type, Int32Type};
     use arrow_array::Array;

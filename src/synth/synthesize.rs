@@ -5,7 +5,7 @@
 use super::error::{Rejections, SynthError};
 use super::parquet::SynthWriter;
 use super::poses_file::{ViewSpec, MAX_VIEWS};
-use super::render::{render_view, Instances, SynthView};
+use super::triplet::{render_view, Instances, SynthView};
 use super::sampling::{Cloud, PoseSampler, Target};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet};

@@ -11,7 +11,7 @@
 
 use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
-use super::render::Instances;
+use super::triplet::Instances;
 use super::sampling::{Candidate, PoseSampler};
 use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;

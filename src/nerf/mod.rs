@@ -5,10 +5,11 @@
 //! Data flows `field` (what the network computes) -> `occupancy` (where it
 //! may be non-empty) -> `render` (rays through both) -> `train` (fitting a
 //! scan, which renders); `model_file` stores what training produced for
-//! `render` to load. Nothing in `field`, `occupancy` or `render` imports
-//! `train`'s driver.
+//! `render` to load, in the `container` the training checkpoint shares.
+//! Nothing in `field`, `occupancy` or `render` imports `train`'s driver.
 
 pub mod camera;
+pub mod container;
 pub mod field;
 pub mod model_file;
 pub mod occupancy;

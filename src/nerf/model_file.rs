@@ -1,8 +1,9 @@
-//! The model file (`model.nlf`): magic, version, JSON header (configs,
-//! scene transform, provenance), raw little-endian f32 sections, and a CRC32
-//! of everything before it. Written atomically; every defect on load is a
-//! clear error.
+//! The model file (`model.nlf`): the shared container (`container`) with
+//! a JSON header (configs, scene transform, provenance), the field's
+//! parameters and the occupancy grid as sections. Written atomically; every
+//! defect on load is a clear error.
 
+use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::march::StepRule;
@@ -23,6 +24,20 @@ pub const VERSION: u32 = 1;
 const MAX_HEADER: usize = 1 << 26;
 /// Model files larger than this are rejected (4 GiB).
 const MAX_FILE: u64 = 1 << 32;
+/// The container as model files use it.
+const FORMAT: Format = Format {
+    magic: MAGIC,
+    version: VERSION,
+    max_header: MAX_HEADER,
+    max_file: MAX_FILE,
+    name: "model",
+    contents: "parameters",
+};
+/// Kinds of the sections listed in `ModelHeader::sections`.
+const SECTIONS: [SectionKind; 5] = {
+    use SectionKind::{F32, U64};
+    [F32, F32, F32, F32, U64]
+};
 
 /// Everything about a model except its parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -151,102 +166,72 @@ impl Model {
 
     /// Serialise to bytes (header sections filled in from the parameters).
     pub fn to_bytes(&self) -> Vec<u8> {
-        self.try_to_bytes().unwrap_or_else(|e| panic!("a model header always serialises: {e}"))
+        let (json, sections) = self.contents().unwrap_or_else(|e| panic!("a model header always serialises: {e}"));
+        let mut bytes = Vec::new();
+        container::write(&mut bytes, &FORMAT, &json, &sections)
+            .unwrap_or_else(|e| panic!("a model always fits its file format: {e}"));
+        bytes
     }
 
-    /// Serialise to bytes; fails only if the header cannot be written as JSON.
-    fn try_to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
+    /// The header JSON (network configuration, grid resolution and section
+    /// lengths taken from the parameters) and the sections; fails only if
+    /// the header cannot be written as JSON.
+    fn contents(&self) -> Result<(Vec<u8>, [Section<'_>; 5]), serde_json::Error> {
         let mut header = self.header.clone();
         header.field = self.field.config.clone();
         header.occupancy_resolution = self.occupancy.resolution();
-        let sections: [&[f32]; 4] =
-            [&self.field.grid.params, &self.field.density.params, &self.field.color.params, self.occupancy.densities()];
-        let carved = self.occupancy.carved_words();
-        let [g, d, c, o] = sections.map(|s| s.len());
-        header.sections = [g, d, c, o, carved.len()];
-        let json = serde_json::to_vec(&header)?;
-        let floats: usize = sections.iter().map(|s| s.len()).sum();
-        let mut bytes = Vec::with_capacity(20 + json.len() + 4 * floats + 8 * carved.len() + 4);
-        bytes.extend_from_slice(MAGIC);
-        bytes.extend_from_slice(&VERSION.to_le_bytes());
-        bytes.extend_from_slice(&(json.len() as u32).to_le_bytes());
-        bytes.extend_from_slice(&json);
-        for section in sections {
-            for v in section {
-                bytes.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-        for w in carved {
-            bytes.extend_from_slice(&w.to_le_bytes());
-        }
-        let crc = crc32fast::hash(&bytes);
-        bytes.extend_from_slice(&crc.to_le_bytes());
-        Ok(bytes)
+        let sections = [
+            Section::F32(&self.field.grid.params),
+            Section::F32(&self.field.density.params),
+            Section::F32(&self.field.color.params),
+            Section::F32(self.occupancy.densities()),
+            Section::U64(self.occupancy.carved_words()),
+        ];
+        header.sections = sections.map(|s| s.count());
+        Ok((serde_json::to_vec(&header)?, sections))
     }
 
     /// Write atomically (temp file + rename).
     pub fn save(&self, path: &Path) -> Result<(), ModelError> {
-        let bytes = self.try_to_bytes().map_err(|e| ModelError::Write { path: path.to_path_buf(), source: std::io::Error::other(format!("cannot encode the model header: {e}")) })?;
-        crate::atomic::write_file(path, &bytes).map_err(|source| ModelError::Write { path: path.to_path_buf(), source })
+        let write_error = |source| ModelError::Write { path: path.to_path_buf(), source };
+        let (json, sections) = self
+            .contents()
+            .map_err(|e| write_error(std::io::Error::other(format!("cannot encode the model header: {e}"))))?;
+        container::save(path, &FORMAT, &json, &sections).map_err(write_error)
     }
 
     /// Read and verify a model file.
     pub fn load(path: &Path) -> Result<Model, ModelError> {
-        let read_err = |source| ModelError::Read { path: path.to_path_buf(), source };
-        let size = std::fs::metadata(path).map_err(read_err)?.len();
-        if size > MAX_FILE {
-            return Err(damaged(path, format!("{size} bytes is larger than any model")));
-        }
-        let bytes = std::fs::read(path).map_err(read_err)?;
+        let bytes = container::read(path, &FORMAT).map_err(|e| ModelError::from_container(path, e))?;
         Model::from_bytes(&bytes, path)
     }
 
     /// Parse bytes; `path` only names the source in errors.
     pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Model, ModelError> {
-        if bytes.len() < 8 || &bytes[..8] != MAGIC {
-            return Err(ModelError::Magic(path.to_path_buf()));
-        }
-        if bytes.len() < 20 {
-            return Err(damaged(path, "truncated header".into()));
-        }
-        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-        if version != VERSION {
-            return Err(ModelError::Version { path: path.to_path_buf(), found: version });
-        }
-        let (body, crc_bytes) = bytes.split_at(bytes.len() - 4);
-        let stored = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
-        if crc32fast::hash(body) != stored {
-            return Err(ModelError::Checksum(path.to_path_buf()));
-        }
-        let header_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
-        if header_len > MAX_HEADER || 16 + header_len > body.len() {
-            return Err(damaged(path, format!("header length {header_len} does not fit the file")));
-        }
-        let header: ModelHeader = serde_json::from_slice(&body[16..16 + header_len])
-            .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
-        let [g, d, c, o, words] = header.sections;
-        let floats = [g, d, c, o].iter().try_fold(0usize, |acc, &n| acc.checked_add(n));
-        let bytes_needed = floats
-            .and_then(|f| f.checked_mul(4))
-            .and_then(|f| words.checked_mul(8).and_then(|w| w.checked_add(f)))
-            .ok_or_else(|| damaged(path, "section sizes overflow".into()))?;
-        let data = &body[16 + header_len..];
-        if bytes_needed != data.len() {
-            return Err(damaged(path, format!("expected {bytes_needed} bytes of parameters, found {}", data.len())));
-        }
-        let (float_bytes, word_bytes) = data.split_at(bytes_needed - 8 * words);
-        let mut values = float_bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
-        let mut take = |n: usize| -> Vec<f32> { values.by_ref().take(n).collect() };
-        let (grid, density, color, occupancy) = (take(g), take(d), take(c), take(o));
-        let carved: Vec<u64> =
-            word_bytes.chunks_exact(8).map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect();
-        let field = Field::from_params(header.field.clone(), grid, density, color)
+        let (header, [grid, density, color, occupancy, carved]) =
+            container::decode(bytes, &FORMAT, &SECTIONS, |h: &ModelHeader| h.sections)
+                .map_err(|e| ModelError::from_container(path, e))?;
+        let field = Field::from_params(header.field.clone(), grid.f32s(), density.f32s(), color.f32s())
             .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration".into()))?;
-        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy, carved)
+        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy.f32s(), carved.u64s())
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
         // A model's grid is for rendering: the saved estimates decide what is marched.
         occupancy.restrict_to_rendering();
         Ok(Model { header, field, occupancy })
+    }
+}
+
+impl ModelError {
+    /// The error for a container defect in the model file at `path`.
+    fn from_container(path: &Path, error: ContainerError) -> ModelError {
+        let path = path.to_path_buf();
+        match error {
+            ContainerError::Open(source) | ContainerError::Read(source) => ModelError::Read { path, source },
+            ContainerError::Magic => ModelError::Magic(path),
+            ContainerError::Version(found) => ModelError::Version { path, found },
+            ContainerError::Checksum => ModelError::Checksum(path),
+            ContainerError::Damaged(what) => ModelError::Damaged { path, what },
+        }
     }
 }
 

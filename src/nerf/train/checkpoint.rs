@@ -3,9 +3,10 @@
 //! step counts, trainer counters, step-size scale and loss average, the
 //! training occupancy grid, seconds trained, the curve so far, the fit
 //! settings and a fingerprint of the scan, so resuming another scan or other
-//! settings is a clear error. Same container as the model file (magic,
-//! version, JSON header, little-endian sections, CRC32), written atomically.
+//! settings is a clear error. Same container as the model file
+//! (`container`), written atomically.
 
+use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::train::settings::{FitSettings, NerfSettings};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::train::fit::FitOptions;
@@ -15,7 +16,7 @@ use crate::nerf::train::step::{TrainCounters, Trainer};
 use crate::scan::fingerprint::{scan_fingerprint, Fnv};
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
-use std::io::{self, Write};
+use std::io;
 use std::path::{Path, PathBuf};
 
 /// First bytes of every checkpoint file.
@@ -26,10 +27,22 @@ pub const VERSION: u32 = 1;
 const MAX_HEADER: usize = 64 << 20;
 /// Checkpoint files larger than this are rejected (16 GiB).
 const MAX_FILE: u64 = 1 << 34;
+/// The container as checkpoints use it.
+const FORMAT: Format = Format {
+    magic: MAGIC,
+    version: VERSION,
+    max_header: MAX_HEADER,
+    max_file: MAX_FILE,
+    name: "checkpoint",
+    contents: "arrays",
+};
 /// Sections: grid, density MLP, colour MLP, occupancy densities (f32),
 /// carved mask (u64), then Adam first and second moments of grid, density
 /// MLP and colour MLP (f32).
-const SECTIONS: usize = 11;
+const SECTIONS: [SectionKind; 11] = {
+    use SectionKind::{F32, U64};
+    [F32, F32, F32, F32, U64, F32, F32, F32, F32, F32, F32]
+};
 
 /// Where the checkpoint of a model lives: `model.nlf` -> `model.checkpoint`.
 pub fn checkpoint_path(model: &Path) -> PathBuf {
@@ -112,7 +125,7 @@ pub struct CheckpointHeader {
     pub lr_scale_bits: u32,
     pub loss_ema_bits: u64,
     /// Lengths of the sections (see `SECTIONS`).
-    pub sections: [usize; SECTIONS],
+    pub sections: [usize; SECTIONS.len()],
 }
 
 /// A checkpoint read from disk.
@@ -148,33 +161,6 @@ pub enum CheckpointError {
     OtherSettings { path: PathBuf, what: String },
 }
 
-/// Writer that keeps a CRC32 of everything written.
-struct CrcWriter<'a, W: Write> {
-    inner: &'a mut W,
-    crc: crc32fast::Hasher,
-}
-
-impl<W: Write> Write for CrcWriter<'_, W> {
-    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
-        let n = self.inner.write(buf)?;
-        self.crc.update(&buf[..n]);
-        Ok(n)
-    }
-    fn flush(&mut self) -> io::Result<()> {
-        self.inner.flush()
-    }
-}
-
-fn write_f32s<W: Write>(w: &mut W, values: &[f32]) -> io::Result<()> {
-    let mut buf = Vec::with_capacity(4 * 16384);
-    for chunk in values.chunks(16384) {
-        buf.clear();
-        chunk.iter().for_each(|v| buf.extend_from_slice(&v.to_le_bytes()));
-        w.write_all(&buf)?;
-    }
-    Ok(())
-}
-
 /// Save the state of `trainer` and `progress` to `path` atomically.
 pub fn save(
     path: &Path,
@@ -184,10 +170,20 @@ pub fn save(
 ) -> Result<(), CheckpointError> {
     let (adams, lr_scale, loss_ema) = trainer.optimiser();
     let field = &trainer.field;
-    let moments = adams.map(|a| a.moments());
-    let floats: [&[f32]; 3] = [&field.grid.params, &field.density.params, &field.color.params];
-    let occupancy = trainer.occupancy.densities();
-    let carved = trainer.occupancy.carved_words();
+    let [grid, density, color] = adams.map(|a| a.moments());
+    let sections = [
+        Section::F32(&field.grid.params),
+        Section::F32(&field.density.params),
+        Section::F32(&field.color.params),
+        Section::F32(trainer.occupancy.densities()),
+        Section::U64(trainer.occupancy.carved_words()),
+        Section::F32(grid.0),
+        Section::F32(grid.1),
+        Section::F32(density.0),
+        Section::F32(density.1),
+        Section::F32(color.0),
+        Section::F32(color.1),
+    ];
     let header = CheckpointHeader {
         nerflabel_version: env!("CARGO_PKG_VERSION").to_string(),
         identity: identity.clone(),
@@ -199,50 +195,26 @@ pub fn save(
         adam_steps: adams.map(|a| a.steps()),
         lr_scale_bits: lr_scale.to_bits(),
         loss_ema_bits: loss_ema.to_bits(),
-        sections: [
-            floats[0].len(),
-            floats[1].len(),
-            floats[2].len(),
-            occupancy.len(),
-            carved.len(),
-            moments[0].0.len(),
-            moments[0].1.len(),
-            moments[1].0.len(),
-            moments[1].1.len(),
-            moments[2].0.len(),
-            moments[2].1.len(),
-        ],
+        sections: sections.map(|s| s.count()),
     };
-    let json = serde_json::to_vec(&header).map_err(|e| CheckpointError::Write {
-        path: path.to_path_buf(),
-        source: e.into(),
-    })?;
-    crate::atomic::write_with(path, |file| {
-        let mut w = CrcWriter {
-            inner: file,
-            crc: crc32fast::Hasher::new(),
-        };
-        w.write_all(MAGIC)?;
-        w.write_all(&VERSION.to_le_bytes())?;
-        w.write_all(&(json.len() as u32).to_le_bytes())?;
-        w.write_all(&json)?;
-        for s in floats.into_iter().chain([occupancy]) {
-            write_f32s(&mut w, s)?;
+    let write_error = |source| CheckpointError::Write { path: path.to_path_buf(), source };
+    let json = serde_json::to_vec(&header).map_err(|e| write_error(e.into()))?;
+    container::save(path, &FORMAT, &json, &sections).map_err(write_error)
+}
+
+impl CheckpointError {
+    /// The error for a container defect in the checkpoint at `path`.
+    fn from_container(path: &Path, error: ContainerError) -> CheckpointError {
+        let path = path.to_path_buf();
+        match error {
+            ContainerError::Open(e) if e.kind() == io::ErrorKind::NotFound => CheckpointError::Missing(path),
+            ContainerError::Open(source) | ContainerError::Read(source) => CheckpointError::Read { path, source },
+            ContainerError::Magic => CheckpointError::Magic(path),
+            ContainerError::Version(found) => CheckpointError::Version { path, found },
+            ContainerError::Checksum => CheckpointError::Checksum(path),
+            ContainerError::Damaged(what) => CheckpointError::Damaged { path, what },
         }
-        let mut buf = Vec::with_capacity(8 * carved.len());
-        carved.iter().for_each(|c| buf.extend_from_slice(&c.to_le_bytes()));
-        w.write_all(&buf)?;
-        for (m, v) in moments {
-            write_f32s(&mut w, m)?;
-            write_f32s(&mut w, v)?;
-        }
-        let crc = w.crc.finalize();
-        file.write_all(&crc.to_le_bytes())
-    })
-    .map_err(|source| CheckpointError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
+    }
 }
 
 fn damaged(path: &Path, what: impl Into<String>) -> CheckpointError {
@@ -255,98 +227,20 @@ fn damaged(path: &Path, what: impl Into<String>) -> CheckpointError {
 impl Checkpoint {
     /// Read and verify a checkpoint file.
     pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
-        let meta = match std::fs::metadata(path) {
-            Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(CheckpointError::Missing(path.to_path_buf())),
-            other => other.map_err(|source| CheckpointError::Read {
-                path: path.to_path_buf(),
-                source,
-            })?,
-        };
-        if meta.len() > MAX_FILE {
-            return Err(damaged(
-                path,
-                format!("{} bytes is larger than any checkpoint", meta.len()),
-            ));
-        }
-        let bytes = std::fs::read(path).map_err(|source| CheckpointError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let bytes = container::read(path, &FORMAT).map_err(|e| CheckpointError::from_container(path, e))?;
         Checkpoint::from_bytes(&bytes, path)
     }
 
     /// Parse bytes; `path` names the source in errors.
     pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Checkpoint, CheckpointError> {
-        if bytes.len() < 8 || &bytes[..8] != MAGIC {
-            return Err(CheckpointError::Magic(path.to_path_buf()));
-        }
-        if bytes.len() < 20 {
-            return Err(damaged(path, "truncated header"));
-        }
-        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-        if version != VERSION {
-            return Err(CheckpointError::Version {
-                path: path.to_path_buf(),
-                found: version,
-            });
-        }
-        let (body, crc_bytes) = bytes.split_at(bytes.len() - 4);
-        let stored = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
-        if crc32fast::hash(body) != stored {
-            return Err(CheckpointError::Checksum(path.to_path_buf()));
-        }
-        let header_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
-        if header_len > MAX_HEADER || 16 + header_len > body.len() {
-            return Err(damaged(
-                path,
-                format!("header length {header_len} does not fit the file"),
-            ));
-        }
-        let header: CheckpointHeader = serde_json::from_slice(&body[16..16 + header_len])
-            .map_err(|e| damaged(path, format!("header is not valid: {e}")))?;
-        let s = header.sections;
-        let words = s[4];
-        let floats = s
-            .iter()
-            .enumerate()
-            .filter(|&(i, _)| i != 4)
-            .try_fold(0usize, |acc, (_, &n)| acc.checked_add(n));
-        let needed = floats
-            .and_then(|f| f.checked_mul(4))
-            .and_then(|f| words.checked_mul(8).and_then(|w| w.checked_add(f)))
-            .ok_or_else(|| damaged(path, "section sizes overflow"))?;
-        let mut data = &body[16 + header_len..];
-        if needed != data.len() {
-            return Err(damaged(
-                path,
-                format!("expected {needed} bytes of arrays, found {}", data.len()),
-            ));
-        }
-        let mut take_f32 = |n: usize| -> Vec<f32> {
-            let (head, tail) = data.split_at(4 * n);
-            data = tail;
-            head.chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect()
-        };
-        let (grid, density, color, occ) = (take_f32(s[0]), take_f32(s[1]), take_f32(s[2]), take_f32(s[3]));
-        let (carved_bytes, rest) = data.split_at(8 * words);
-        data = rest;
-        let carved: Vec<u64> = carved_bytes
-            .chunks_exact(8)
-            .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
-            .collect();
-        let mut take_f32 = |n: usize| -> Vec<f32> {
-            let (head, tail) = data.split_at(4 * n);
-            data = tail;
-            head.chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect()
-        };
+        let (header, [grid, density, color, occ, carved, grid_m, grid_v, density_m, density_v, color_m, color_v]) =
+            container::decode(bytes, &FORMAT, &SECTIONS, |h: &CheckpointHeader| h.sections)
+                .map_err(|e| CheckpointError::from_container(path, e))?;
+        let (grid, density, color) = (grid.f32s(), density.f32s(), color.f32s());
         let moments = [
-            (take_f32(s[5]), take_f32(s[6])),
-            (take_f32(s[7]), take_f32(s[8])),
-            (take_f32(s[9]), take_f32(s[10])),
+            (grid_m.f32s(), grid_v.f32s()),
+            (density_m.f32s(), density_v.f32s()),
+            (color_m.f32s(), color_v.f32s()),
         ];
         let lengths = [grid.len(), density.len(), color.len()];
         if moments
@@ -358,7 +252,7 @@ impl Checkpoint {
         }
         let field = Field::from_params(header.field.clone(), grid, density, color)
             .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration"))?;
-        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occ, carved)
+        let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occ.f32s(), carved.u64s())
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution"))?;
         occupancy.set_refresh_phase(header.refresh_phase);
         Ok(Checkpoint {

@@ -5,11 +5,11 @@
 //! cargo run --release --example bench_fit -- [FIXTURE_DIR] [--time SECS | --steps N] [--preset P] [--seed N]
 
 use nerflabel::evaluate::score_holdout;
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::train::settings::Preset;
 use nerflabel::nerf::train::dataset::is_holdout;
 use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::nerf::train::settings::Preset;
 use nerflabel::scan::{load, LoadOptions};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -25,7 +25,10 @@ fn main() -> anyhow::Result<()> {
                 steps = Some(args.next().unwrap_or_default().parse()?);
                 time = None;
             }
-            "--preset" => preset = clap::ValueEnum::from_str(&args.next().unwrap_or_default(), true).map_err(anyhow::Error::msg)?,
+            "--preset" => {
+                preset =
+                    clap::ValueEnum::from_str(&args.next().unwrap_or_default(), true).map_err(anyhow::Error::msg)?
+            }
             "--seed" => seed = args.next().unwrap_or_default().parse()?,
             other => dir = PathBuf::from(other),
         }
@@ -36,11 +39,23 @@ fn main() -> anyhow::Result<()> {
         println!("generated the tabletop fixture in {}", dir.display());
     }
     let mut scan = load(&dir, &LoadOptions::default())?;
-    let options = FitOptions { settings: FitSettings { seed, preset, ..FitSettings::default() }, time, steps, ..FitOptions::default() };
+    let options = FitOptions {
+        settings: FitSettings {
+            seed,
+            preset,
+            ..FitSettings::default()
+        },
+        time,
+        steps,
+        ..FitOptions::default()
+    };
     let stop = AtomicBool::new(false);
     let outcome = fit(&mut scan, &options, &stop, &mut |e| {
         if let FitEvent::Eval(p) = e {
-            eprintln!("  {:6.1} s  step {:5}  PSNR {:5.2}  depth MAE {:?}", p.seconds, p.step, p.psnr, p.depth_mae_m);
+            eprintln!(
+                "  {:6.1} s  step {:5}  PSNR {:5.2}  depth MAE {:?}",
+                p.seconds, p.step, p.psnr, p.depth_mae_m
+            );
         }
     })?;
     let r = &outcome.report;
@@ -63,7 +78,9 @@ fn main() -> anyhow::Result<()> {
             p.step,
             p.psnr,
             p.ssim,
-            p.depth_mae_m.map(|d| format!("{:.1}", d * 1e3)).unwrap_or_else(|| "n/a".into()),
+            p.depth_mae_m
+                .map(|d| format!("{:.1}", d * 1e3))
+                .unwrap_or_else(|| "n/a".into()),
             p.samples_per_s / 1e3
         );
     }
@@ -87,7 +104,10 @@ fn main() -> anyhow::Result<()> {
         c.samples_without_depth as f64 / c.rays_without_depth.max(1) as f64
     );
     if let Some(floor) = sensor_noise_floor(&scan, &dir, options.settings.holdout_every)? {
-        println!("sensor depth vs exact depth on the same held-out frames (the floor of the depth MAE above): {:.1} mm", floor * 1e3);
+        println!(
+            "sensor depth vs exact depth on the same held-out frames (the floor of the depth MAE above): {:.1} mm",
+            floor * 1e3
+        );
     }
     Ok(())
 }
@@ -95,9 +115,15 @@ fn main() -> anyhow::Result<()> {
 /// Mean absolute difference between the held-out frames' sensor depth and the
 /// fixture's exact depth where both exist: a perfect model still shows this
 /// error when scored against the sensor.
-fn sensor_noise_floor(scan: &nerflabel::scan::Scan, dir: &std::path::Path, every: usize) -> anyhow::Result<Option<f64>> {
+fn sensor_noise_floor(
+    scan: &nerflabel::scan::Scan,
+    dir: &std::path::Path,
+    every: usize,
+) -> anyhow::Result<Option<f64>> {
     let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("gt/meta.json"))?)?;
-    let Some(unit) = meta["gt_depth_unit_m"].as_f64() else { return Ok(None) };
+    let Some(unit) = meta["gt_depth_unit_m"].as_f64() else {
+        return Ok(None);
+    };
     let (mut sum, mut n) = (0.0, 0usize);
     for (_, frame) in scan.frames.iter().enumerate().filter(|(i, _)| is_holdout(*i, every)) {
         let Some(sensor) = &frame.depth else { continue };

@@ -64,9 +64,17 @@ fn main() {
     println!("tabletop grid (2 m, 1.5 cm): {config:?}");
     for (l, level) in grid.levels().iter().enumerate() {
         let kind = if level.dense { "dense" } else { "hashed" };
-        println!("  level {l}: res {:4} {kind:6} {:7} entries", level.resolution, level.entries);
+        println!(
+            "  level {l}: res {:4} {kind:6} {:7} entries",
+            level.resolution, level.entries
+        );
     }
-    println!("  {} params ({:.1} MiB), output dim {dim}, AVX2 kernels: {}", grid.param_count(), grid.param_count() as f64 * 4.0 / 1048576.0, simd::available());
+    println!(
+        "  {} params ({:.1} MiB), output dim {dim}, AVX2 kernels: {}",
+        grid.param_count(),
+        grid.param_count() as f64 * 4.0 / 1048576.0,
+        simd::available()
+    );
 
     let mut rng = Rng::new(2, 0);
     let mut d_rng = Rng::new(3, 0);
@@ -74,8 +82,14 @@ fn main() {
     let mut out = vec![0.0f32; CHUNK * dim];
     let mut grad = GridGrad::new(grid.param_count());
     println!("\n1 thread, {CHUNK} samples per call, Msamples/s as fastest chunk (median chunk):");
-    println!("{:<10} {:<7} {:>16} {:>16} {:>18}  touched params/chunk", "positions", "path", "encode", "backward", "encode+backward");
-    for (name, pos) in [("random", random_positions(&mut rng)), ("rays", ray_positions(&mut rng))] {
+    println!(
+        "{:<10} {:<7} {:>16} {:>16} {:>18}  touched params/chunk",
+        "positions", "path", "encode", "backward", "encode+backward"
+    );
+    for (name, pos) in [
+        ("random", random_positions(&mut rng)),
+        ("rays", ray_positions(&mut rng)),
+    ] {
         for simd in [true, false] {
             let enc = rates(&pos, |chunk| grid.encode_with(chunk, &mut out, simd));
             let bwd = rates(&pos, |chunk| {
@@ -92,7 +106,12 @@ fn main() {
             grad.clear();
             let path = if simd { "avx2" } else { "scalar" };
             let fmt = |(best, median): (f64, f64)| format!("{:.2} ({:.2})", best / 1e6, median / 1e6);
-            println!("{name:<10} {path:<7} {:>16} {:>16} {:>18}  {touched}", fmt(enc), fmt(bwd), fmt(both));
+            println!(
+                "{name:<10} {path:<7} {:>16} {:>16} {:>18}  {touched}",
+                fmt(enc),
+                fmt(bwd),
+                fmt(both)
+            );
         }
     }
 
@@ -103,12 +122,18 @@ fn main() {
     let mut other = GridGrad::new(grid.param_count());
     println!("\n2 threads (levels 0..{split} | {split}..{levels}), AVX2, Msamples/s as fastest chunk (median chunk):");
     println!("{:<10} {:>16} {:>18}", "positions", "encode", "encode+backward");
-    for (name, pos) in [("random", random_positions(&mut rng)), ("rays", ray_positions(&mut rng))] {
+    for (name, pos) in [
+        ("random", random_positions(&mut rng)),
+        ("rays", ray_positions(&mut rng)),
+    ] {
         let fmt = |(best, median): (f64, f64)| format!("{:.2} ({:.2})", best / 1e6, median / 1e6);
         let (d_a, d_b) = d_out.split_at(rows);
         let enc = rates(&pos, |chunk| {
             let (a, b) = out.split_at_mut(rows);
-            rayon::join(|| grid.encode_levels(chunk, 0..split, a), || grid.encode_levels(chunk, split..levels, b));
+            rayon::join(
+                || grid.encode_levels(chunk, 0..split, a),
+                || grid.encode_levels(chunk, split..levels, b),
+            );
         });
         let both = rates(&pos, |chunk| {
             let (a, b) = out.split_at_mut(rows);

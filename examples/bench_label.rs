@@ -21,14 +21,14 @@
 //! `--dump DIR` (error images of every 10th frame: green = right, red =
 //! labelled but not in the reference, blue = missed, yellow = wrong id).
 
+use glam::DMat3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, read_gray16};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{load, Frame, LoadOptions, Scan};
-use glam::DMat3;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
@@ -113,7 +113,11 @@ fn parse_args() -> Result<Args, Error> {
             }
             "--cabinet" => {
                 let next_is_path = it.peek().is_some_and(|p| !p.starts_with("--"));
-                args.cabinet = Some(if next_is_path { it.next().unwrap_or_default().into() } else { shared_data().join("scans/cabinet") });
+                args.cabinet = Some(if next_is_path {
+                    it.next().unwrap_or_default().into()
+                } else {
+                    shared_data().join("scans/cabinet")
+                });
             }
             other if !other.starts_with("--") => args.dir = other.into(),
             other => return Err(format!("unknown option {other}").into()),
@@ -131,14 +135,26 @@ fn model_for(scan: &mut Scan, path: &Path, seconds: f64, refine_poses: bool) -> 
         return Ok(model);
     }
     eprintln!("fitting for {seconds} s ...");
-    let opts = FitOptions { settings: FitSettings { holdout_every: 0, refine_poses, ..FitSettings::default() }, time: Some(seconds), ..FitOptions::default() };
+    let opts = FitOptions {
+        settings: FitSettings {
+            holdout_every: 0,
+            refine_poses,
+            ..FitSettings::default()
+        },
+        time: Some(seconds),
+        ..FitOptions::default()
+    };
     let t = Instant::now();
     let out = fit(scan, &opts, &AtomicBool::new(false), &mut |e| {
         if let FitEvent::Prepared { train_views, .. } = e {
             eprintln!("  {train_views} training views");
         }
     })?;
-    eprintln!("  fitted {} steps in {:.1} s", out.model.header.steps, t.elapsed().as_secs_f64());
+    eprintln!(
+        "  fitted {} steps in {:.1} s",
+        out.model.header.steps,
+        t.elapsed().as_secs_f64()
+    );
     out.model.save(path)?;
     Ok(out.model)
 }
@@ -162,13 +178,28 @@ fn silhouette(frame: &Frame, boxes: &BoxSet) -> Vec<u16> {
 }
 
 /// Rendered (full-frame) depth against the exact depth on each object's ground-truth pixels.
-fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], truth: &[(usize, Vec<u16>)], surface_opacity: f32) -> Result<(), Error> {
+fn depth_errors(
+    dir: &Path,
+    boxes: &BoxSet,
+    model: &Model,
+    frames: &[&Frame],
+    truth: &[(usize, Vec<u16>)],
+    surface_opacity: f32,
+) -> Result<(), Error> {
     let unit = nerflabel::fixture::read_meta(dir)?.gt_depth_unit;
-    let opts = LabelOptions { source: DepthSource::Nerf, full_depth: true, surface_opacity, ..LabelOptions::default() };
+    let opts = LabelOptions {
+        source: DepthSource::Nerf,
+        full_depth: true,
+        surface_opacity,
+        ..LabelOptions::default()
+    };
     let labeler = Labeler::new(boxes, Some(model), opts)?;
     let t = Instant::now();
     let labels = labeler.label_frames(frames, &|_| {});
-    println!("full-frame depth (--depth): {:.1} frames/s", frames.len() as f64 / t.elapsed().as_secs_f64());
+    println!(
+        "full-frame depth (--depth): {:.1} frames/s",
+        frames.len() as f64 / t.elapsed().as_secs_f64()
+    );
     let mut per: std::collections::BTreeMap<u16, Vec<f64>> = Default::default();
     for (l, (_, gt)) in labels.iter().zip(truth) {
         let exact = read_gray16(&dir.join("gt/depth").join(format!("{}.png", l.name)))?;
@@ -176,7 +207,9 @@ fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], tr
         for i in 0..gt.len() {
             if gt[i] != 0 {
                 let z = exact[i] as f64 * unit;
-                per.entry(gt[i]).or_default().push(if depth[i] > 0.0 { depth[i] as f64 - z } else { f64::NAN });
+                per.entry(gt[i])
+                    .or_default()
+                    .push(if depth[i] > 0.0 { depth[i] as f64 - z } else { f64::NAN });
             }
         }
     }
@@ -186,18 +219,32 @@ fn depth_errors(dir: &Path, boxes: &BoxSet, model: &Model, frames: &[&Frame], tr
         let none = e.iter().filter(|v| v.is_nan()).count();
         e.retain(|v| !v.is_nan());
         e.sort_by(f64::total_cmp);
-        let q = |f: f64| e.get(((e.len() as f64 - 1.0) * f) as usize).map_or(f64::NAN, |v| v * 1000.0);
+        let q = |f: f64| {
+            e.get(((e.len() as f64 - 1.0) * f) as usize)
+                .map_or(f64::NAN, |v| v * 1000.0)
+        };
         let big = e.iter().filter(|v| v.abs() > 0.005).count();
         println!(
             "  {id}: {:5.1} {:7.1} {:6.1} {:6.1} {:6.1} {:7.1} {:5.1}",
-            100.0 * none as f64 / n as f64, q(0.05), q(0.25), q(0.5), q(0.75), q(0.95), 100.0 * big as f64 / n as f64
+            100.0 * none as f64 / n as f64,
+            q(0.05),
+            q(0.25),
+            q(0.5),
+            q(0.75),
+            q(0.95),
+            100.0 * big as f64 / n as f64
         );
     }
     Ok(())
 }
 
 /// Error images of every 10th frame.
-fn dump_errors(dir: &Path, source: DepthSource, labels: &[nerflabel::boxes::FrameLabel], truth: &[(usize, Vec<u16>)]) -> Result<(), Error> {
+fn dump_errors(
+    dir: &Path,
+    source: DepthSource,
+    labels: &[nerflabel::boxes::FrameLabel],
+    truth: &[(usize, Vec<u16>)],
+) -> Result<(), Error> {
     std::fs::create_dir_all(dir)?;
     for (l, (_, gt)) in labels.iter().zip(truth).step_by(10) {
         let rgb: Vec<u8> = l
@@ -232,7 +279,9 @@ fn main() -> Result<(), Error> {
                 .filter(|(_, f)| (1..=57).contains(&f.id))
                 .map(|(i, f)| (i, silhouette(f, &reference)))
                 .collect();
-            let model = args.model.clone().unwrap_or_else(|| std::env::temp_dir().join(format!("nerflabel-bench-cabinet-{}s.nlf", args.fit_seconds)));
+            let model = args.model.clone().unwrap_or_else(|| {
+                std::env::temp_dir().join(format!("nerflabel-bench-cabinet-{}s.nlf", args.fit_seconds))
+            });
             (scan, boxes, truth, model)
         }
         None => {
@@ -250,7 +299,10 @@ fn main() -> Result<(), Error> {
             let scan = load(&args.dir, &LoadOptions::default())?;
             let boxes = read_boxes(&args.dir.join(&args.boxes))?;
             let truth = fixture_truth(&args.dir, &scan, 1)?;
-            let model = args.model.clone().unwrap_or_else(|| args.dir.join(format!("nerflabel/bench-{}s.nlf", args.fit_seconds)));
+            let model = args
+                .model
+                .clone()
+                .unwrap_or_else(|| args.dir.join(format!("nerflabel/bench-{}s.nlf", args.fit_seconds)));
             (scan, boxes, truth, model)
         }
     };
@@ -284,22 +336,45 @@ fn main() -> Result<(), Error> {
     );
     let mut header = format!("{:<7} {:>8} {:>8} {:>7}", "source", "mIoU/frm", "box IoU", "frm/s");
     for b in &boxes.boxes {
-        header.push_str(&format!(" {:>9}", format!("{}:{}", b.instance_id, b.label).chars().take(9).collect::<String>()));
+        header.push_str(&format!(
+            " {:>9}",
+            format!("{}:{}", b.instance_id, b.label)
+                .chars()
+                .take(9)
+                .collect::<String>()
+        ));
     }
     println!("{header}   (per-object IoU aggregated over frames)");
     if args.depth_errors && args.cabinet.is_none() {
         depth_errors(&args.dir, &boxes, &model, &frames, &truth, args.opacity)?;
     }
     for source in DepthSource::ALL {
-        let opts = LabelOptions { source, fused_tolerance_cells: args.fused_cells, box_tolerance_cells: args.box_cells, surface_opacity: args.opacity, cleanup_fraction: args.cleanup, exact_boxes: args.exact_boxes, ..LabelOptions::default() };
+        let opts = LabelOptions {
+            source,
+            fused_tolerance_cells: args.fused_cells,
+            box_tolerance_cells: args.box_cells,
+            surface_opacity: args.opacity,
+            cleanup_fraction: args.cleanup,
+            exact_boxes: args.exact_boxes,
+            ..LabelOptions::default()
+        };
         let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, opts)?;
         if let Some(dir) = &args.dump {
             dump_errors(dir, source, &e.labels, &truth)?;
         }
         let per = e.scores.per_object();
-        let mut line = format!("{:<7} {:>8.4} {:>8.4} {:>7.1}", source.name(), e.scores.mean_frame_iou(), e.scores.mean_box_iou(), e.frames as f64 / e.seconds);
+        let mut line = format!(
+            "{:<7} {:>8.4} {:>8.4} {:>7.1}",
+            source.name(),
+            e.scores.mean_frame_iou(),
+            e.scores.mean_box_iou(),
+            e.frames as f64 / e.seconds
+        );
         for b in &boxes.boxes {
-            line.push_str(&format!(" {:>9.4}", per.get(&(b.instance_id as u16)).copied().unwrap_or(0.0)));
+            line.push_str(&format!(
+                " {:>9.4}",
+                per.get(&(b.instance_id as u16)).copied().unwrap_or(0.0)
+            ));
         }
         let c = e.scores.total_counts();
         line.push_str(&format!(

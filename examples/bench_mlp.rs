@@ -39,7 +39,10 @@ struct Rate {
 
 impl Rate {
     fn new(flops: f64, (best, median): (f64, f64)) -> Rate {
-        Rate { best: flops / best * 1e-9, median: flops / median * 1e-9 }
+        Rate {
+            best: flops / best * 1e-9,
+            median: flops / median * 1e-9,
+        }
     }
 
     fn show(self, peak: f64) -> String {
@@ -80,8 +83,22 @@ fn main() {
     println!("1 thread; GFLOP/s of the best call (median call), % of peak from the best call;");
     println!("backward includes d_input; fwd+bwd FLOPs = 3 x forward.");
     let nets = [
-        ("density 32->64->16", MlpConfig { input: 32, hidden: vec![64], output: 16 }),
-        ("colour 32->64->64->3", MlpConfig { input: 32, hidden: vec![64, 64], output: 3 }),
+        (
+            "density 32->64->16",
+            MlpConfig {
+                input: 32,
+                hidden: vec![64],
+                output: 16,
+            },
+        ),
+        (
+            "colour 32->64->64->3",
+            MlpConfig {
+                input: 32,
+                hidden: vec![64, 64],
+                output: 3,
+            },
+        ),
     ];
     println!("\nn = 4096");
     println!("{:<22} {:<9} {:<24} {:<24}", "network", "kernel", "fwd+bwd", "fwd only");
@@ -93,15 +110,25 @@ fn main() {
             }
             let share = if kernel == MlpKernel::Scalar { 0.5 } else { 1.0 };
             let (train, fwd) = measure(&mlp, 4096, budget * share);
-            println!("{name:<22} {:<9} {:<24} {:<24}", kernel.name(), train.show(peak), fwd.show(peak));
+            println!(
+                "{name:<22} {:<9} {:<24} {:<24}",
+                kernel.name(),
+                train.show(peak),
+                fwd.show(peak)
+            );
         }
     }
     println!("\nfwd+bwd by batch size ({})", MlpKernel::best().name());
-    println!("{:<22} {:<24} {:<24} {:<24}", "network", "n = 1024", "n = 16384", "n = 1000 (tail)");
+    println!(
+        "{:<22} {:<24} {:<24} {:<24}",
+        "network", "n = 1024", "n = 16384", "n = 1000 (tail)"
+    );
     for (name, config) in &nets {
         let mlp = Mlp::new(config.clone(), &mut Rng::new(7, 0));
-        let row: Vec<String> =
-            [1024, 16384, 1000].iter().map(|&n| measure(&mlp, n, budget * 0.5).0.show(peak)).collect();
+        let row: Vec<String> = [1024, 16384, 1000]
+            .iter()
+            .map(|&n| measure(&mlp, n, budget * 0.5).0.show(peak))
+            .collect();
         println!("{name:<22} {:<24} {:<24} {:<24}", row[0], row[1], row[2]);
     }
 }

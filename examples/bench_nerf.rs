@@ -5,13 +5,13 @@
 //!
 //! cargo run --release --example bench_nerf
 
-use nerflabel::nerf::train::fit::{fit, FitOptions};
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::field::hash_grid::{GridGrad, HashGrid, HashGridConfig};
 use nerflabel::nerf::field::mlp::{Mlp, MlpConfig, MlpWorkspace};
-use nerflabel::nerf::render::rays::render_pixels;
 use nerflabel::nerf::field::simd;
+use nerflabel::nerf::render::rays::render_pixels;
 use nerflabel::nerf::render::view::ViewRenderer;
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::rng::Rng;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
@@ -34,8 +34,22 @@ fn main() -> anyhow::Result<()> {
 
     let n = 4096;
     for (name, cfg) in [
-        ("density 32-64-16", MlpConfig { input: 32, hidden: vec![64], output: 16 }),
-        ("colour 32-64-64-3", MlpConfig { input: 32, hidden: vec![64, 64], output: 3 }),
+        (
+            "density 32-64-16",
+            MlpConfig {
+                input: 32,
+                hidden: vec![64],
+                output: 16,
+            },
+        ),
+        (
+            "colour 32-64-64-3",
+            MlpConfig {
+                input: 32,
+                hidden: vec![64, 64],
+                output: 3,
+            },
+        ),
     ] {
         let mlp = Mlp::new(cfg.clone(), &mut rng);
         let input: Vec<f32> = (0..cfg.input * n).map(|_| rng.f32() - 0.5).collect();
@@ -50,7 +64,10 @@ fn main() -> anyhow::Result<()> {
         });
         let flops = (mlp.flops_forward_per_sample() + mlp.flops_backward_per_sample()) as f64 * n as f64;
         let gflops = flops / secs / 1e9;
-        println!("MLP {name} fwd+bwd, n={n}, 1 thread: {gflops:.1} GFLOP/s = {:.0} % of peak", 100.0 * gflops / peak);
+        println!(
+            "MLP {name} fwd+bwd, n={n}, 1 thread: {gflops:.1} GFLOP/s = {:.0} % of peak",
+            100.0 * gflops / peak
+        );
     }
 
     let grid = HashGrid::new(HashGridConfig::for_scene(2.0, 0.015), &mut rng);
@@ -64,11 +81,22 @@ fn main() -> anyhow::Result<()> {
         grid.backward(&pos, &d_enc, &mut g);
         g.clear();
     });
-    println!("hash grid encode+backward (tabletop size, random points), 1 thread: {:.2} M samples/s", m as f64 / secs / 1e6);
+    println!(
+        "hash grid encode+backward (tabletop size, random points), 1 thread: {:.2} M samples/s",
+        m as f64 / secs / 1e6
+    );
 
     let fixture = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     let mut scan = nerflabel::scan::load(&fixture, &Default::default())?;
-    let options = FitOptions { settings: FitSettings { holdout_every: 0, ..FitSettings::default() }, steps: Some(200), time: None, ..FitOptions::default() };
+    let options = FitOptions {
+        settings: FitSettings {
+            holdout_every: 0,
+            ..FitSettings::default()
+        },
+        steps: Some(200),
+        time: None,
+        ..FitOptions::default()
+    };
     let outcome = fit(&mut scan, &options, &AtomicBool::new(false), &mut |_| {})?;
     let r = &outcome.report;
     println!(

@@ -18,11 +18,11 @@
 //! Fixtures and models are kept in DIR (default: the temp folder) and reused.
 
 use nerflabel::boxes::{read_boxes, DepthSource, LabelOptions, Overlap};
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, LabelEvaluation};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
-use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{load, LoadOptions};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -69,9 +69,7 @@ fn parse_args() -> Result<Args, Error> {
                     .map(|s| s.parse::<SceneKind>().map_err(|e| e.to_string()))
                     .collect::<Result<_, _>>()?
             }
-            "--seeds" => {
-                args.seeds = value("--seeds")?.split(',').map(str::parse).collect::<Result<_, _>>()?
-            }
+            "--seeds" => args.seeds = value("--seeds")?.split(',').map(str::parse).collect::<Result<_, _>>()?,
             "--fit-seconds" => args.fit_seconds = value("--fit-seconds")?.parse()?,
             "--every" => args.every = value("--every")?.parse()?,
             "--dir" => args.dir = value("--dir")?.into(),
@@ -123,10 +121,22 @@ fn main() -> Result<(), Error> {
                 Model::load(&model_path)?
             } else {
                 eprintln!("fitting {scene} seed {seed} for {} s", args.fit_seconds);
-                let opts = FitOptions { settings: FitSettings { seed, refine_poses: args.refine_poses, ..FitSettings::default() }, time: Some(args.fit_seconds), ..FitOptions::default() };
+                let opts = FitOptions {
+                    settings: FitSettings {
+                        seed,
+                        refine_poses: args.refine_poses,
+                        ..FitSettings::default()
+                    },
+                    time: Some(args.fit_seconds),
+                    ..FitOptions::default()
+                };
                 let t = Instant::now();
                 let out = fit(&mut fitted_scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
-                eprintln!("  {} steps in {:.0} s", out.model.header.steps, t.elapsed().as_secs_f64());
+                eprintln!(
+                    "  {} steps in {:.0} s",
+                    out.model.header.steps,
+                    t.elapsed().as_secs_f64()
+                );
                 out.model.save(&model_path)?;
                 out.model
             };
@@ -157,9 +167,17 @@ fn main() -> Result<(), Error> {
             for (drawing, file) in [("snug", "boxes_user.json"), ("loose", "boxes_loose.json")] {
                 let boxes = read_boxes(&dir.join("gt").join(file))?;
                 let scan_for = |s: DepthSource| if s.needs_model() { &fitted_scan } else { &scan };
-                let runs = DepthSource::ALL.into_iter().map(|s| (s.name(), s, scan_for(s))).chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
+                let runs = DepthSource::ALL
+                    .into_iter()
+                    .map(|s| (s.name(), s, scan_for(s)))
+                    .chain(tsdf_scan.iter().map(|c| ("tsdf", DepthSource::Sensor, c)));
                 for (name, source, scan) in runs {
-                    let opts = LabelOptions { source, exact_boxes: args.exact_boxes, overlap: args.overlap, ..LabelOptions::default() };
+                    let opts = LabelOptions {
+                        source,
+                        exact_boxes: args.exact_boxes,
+                        overlap: args.overlap,
+                        ..LabelOptions::default()
+                    };
                     let e = evaluate_labels(scan, &boxes, Some(&model), &truth, opts)?;
                     print_line(&scene.to_string(), seed, drawing, name, &e);
                     if args.objects {
@@ -177,7 +195,12 @@ fn main() -> Result<(), Error> {
             }
         }
     }
-    println!("\nMeans over {} scene(s) x {} seed(s), fit {} s:\n", args.scenes.len(), args.seeds.len(), args.fit_seconds);
+    println!(
+        "\nMeans over {} scene(s) x {} seed(s), fit {} s:\n",
+        args.scenes.len(),
+        args.seeds.len(),
+        args.fit_seconds
+    );
     println!("| boxes | source | mIoU | predicted/true px | FP:FN | boundary F (2 px) |");
     println!("|---|---|---|---|---|---|");
     for ((drawing, source), s) in &summary {
@@ -211,7 +234,11 @@ fn print_line(scene: &str, seed: u64, drawing: &str, source: &str, e: &LabelEval
 
 fn print_objects(e: &LabelEvaluation, boxes: &nerflabel::boxes::BoxSet) {
     for (id, c) in e.scores.object_counts() {
-        let label = boxes.boxes.iter().find(|b| b.instance_id == *id as u32).map_or("?", |b| b.label.as_str());
+        let label = boxes
+            .boxes
+            .iter()
+            .find(|b| b.instance_id == *id as u32)
+            .map_or("?", |b| b.label.as_str());
         println!(
             "    {id}:{label:<8} IoU {:.4}  ratio {:.3}  FP {:>7}  FN {:>7}  bF {:.3}",
             c.iou(),

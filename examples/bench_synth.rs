@@ -21,16 +21,16 @@ use arrow_array::types::{Float64Type, Int32Type};
 use glam::DMat4;
 use image::DynamicImage;
 use nerflabel::boxes::read_boxes;
-use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
-use nerflabel::nerf::train::fit::{fit, FitOptions};
-use nerflabel::nerf::train::metrics::{depth_mae, psnr, ssim};
-use nerflabel::nerf::model_file::Model;
-use nerflabel::scan::{load, Intrinsics, LoadOptions};
 use nerflabel::boxes::BoxClassifier;
+use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
+use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
-use nerflabel::synth::triplet::{clean_instances, instance_mask};
+use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::metrics::{depth_mae, psnr, ssim};
 use nerflabel::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
+use nerflabel::scan::{load, Intrinsics, LoadOptions};
+use nerflabel::synth::triplet::{clean_instances, instance_mask};
 use nerflabel::synth::{read_poses, synthesize, Instances, SynthOptions, SynthProgress, SynthSummary, ViewSpec};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::collections::BTreeMap;
@@ -99,10 +99,20 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
             let kv = k.as_fixed_size_list().value(i);
             let kv = kv.as_primitive::<Float64Type>().values().to_vec();
             let m = pose.as_fixed_size_list().value(i);
-            let m: [f64; 16] = m.as_primitive::<Float64Type>().values().to_vec().try_into().map_err(|_| "pose")?;
+            let m: [f64; 16] = m
+                .as_primitive::<Float64Type>()
+                .values()
+                .to_vec()
+                .try_into()
+                .map_err(|_| "pose")?;
             let spec = ViewSpec {
                 camera_to_world: DMat4::from_cols_array(&m).transpose(),
-                intrinsics: Intrinsics { fx: kv[0], fy: kv[1], cx: kv[2], cy: kv[3] },
+                intrinsics: Intrinsics {
+                    fx: kv[0],
+                    fy: kv[1],
+                    cx: kv[2],
+                    cy: kv[3],
+                },
                 width: w.as_primitive::<Int32Type>().value(i) as u32,
                 height: h.as_primitive::<Int32Type>().value(i) as u32,
             };
@@ -117,7 +127,12 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
                 DynamicImage::ImageLuma16(m) => m.into_raw(),
                 _ => return Err("mask PNG is not single-channel".into()),
             };
-            rows.push(Row { spec, rgb, depth_m, mask });
+            rows.push(Row {
+                spec,
+                rgb,
+                depth_m,
+                mask,
+            });
         }
     }
     Ok(rows)
@@ -141,15 +156,22 @@ fn add_iou(counts: &mut IouCounts, pred: &[u16], truth: &[u16]) {
 }
 
 fn mean_iou(counts: &IouCounts) -> f64 {
-    let ious: Vec<f64> = counts.values().map(|&(i, p, g)| i as f64 / (p + g - i).max(1) as f64).collect();
+    let ious: Vec<f64> = counts
+        .values()
+        .map(|&(i, p, g)| i as f64 / (p + g - i).max(1) as f64)
+        .collect();
     ious.iter().sum::<f64>() / ious.len().max(1) as f64
 }
 
 /// CPU seconds (user + system) used by this process so far; 0 where /proc is missing.
 fn cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
     // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { return 0.0 };
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return 0.0;
+    };
     let f: Vec<&str> = rest.split_whitespace().collect();
     let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
     (ticks(11) + ticks(12)) / 100.0
@@ -157,7 +179,10 @@ fn cpu_seconds() -> f64 {
 
 /// The 1-minute load average.
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg").ok().and_then(|l| l.split_whitespace().next().map(str::to_string)).unwrap_or_default()
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|l| l.split_whitespace().next().map(str::to_string))
+        .unwrap_or_default()
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -180,9 +205,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         model
     } else {
         let t = Instant::now();
-        let opts = FitOptions { time: Some(args.time), ..FitOptions::default() };
+        let opts = FitOptions {
+            time: Some(args.time),
+            ..FitOptions::default()
+        };
         let outcome = fit(&mut scan, &opts, &AtomicBool::new(false), &mut |_| {})?;
-        eprintln!("fitted {} steps in {:.1} s", outcome.report.counters.steps, t.elapsed().as_secs_f64());
+        eprintln!(
+            "fitted {} steps in {:.1} s",
+            outcome.report.counters.steps,
+            t.elapsed().as_secs_f64()
+        );
         outcome.model.save(&model_path)?;
         outcome.model
     };
@@ -215,15 +247,27 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let prepare_s = prepared.into_inner().unwrap_or(0.0);
     let cpu_s = cpu_seconds() - cpu;
     let load_after = load_average();
-    println!("| synth on the tabletop fixture ({} frames, model {:.0} s) | value |", scan.frames.len(), args.time);
+    println!(
+        "| synth on the tabletop fixture ({} frames, model {:.0} s) | value |",
+        scan.frames.len(),
+        args.time
+    );
     println!("|---|---|");
     println!("| sampled views {}x{} | {} |", args.width, args.height, speed.views);
     println!("| seconds (incl. cloud, k-d tree, probes) | {:.1} |", speed.seconds);
     println!("| views/s | {:.2} |", speed.views_per_s);
-    println!("| CPU seconds (user + system) | {cpu_s:.1} ({:.2} per view) |", cpu_s / speed.views.max(1) as f64);
+    println!(
+        "| CPU seconds (user + system) | {cpu_s:.1} ({:.2} per view) |",
+        cpu_s / speed.views.max(1) as f64
+    );
     println!("| load average before / after | {load_before} / {load_after} |");
     println!("| of which set-up (cloud, k-d tree, clearance) | {prepare_s:.1} s |");
-    println!("| candidates / rejected | {} / {} ({}) |", speed.attempts, speed.rejections.total(), speed.rejections);
+    println!(
+        "| candidates / rejected | {} / {} ({}) |",
+        speed.attempts,
+        speed.rejections.total(),
+        speed.rejections
+    );
     println!("| clearance | {:.3} m |", speed.clearance_m.unwrap_or(0.0));
     println!("| file size | {:.1} MB |", speed.bytes as f64 / 1e6);
     if args.speed_only {
@@ -246,16 +290,30 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let poses_path = out_dir.join("bench_holdout_poses.json");
     std::fs::write(&poses_path, serde_json::json!({ "views": views }).to_string())?;
     let held_path = out_dir.join("bench_holdout.parquet");
-    let opts = SynthOptions { poses: Some(read_poses(&poses_path)?), model_checksum: checksum, ..SynthOptions::default() };
+    let opts = SynthOptions {
+        poses: Some(read_poses(&poses_path)?),
+        model_checksum: checksum,
+        ..SynthOptions::default()
+    };
     let held: SynthSummary = synthesize(&scan, &model, Some(&boxes), &opts, &held_path, &|_| {}, &stop)?;
 
     let (mut p, mut s, mut mae, mut mae_n) = (0.0, 0.0, 0.0, 0);
     let mut held_iou = IouCounts::new();
     let rows = read_rows(&held_path, usize::MAX)?;
     for row in &rows {
-        let gt = scene.render(&row.spec.camera_to_world, &row.spec.intrinsics, row.spec.width, row.spec.height);
+        let gt = scene.render(
+            &row.spec.camera_to_world,
+            &row.spec.intrinsics,
+            row.spec.width,
+            row.spec.height,
+        );
         p += psnr(&row.rgb, gt.rgb.as_raw());
-        s += ssim(&row.rgb, gt.rgb.as_raw(), row.spec.width as usize, row.spec.height as usize);
+        s += ssim(
+            &row.rgb,
+            gt.rgb.as_raw(),
+            row.spec.width as usize,
+            row.spec.height as usize,
+        );
         if let Some(e) = depth_mae(&row.depth_m, &gt.depth) {
             mae += e;
             mae_n += 1;
@@ -266,7 +324,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut sampled_iou = IouCounts::new();
     let sampled = read_rows(&sampled_path, 50)?;
     for row in &sampled {
-        let gt = scene.render(&row.spec.camera_to_world, &row.spec.intrinsics, row.spec.width, row.spec.height);
+        let gt = scene.render(
+            &row.spec.camera_to_world,
+            &row.spec.intrinsics,
+            row.spec.width,
+            row.spec.height,
+        );
         add_iou(&mut sampled_iou, &row.mask, &gt.instance);
     }
 
@@ -275,16 +338,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let renderer = ViewRenderer::pruned(&model)?;
     let t_prune = t.elapsed().as_secs_f64();
     let classifier = BoxClassifier::new(&boxes);
-    let instances =
-        Instances { classify: &|p| classifier.classify(p), labels: boxes.boxes.iter().map(|b| b.label.clone()).collect() };
-    let (mut t_render, mut t_mask, mut t_png, mut rays, mut opaque, mut samples) = (0.0, 0.0, 0.0, 0usize, 0usize, 0u64);
+    let instances = Instances {
+        classify: &|p| classifier.classify(p),
+        labels: boxes.boxes.iter().map(|b| b.label.clone()).collect(),
+    };
+    let (mut t_render, mut t_mask, mut t_png, mut rays, mut opaque, mut samples) =
+        (0.0, 0.0, 0.0, 0usize, 0usize, 0u64);
     for row in sampled.iter().take(16) {
         let spec = &row.spec;
         let t = Instant::now();
         let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height, true);
         t_render += t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let mut mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, spec.width, instances.classify);
+        let mut mask = instance_mask(
+            &view.depth_m,
+            &spec.camera_to_world,
+            &spec.intrinsics,
+            spec.width,
+            instances.classify,
+        );
         clean_instances(&mut mask, spec.width, spec.height);
         t_mask += t.elapsed().as_secs_f64();
         let t = Instant::now();
@@ -300,20 +372,38 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let per = 1.0 / sampled.len().clamp(1, 16) as f64;
 
-    println!("| per view: render (all threads) | {:.0} ms ({:.2} M rays/s, {:.0} % opaque) |", t_render * per * 1e3, rays as f64 / t_render / 1e6, 100.0 * opaque as f64 / rays.max(1) as f64);
+    println!(
+        "| per view: render (all threads) | {:.0} ms ({:.2} M rays/s, {:.0} % opaque) |",
+        t_render * per * 1e3,
+        rays as f64 / t_render / 1e6,
+        100.0 * opaque as f64 / rays.max(1) as f64
+    );
     println!("| mean samples per ray | {:.1} |", samples as f64 / rays.max(1) as f64);
     println!("| set-up: pruned grid (all threads) | {t_prune:.1} s |");
     println!("| per view: mask (1 thread) | {:.1} ms |", t_mask * per * 1e3);
     println!("| per view: 3 PNGs (1 thread) | {:.1} ms |", t_png * per * 1e3);
-    println!("| held-out views via --poses | {} ({:.1} s) |", held.views, held.seconds);
+    println!(
+        "| held-out views via --poses | {} ({:.1} s) |",
+        held.views, held.seconds
+    );
     println!("| PSNR | {:.2} dB |", p / n);
     println!("| SSIM | {:.3} |", s / n);
     println!("| depth MAE | {:.1} mm |", mae / f64::from(mae_n.max(1)) * 1e3);
     println!("| mask mIoU (held-out) | {:.3} |", mean_iou(&held_iou));
     for (id, &(i, p, g)) in &held_iou {
-        let label = boxes.boxes.get(usize::from(*id).saturating_sub(1)).map_or("?", |b| b.label.as_str());
-        println!("| mask IoU (held-out) of {id} ({label}) | {:.3} |", i as f64 / (p + g - i).max(1) as f64);
+        let label = boxes
+            .boxes
+            .get(usize::from(*id).saturating_sub(1))
+            .map_or("?", |b| b.label.as_str());
+        println!(
+            "| mask IoU (held-out) of {id} ({label}) | {:.3} |",
+            i as f64 / (p + g - i).max(1) as f64
+        );
     }
-    println!("| mask mIoU (first {} sampled views) | {:.3} |", sampled.len(), mean_iou(&sampled_iou));
+    println!(
+        "| mask mIoU (first {} sampled views) | {:.3} |",
+        sampled.len(),
+        mean_iou(&sampled_iou)
+    );
     Ok(())
 }

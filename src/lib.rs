@@ -7,26 +7,29 @@
 //! project's own procedural scene generator with exact ground truth.
 //! The library never prints; the CLI in `main.rs` owns all output.
 
+pub mod atomic;
 pub mod boxes;
 pub mod evaluate;
 pub mod fixture;
+pub mod mask;
 pub mod nerf;
+pub mod outputs;
 pub mod plot;
+pub mod png_encode;
 pub mod poses;
+pub mod rng;
 pub mod scan;
 pub mod synth;
-pub mod atomic;
-pub mod mask;
-pub mod outputs;
-pub mod png_encode;
-pub mod rng;
 
 /// The names an option enum takes on the command line, for error messages
 /// of the library's own parsers (`native, tum, ...`): the same list `--help`
 /// shows, from the one `clap::ValueEnum` declaration.
 pub fn value_names<T: clap::ValueEnum>() -> String {
-    let names: Vec<String> =
-        T::value_variants().iter().filter_map(|v| v.to_possible_value()).map(|v| v.get_name().to_string()).collect();
+    let names: Vec<String> = T::value_variants()
+        .iter()
+        .filter_map(|v| v.to_possible_value())
+        .map(|v| v.get_name().to_string())
+        .collect();
     names.join(", ")
 }
 

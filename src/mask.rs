@@ -11,7 +11,12 @@ pub(crate) struct Components {
 }
 
 pub(crate) fn components(mask: &[u16], w: usize, h: usize) -> Components {
-    let mut c = Components { label: vec![u32::MAX; mask.len()], value: Vec::new(), size: Vec::new(), border: Vec::new() };
+    let mut c = Components {
+        label: vec![u32::MAX; mask.len()],
+        value: Vec::new(),
+        size: Vec::new(),
+        border: Vec::new(),
+    };
     let mut stack = Vec::new();
     for start in 0..mask.len() {
         if c.label[start] != u32::MAX {

@@ -101,7 +101,9 @@ mod tests {
         let (w, h) = (7, 5);
         let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect();
         let img = decode(&encode_rgb(&rgb, w, h).unwrap());
-        let DynamicImage::ImageRgb8(img) = img else { panic!("not RGB8") };
+        let DynamicImage::ImageRgb8(img) = img else {
+            panic!("not RGB8")
+        };
         assert_eq!(img.dimensions(), (w, h));
         assert_eq!(img.into_raw(), rgb);
     }

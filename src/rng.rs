@@ -60,9 +60,24 @@ mod tests {
 
     #[test]
     fn same_seed_same_sequence_and_streams_differ() {
-        let a: Vec<u64> = (0..4).map({ let mut r = Rng::new(7, 0); move |_| r.u64() }).collect();
-        let b: Vec<u64> = (0..4).map({ let mut r = Rng::new(7, 0); move |_| r.u64() }).collect();
-        let c: Vec<u64> = (0..4).map({ let mut r = Rng::new(7, 1); move |_| r.u64() }).collect();
+        let a: Vec<u64> = (0..4)
+            .map({
+                let mut r = Rng::new(7, 0);
+                move |_| r.u64()
+            })
+            .collect();
+        let b: Vec<u64> = (0..4)
+            .map({
+                let mut r = Rng::new(7, 0);
+                move |_| r.u64()
+            })
+            .collect();
+        let c: Vec<u64> = (0..4)
+            .map({
+                let mut r = Rng::new(7, 1);
+                move |_| r.u64()
+            })
+            .collect();
         assert_eq!(a, b);
         assert_ne!(a, c);
     }

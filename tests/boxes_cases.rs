@@ -10,12 +10,12 @@
 //! runs the rendered (nerf) path.
 
 use glam::{DMat3, DVec3};
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::boxes::{
     read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions,
 };
-use nerflabel::nerf::train::settings::Preset;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
+use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::nerf::train::settings::Preset;
 use nerflabel::scan::{load, LoadOptions, Scan};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -331,8 +331,19 @@ fn box_behind_every_camera_is_warned_about_and_gets_no_pixel() {
 #[test]
 fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
     // A few training steps are enough: this checks the rendering path, not accuracy.
-    let opts = FitOptions { settings: FitSettings { preset: Preset::Fast, holdout_every: 0, refine_poses: false, ..FitSettings::default() }, steps: Some(5), ..FitOptions::default() };
-    let model = fit(&mut scan().clone(), &opts, &AtomicBool::new(false), &mut |_| {}).unwrap().model;
+    let opts = FitOptions {
+        settings: FitSettings {
+            preset: Preset::Fast,
+            holdout_every: 0,
+            refine_poses: false,
+            ..FitSettings::default()
+        },
+        steps: Some(5),
+        ..FitOptions::default()
+    };
+    let model = fit(&mut scan().clone(), &opts, &AtomicBool::new(false), &mut |_| {})
+        .unwrap()
+        .model;
     let boxes = set(vec![enclosing(), behind_every_camera()]);
     let options = LabelOptions {
         source: DepthSource::Nerf,

@@ -5,7 +5,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn nerflabel(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(args).output().expect("the binary runs")
+    Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
 }
 
 fn shared_data() -> Option<PathBuf> {
@@ -61,23 +64,36 @@ fn info_on_the_real_cabinet_scan_reports_58_frames_and_bounds_around_its_box() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("58 (58 with depth)"), "{text}");
     // The printed bounds enclose every corner of boxes.json's box.
-    let line = text.lines().find(|l| l.starts_with("scene bounds:")).expect("bounds line");
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("scene bounds:"))
+        .expect("bounds line");
     let nums: Vec<f64> = line
         .split(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-'))
         .filter_map(|s| s.parse().ok())
         .collect();
     assert!(nums.len() >= 6, "{line}");
     let (lo, hi) = (&nums[0..3], &nums[3..6]);
-    let boxes: serde_json::Value = serde_json::from_slice(&std::fs::read(scan_dir.join("boxes.json")).unwrap()).unwrap();
+    let boxes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scan_dir.join("boxes.json")).unwrap()).unwrap();
     let b = &boxes["boxes"][0];
     let c: Vec<f64> = (0..3).map(|i| b["center"][i].as_f64().unwrap()).collect();
     let s: Vec<f64> = (0..3).map(|i| b["size"][i].as_f64().unwrap()).collect();
-    let r: Vec<Vec<f64>> = (0..3).map(|i| (0..3).map(|j| b["rotation"][i][j].as_f64().unwrap()).collect()).collect();
+    let r: Vec<Vec<f64>> = (0..3)
+        .map(|i| (0..3).map(|j| b["rotation"][i][j].as_f64().unwrap()).collect())
+        .collect();
     for corner in 0..8 {
-        let sign = [(corner & 1) as f64 * 2.0 - 1.0, ((corner >> 1) & 1) as f64 * 2.0 - 1.0, ((corner >> 2) & 1) as f64 * 2.0 - 1.0];
+        let sign = [
+            (corner & 1) as f64 * 2.0 - 1.0,
+            ((corner >> 1) & 1) as f64 * 2.0 - 1.0,
+            ((corner >> 2) & 1) as f64 * 2.0 - 1.0,
+        ];
         for axis in 0..3 {
             let p = c[axis] + (0..3).map(|k| r[axis][k] * sign[k] * s[k] / 2.0).sum::<f64>();
-            assert!(p >= lo[axis] - 1e-3 && p <= hi[axis] + 1e-3, "corner {corner} axis {axis}: {p} outside {line}");
+            assert!(
+                p >= lo[axis] - 1e-3 && p <= hi[axis] + 1e-3,
+                "corner {corner} axis {axis}: {p} outside {line}"
+            );
         }
     }
 }
@@ -89,10 +105,30 @@ fn committed_fixture_matches_its_regeneration_and_reprojects_within_millimetres(
     let dir = tempfile::tempdir().unwrap();
     let fresh = dir.path().join("small");
     // The command recorded in fixtures/README.md.
-    let out = nerflabel(&["fixture", "--scene", "small", fresh.to_str().unwrap(), "--width", "160", "--height", "120"]);
+    let out = nerflabel(&[
+        "fixture",
+        "--scene",
+        "small",
+        fresh.to_str().unwrap(),
+        "--width",
+        "160",
+        "--height",
+        "120",
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for rel in ["rgb/000003.png", "depth/000003.png", "pose/000003.txt", "intrinsics.txt", "boxes.json", "gt/masks/000003.png"] {
-        assert_eq!(std::fs::read(committed.join(rel)).unwrap(), std::fs::read(fresh.join(rel)).unwrap(), "{rel} differs");
+    for rel in [
+        "rgb/000003.png",
+        "depth/000003.png",
+        "pose/000003.txt",
+        "intrinsics.txt",
+        "boxes.json",
+        "gt/masks/000003.png",
+    ] {
+        assert_eq!(
+            std::fs::read(committed.join(rel)).unwrap(),
+            std::fs::read(fresh.join(rel)).unwrap(),
+            "{rel} differs"
+        );
     }
     // A depth point of frame A projected into frame B lands on B's depth.
     let scan = nerflabel::scan::load(&committed, &Default::default()).unwrap();
@@ -107,9 +143,13 @@ fn committed_fixture_matches_its_regeneration_and_reprojects_within_millimetres(
             if z <= 0.0 {
                 continue;
             }
-            let p_world = a.camera_to_world.transform_point3(a.intrinsics.unproject(u as f64, v as f64) * z);
+            let p_world = a
+                .camera_to_world
+                .transform_point3(a.intrinsics.unproject(u as f64, v as f64) * z);
             let p_b = world_to_b.transform_point3(p_world);
-            let Some((ub, vb)) = b.intrinsics.project(p_b) else { continue };
+            let Some((ub, vb)) = b.intrinsics.project(p_b) else {
+                continue;
+            };
             let (ui, vi) = (ub.round(), vb.round());
             if ui < 0.0 || vi < 0.0 || ui >= w as f64 || vi >= h as f64 {
                 continue;
@@ -135,7 +175,11 @@ fn cloud_writes_a_binary_ply_of_the_fixture_inside_its_bounds() {
     let out = nerflabel(&["cloud", fixture.to_str().unwrap(), "-o", ply.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let bytes = std::fs::read(&ply).unwrap();
-    let header_end = bytes.windows(11).position(|w| w == b"end_header\n").expect("PLY header") + 11;
+    let header_end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("PLY header")
+        + 11;
     let header = String::from_utf8_lossy(&bytes[..header_end]);
     assert!(header.starts_with("ply\nformat binary_little_endian 1.0\n"), "{header}");
     let count: usize = header
@@ -161,8 +205,15 @@ fn cloud_writes_a_binary_ply_of_the_fixture_inside_its_bounds() {
 fn output_into_a_closed_pipe_does_not_panic() {
     let small = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     // `true` exits before the scan is read, so every line goes into a closed pipe.
-    let script = format!("'{}' info '{}' | true", env!("CARGO_BIN_EXE_nerflabel"), small.display());
+    let script = format!(
+        "'{}' info '{}' | true",
+        env!("CARGO_BIN_EXE_nerflabel"),
+        small.display()
+    );
     let out = std::process::Command::new("sh").args(["-c", &script]).output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!stderr.contains("panicked") && !stderr.contains("Broken pipe"), "{stderr}");
+    assert!(
+        !stderr.contains("panicked") && !stderr.contains("Broken pipe"),
+        "{stderr}"
+    );
 }

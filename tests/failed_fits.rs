@@ -5,7 +5,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(args).output().expect("the binary runs")
+    Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
 }
 
 fn stderr(o: &Output) -> String {
@@ -34,9 +37,21 @@ fn non_finite_or_negative_depth_weights_are_refused_before_work() {
     let model = dir.path().join("m.nlf");
     for bad in ["nan", "inf", "-1"] {
         let flag = format!("--lambda-depth={bad}");
-        let o = run(&["fit", scan.to_str().unwrap(), "--steps", "2", &flag, "--model", model.to_str().unwrap()]);
+        let o = run(&[
+            "fit",
+            scan.to_str().unwrap(),
+            "--steps",
+            "2",
+            &flag,
+            "--model",
+            model.to_str().unwrap(),
+        ]);
         assert!(!o.status.success(), "--lambda-depth {bad} must be refused");
-        assert!(stderr(&o).contains("--lambda-depth must be a finite number >= 0"), "{}", stderr(&o));
+        assert!(
+            stderr(&o).contains("--lambda-depth must be a finite number >= 0"),
+            "{}",
+            stderr(&o)
+        );
         assert!(!model.exists());
     }
 }
@@ -49,13 +64,29 @@ fn bounds_away_from_the_scene_are_refused_naming_bbox_txt() {
     let scan = small_scan(dir.path());
     std::fs::write(scan.join("bbox.txt"), "100 100 100 101 101 101\n").unwrap();
     let model = dir.path().join("m.nlf");
-    let o = run(&["fit", scan.to_str().unwrap(), "--steps", "2", "--model", model.to_str().unwrap()]);
+    let o = run(&[
+        "fit",
+        scan.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--model",
+        model.to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
     let msg = stderr(&o);
     assert!(msg.contains("bbox.txt") && msg.contains("miss the scene"), "{msg}");
     assert!(!model.exists());
     // Bounds around the scene are fine.
     std::fs::write(scan.join("bbox.txt"), "-3 -3 -3 3 3 3\n").unwrap();
-    let o = run(&["fit", scan.to_str().unwrap(), "--steps", "2", "--preset", "fast", "--model", model.to_str().unwrap()]);
+    let o = run(&[
+        "fit",
+        scan.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--preset",
+        "fast",
+        "--model",
+        model.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
 }

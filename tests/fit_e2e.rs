@@ -3,8 +3,8 @@
 //! fixture's held-out views.
 
 use nerflabel::evaluate::score_holdout;
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::settings::FitSettings;
 use std::path::Path;
 use std::process::Command;
 
@@ -14,12 +14,21 @@ fn fit_on_the_small_fixture_meets_depth_and_colour_bounds() {
     let dir = tempfile::tempdir().unwrap();
     let model_path = dir.path().join("model.nlf");
     let out = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-        .args(["fit", fixture.to_str().unwrap(), "--steps", "250", "--seed", "1", "--model"])
+        .args([
+            "fit",
+            fixture.to_str().unwrap(),
+            "--steps",
+            "250",
+            "--seed",
+            "1",
+            "--model",
+        ])
         .arg(&model_path)
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
     assert_eq!(report["counters"]["steps"], 250);
     assert_eq!(report["counters"]["skipped_batches"], 0);
     let curve = report["curve"].as_array().unwrap();
@@ -30,7 +39,11 @@ fn fit_on_the_small_fixture_meets_depth_and_colour_bounds() {
     // An untrained or broken model renders ~10 dB and misses most surfaces.
     assert!(score.psnr > 21.0, "held-out PSNR {}", score.psnr);
     assert!(score.depth_mae_m < 0.02, "held-out depth MAE {} m", score.depth_mae_m);
-    assert!(score.depth_missing < 0.05, "surface missing on {} of pixels", score.depth_missing);
+    assert!(
+        score.depth_missing < 0.05,
+        "surface missing on {} of pixels",
+        score.depth_missing
+    );
 }
 
 #[test]
@@ -40,8 +53,20 @@ fn same_seed_gives_the_same_model_bytes() {
     let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
     let scan = nerflabel::scan::load(&fixture, &Default::default()).unwrap();
     let run = |seed| {
-        let options = FitOptions { settings: FitSettings { seed, holdout_every: 0, ..FitSettings::default() }, steps: Some(12), time: None, ..FitOptions::default() };
-        fit(&mut scan.clone(), &options, &AtomicBool::new(false), &mut |_| {}).unwrap().model.to_bytes()
+        let options = FitOptions {
+            settings: FitSettings {
+                seed,
+                holdout_every: 0,
+                ..FitSettings::default()
+            },
+            steps: Some(12),
+            time: None,
+            ..FitOptions::default()
+        };
+        fit(&mut scan.clone(), &options, &AtomicBool::new(false), &mut |_| {})
+            .unwrap()
+            .model
+            .to_bytes()
     };
     let (a, b, c) = (run(4), run(4), run(5));
     assert!(a == b, "same seed, different model");
@@ -66,16 +91,40 @@ fn time_budget_is_the_wall_time_of_the_whole_fit() {
         .unwrap();
     let command_s = started.elapsed().as_secs_f64();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
     let wall = report["timings"]["wall_s"].as_f64().unwrap();
     let train = report["timings"]["train_s"].as_f64().unwrap();
-    eprintln!("wall {wall:.2} s (command {command_s:.2} s), training {train:.2} s; {}", report["timings"]);
+    eprintln!(
+        "wall {wall:.2} s (command {command_s:.2} s), training {train:.2} s; {}",
+        report["timings"]
+    );
     assert!(wall <= 1.1 * budget, "the fit took {wall:.2} s of a {budget} s budget");
     // Writing the model and report, and starting the process, add little.
-    assert!(command_s <= 1.1 * budget + 1.0, "the command took {command_s:.2} s of a {budget} s budget");
-    assert!(wall >= 0.5 * budget, "the fit used only {wall:.2} s of a {budget} s budget");
-    assert!(train < wall, "training {train:.2} s is part of the wall time {wall:.2} s");
-    let seconds: Vec<f64> = report["curve"].as_array().unwrap().iter().map(|p| p["seconds"].as_f64().unwrap()).collect();
-    assert!(seconds.windows(2).all(|w| w[0] < w[1]), "curve seconds rise: {seconds:?}");
-    assert!(*seconds.last().unwrap() <= wall, "the last point lies within the fit: {seconds:?}");
+    assert!(
+        command_s <= 1.1 * budget + 1.0,
+        "the command took {command_s:.2} s of a {budget} s budget"
+    );
+    assert!(
+        wall >= 0.5 * budget,
+        "the fit used only {wall:.2} s of a {budget} s budget"
+    );
+    assert!(
+        train < wall,
+        "training {train:.2} s is part of the wall time {wall:.2} s"
+    );
+    let seconds: Vec<f64> = report["curve"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["seconds"].as_f64().unwrap())
+        .collect();
+    assert!(
+        seconds.windows(2).all(|w| w[0] < w[1]),
+        "curve seconds rise: {seconds:?}"
+    );
+    assert!(
+        *seconds.last().unwrap() <= wall,
+        "the last point lies within the fit: {seconds:?}"
+    );
 }

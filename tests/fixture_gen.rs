@@ -455,11 +455,7 @@ fn realistic_scans_have_jpeg_colour_pose_error_and_drawn_boxes() {
         );
     }
     let c = Corruptions::realistic();
-    assert!(
-        turn.iter()
-            .all(|&t| t > 0.0 && t < 4.0 * c.pose_sigma_deg),
-        "{turn:?}"
-    );
+    assert!(turn.iter().all(|&t| t > 0.0 && t < 4.0 * c.pose_sigma_deg), "{turn:?}");
     assert!(turn.iter().sum::<f64>() / 6.0 > 0.3 * c.pose_sigma_deg, "{turn:?}");
     // World-to-camera translation error also carries the rotation error times the distance (about 1 m).
     assert!(shift.iter().all(|&s| s > 1e-5 && s < 0.05), "{shift:?}");

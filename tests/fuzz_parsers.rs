@@ -23,14 +23,46 @@ use std::process::Command;
 const ITERS: usize = 300;
 
 fn long_iters() -> usize {
-    std::env::var("NERFLABEL_FUZZ_ITERS").ok().and_then(|s| s.parse().ok()).unwrap_or(20_000)
+    std::env::var("NERFLABEL_FUZZ_ITERS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20_000)
 }
 
 /// Tokens that tend to reach edge cases of number and JSON parsing.
 const TOKENS: &[&str] = &[
-    "nan", "NaN", "inf", "-inf", "1e400", "-1e400", "0", "-0", "-1", "1e-320", "18446744073709551616",
-    "99999999999999999999", "\n", " ", "\t", "\0", "#", "\"", "{", "}", "[", "]", ",", ":", "null", "true",
-    "\u{feff}", "é", "\r\n", "0x10", "4294967296", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]",
+    "nan",
+    "NaN",
+    "inf",
+    "-inf",
+    "1e400",
+    "-1e400",
+    "0",
+    "-0",
+    "-1",
+    "1e-320",
+    "18446744073709551616",
+    "99999999999999999999",
+    "\n",
+    " ",
+    "\t",
+    "\0",
+    "#",
+    "\"",
+    "{",
+    "}",
+    "[",
+    "]",
+    ",",
+    ":",
+    "null",
+    "true",
+    "\u{feff}",
+    "é",
+    "\r\n",
+    "0x10",
+    "4294967296",
+    "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]",
 ];
 
 /// Apply 1-4 random mutations to `bytes`.
@@ -86,7 +118,20 @@ fn no_panic_one_line<T, E: std::fmt::Display>(what: &str, f: impl FnOnce() -> Re
 fn fixture(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     let out = dir.join(name);
     let o = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-        .args(["fixture", "--scene", "small", "--width", "16", "--height", "12", "--frames", "3", "--holdout", "0", "--clean"])
+        .args([
+            "fixture",
+            "--scene",
+            "small",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--frames",
+            "3",
+            "--holdout",
+            "0",
+            "--clean",
+        ])
         .args(extra)
         .arg(&out)
         .output()
@@ -98,22 +143,37 @@ fn fixture(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
 /// Mutate `file` inside the scan `root` `iters` times, loading the scan each
 /// time with `layout`; the original file is restored afterwards.
 fn fuzz_scan_file(root: &Path, file: &Path, layout: Layout, iters: usize, seed: u64) {
-    let options = LoadOptions { layout: Some(layout), fix_poses: false };
-    assert!(load(root, &options).is_ok(), "the unmutated scan must load: {:?}", load(root, &options).err().map(|e| e.to_string()));
+    let options = LoadOptions {
+        layout: Some(layout),
+        fix_poses: false,
+    };
+    assert!(
+        load(root, &options).is_ok(),
+        "the unmutated scan must load: {:?}",
+        load(root, &options).err().map(|e| e.to_string())
+    );
     let original = std::fs::read(file).unwrap();
     let mut rng = Rng::new(seed, 0);
     let mut accepted = 0;
     for i in 0..iters {
         let bytes = mutate(&original, &mut rng);
         std::fs::write(file, &bytes).unwrap();
-        let what = format!("{} iteration {i}: {:?}", file.display(), String::from_utf8_lossy(&bytes));
+        let what = format!(
+            "{} iteration {i}: {:?}",
+            file.display(),
+            String::from_utf8_lossy(&bytes)
+        );
         if no_panic_one_line(&what, || load(root, &options)) {
             accepted += 1;
         }
     }
     std::fs::write(file, &original).unwrap();
     eprintln!("{}: {accepted} of {iters} mutations still loaded", file.display());
-    assert!(accepted < iters, "{}: no mutation was ever rejected; the fuzzer does not reach the parser", file.display());
+    assert!(
+        accepted < iters,
+        "{}: no mutation was ever rejected; the fuzzer does not reach the parser",
+        file.display()
+    );
 }
 
 fn fuzz_native(iters: usize) {
@@ -133,12 +193,20 @@ fn fuzz_nerfstudio(iters: usize) {
 /// apart, camera-to-world translations along x, identity rotations.
 fn tum_scan(dir: &Path) -> PathBuf {
     let scan = fixture(dir, "tum", &[]);
-    let (mut rgb, mut depth, mut gt) = (String::from("# colour images\n"), String::from("# depth\n"), String::from("# ground truth\n"));
+    let (mut rgb, mut depth, mut gt) = (
+        String::from("# colour images\n"),
+        String::from("# depth\n"),
+        String::from("# ground truth\n"),
+    );
     for i in 0..3 {
         let t = 1305031102.0 + 0.1 * i as f64;
         rgb.push_str(&format!("{t:.6} rgb/{i:06}.png\n"));
         depth.push_str(&format!("{:.6} depth/{i:06}.png\n", t + 0.004));
-        gt.push_str(&format!("{:.4} {} 0.0 -1.5 0.0 0.0 0.0 1.0\n", t - 0.002, 0.1 * i as f64));
+        gt.push_str(&format!(
+            "{:.4} {} 0.0 -1.5 0.0 0.0 0.0 1.0\n",
+            t - 0.002,
+            0.1 * i as f64
+        ));
     }
     std::fs::write(scan.join("rgb.txt"), rgb).unwrap();
     std::fs::write(scan.join("depth.txt"), depth).unwrap();
@@ -161,7 +229,11 @@ fn colmap_scan(dir: &Path) -> PathBuf {
     let k = std::fs::read_to_string(scan.join("intrinsics.txt")).unwrap();
     let k: Vec<f64> = k.split_whitespace().map(|v| v.parse().unwrap()).collect();
     std::fs::create_dir_all(scan.join("sparse/0")).unwrap();
-    std::fs::write(scan.join("sparse/0/cameras.txt"), format!("# cameras\n1 PINHOLE 16 12 {} {} {} {}\n", k[0], k[4], k[2], k[5])).unwrap();
+    std::fs::write(
+        scan.join("sparse/0/cameras.txt"),
+        format!("# cameras\n1 PINHOLE 16 12 {} {} {} {}\n", k[0], k[4], k[2], k[5]),
+    )
+    .unwrap();
     std::fs::rename(scan.join("rgb"), scan.join("images")).unwrap();
     let mut images = String::from("# images\n");
     for i in 0..3 {
@@ -208,11 +280,15 @@ fn fuzz_boxes(iters: usize) {
         let bytes = mutate(&original, &mut rng);
         std::fs::write(&path, &bytes).unwrap();
         let what = format!("boxes.json iteration {i}: {:?}", String::from_utf8_lossy(&bytes));
-        let result = catch_unwind(AssertUnwindSafe(|| read_boxes(&path))).unwrap_or_else(|_| panic!("{what}: parser panicked"));
+        let result =
+            catch_unwind(AssertUnwindSafe(|| read_boxes(&path))).unwrap_or_else(|_| panic!("{what}: parser panicked"));
         match result {
             Err(e) => {
                 let msg = e.to_string();
-                assert!(msg.starts_with(&path.display().to_string()) && !msg.contains('\n'), "{what}: {msg}");
+                assert!(
+                    msg.starts_with(&path.display().to_string()) && !msg.contains('\n'),
+                    "{what}: {msg}"
+                );
             }
             Ok(set) => {
                 accepted += 1;
@@ -220,22 +296,40 @@ fn fuzz_boxes(iters: usize) {
                 // sizes, proper rotations, ids 1..n, known categories.
                 for (k, b) in set.boxes.iter().enumerate() {
                     assert_eq!(b.instance_id as usize, k + 1, "{what}");
-                    assert!(b.center.is_finite() && b.size.is_finite() && b.size.min_element() >= 0.0, "{what}: {b:?}");
+                    assert!(
+                        b.center.is_finite() && b.size.is_finite() && b.size.min_element() >= 0.0,
+                        "{what}: {b:?}"
+                    );
                     let r = b.rotation;
-                    assert!((r.transpose() * r).abs_diff_eq(glam::DMat3::IDENTITY, 1e-9), "{what}: {r:?}");
+                    assert!(
+                        (r.transpose() * r).abs_diff_eq(glam::DMat3::IDENTITY, 1e-9),
+                        "{what}: {r:?}"
+                    );
                     assert!((r.determinant() - 1.0).abs() < 1e-9, "{what}: {r:?}");
-                    assert!(!b.label.trim().is_empty() && set.category_id(&b.label).is_some(), "{what}");
+                    assert!(
+                        !b.label.trim().is_empty() && set.category_id(&b.label).is_some(),
+                        "{what}"
+                    );
                 }
                 // The classifier puts each box centre into some box (its own or a smaller one).
-                let classifier = catch_unwind(AssertUnwindSafe(|| BoxClassifier::new(&set))).unwrap_or_else(|_| panic!("{what}: classifier panicked"));
+                let classifier = catch_unwind(AssertUnwindSafe(|| BoxClassifier::new(&set)))
+                    .unwrap_or_else(|_| panic!("{what}: classifier panicked"));
                 for b in &set.boxes {
-                    assert_ne!(classifier.classify(b.center), 0, "{what}: centre of box {} in no box", b.instance_id);
+                    assert_ne!(
+                        classifier.classify(b.center),
+                        0,
+                        "{what}: centre of box {} in no box",
+                        b.instance_id
+                    );
                 }
             }
         }
     }
     eprintln!("boxes.json: {accepted} of {iters} mutations still parsed");
-    assert!(accepted < iters, "no mutation was ever rejected; the fuzzer does not reach the parser");
+    assert!(
+        accepted < iters,
+        "no mutation was ever rejected; the fuzzer does not reach the parser"
+    );
 }
 
 /// A real model file from a 2-step fit of a tiny fixture.
@@ -263,14 +357,19 @@ fn fuzz_model(iters: usize) {
     for i in 0..iters {
         // Mutations of the whole file (caught by magic, version or checksum)...
         let raw = mutate(&original, &mut rng);
-        if no_panic_one_line(&format!("model iteration {i} (raw)"), || Model::from_bytes(&raw, path)) && raw != original {
+        if no_panic_one_line(&format!("model iteration {i} (raw)"), || Model::from_bytes(&raw, path)) && raw != original
+        {
             accepted_raw += 1;
         }
         // ...and of the header and sections with the checksum recomputed, so
         // the header JSON and section lengths are parsed.
         let header_end = 16 + u32::from_le_bytes([original[12], original[13], original[14], original[15]]) as usize;
         let mut body = original[..original.len() - 4].to_vec();
-        let focus = if rng.below(2) == 0 { 0..header_end.min(body.len()) } else { 0..body.len() };
+        let focus = if rng.below(2) == 0 {
+            0..header_end.min(body.len())
+        } else {
+            0..body.len()
+        };
         let mutated = mutate(&body[focus.clone()], &mut rng);
         body.splice(focus, mutated);
         if rng.below(4) == 0 {
@@ -288,7 +387,10 @@ fn fuzz_model(iters: usize) {
             Ok(Ok(model)) => {
                 // Accepted files must hold a usable, consistent model.
                 let bytes = model.to_bytes();
-                assert!(Model::from_bytes(&bytes, path).is_ok(), "{what}: accepted model does not round-trip");
+                assert!(
+                    Model::from_bytes(&bytes, path).is_ok(),
+                    "{what}: accepted model does not round-trip"
+                );
                 true
             }
             Ok(Err(e)) => {

@@ -11,8 +11,8 @@
 //! them.
 
 use arrow_array::RecordBatch;
-use nerflabel::nerf::train::checkpoint::Checkpoint;
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::checkpoint::Checkpoint;
 use nerflabel::rng::Rng;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::collections::BTreeSet;
@@ -118,7 +118,12 @@ fn assert_only_documented_leftovers(dir: &Path, expected: &[&str], killed: &[u32
 /// Start a long fit of `scan`, send `signal` once training runs, and
 /// return its exit status and stderr.
 fn fit_until_signal(fit: &mut Command, signal: &str) -> (std::process::ExitStatus, String) {
-    let mut child = fit.args(["--steps", "100000"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut child = fit
+        .args(["--steps", "100000"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     let stderr = child.stderr.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     let reader = std::thread::spawn(move || {
@@ -133,11 +138,18 @@ fn fit_until_signal(fit: &mut Command, signal: &str) -> (std::process::ExitStatu
     });
     // Training has started once the set-up line is printed; let it run a few steps.
     let deadline = Instant::now() + Duration::from_secs(120);
-    while !rx.recv_timeout(Duration::from_secs(120)).unwrap().contains("training views") {
+    while !rx
+        .recv_timeout(Duration::from_secs(120))
+        .unwrap()
+        .contains("training views")
+    {
         assert!(Instant::now() < deadline, "fit never started training");
     }
     std::thread::sleep(Duration::from_millis(1500));
-    let k = Command::new("kill").args([&format!("-{signal}"), &child.id().to_string()]).status().unwrap();
+    let k = Command::new("kill")
+        .args([&format!("-{signal}"), &child.id().to_string()])
+        .status()
+        .unwrap();
     assert!(k.success());
     let status = child.wait().unwrap();
     (status, reader.join().unwrap())
@@ -147,12 +159,17 @@ fn fit_until_signal(fit: &mut Command, signal: &str) -> (std::process::ExitStatu
 /// run, at the same step; returns that step.
 fn assert_saved_when_stopped(out: &Path) -> u64 {
     let model = Model::load(&out.join("model.nlf")).unwrap();
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("model.report.json")).unwrap()).unwrap();
     assert_eq!(report["interrupted"], true);
     let steps = report["counters"]["steps"].as_u64().unwrap();
     assert!((1..100_000).contains(&steps), "{steps}");
     assert_eq!(model.header.steps, steps);
-    assert_eq!(Checkpoint::load(&out.join("model.checkpoint")).unwrap().steps(), steps, "checkpoint saved when stopped");
+    assert_eq!(
+        Checkpoint::load(&out.join("model.checkpoint")).unwrap().steps(),
+        steps,
+        "checkpoint saved when stopped"
+    );
     steps
 }
 
@@ -162,7 +179,13 @@ fn sigterm_during_fit_saves_like_ctrl_c_and_exits_143() {
     // checkpoint of the killed run beside the old model and report.
     let dir = tempfile::tempdir().unwrap();
     let scan = work_scan(dir.path());
-    let (status, stderr) = fit_until_signal(bin().arg("fit").arg(&scan).args(["--preset", "fast", "--holdout", "12"]), "TERM");
+    let (status, stderr) = fit_until_signal(
+        bin()
+            .arg("fit")
+            .arg(&scan)
+            .args(["--preset", "fast", "--holdout", "12"]),
+        "TERM",
+    );
     assert_eq!(status.code(), Some(143), "{stderr}");
     assert!(stderr.contains("interrupted: saved the model"), "{stderr}");
     assert_saved_when_stopped(&scan.join("nerflabel"));
@@ -182,7 +205,11 @@ fn sigint_during_fit_saves_an_interrupted_model_and_resume_finishes_it() {
         c
     };
     let (status, stderr) = fit_until_signal(&mut fit(&[]), "INT");
-    assert_eq!(status.code(), Some(130), "Ctrl-C saves, then exits 130 so scripts can tell: {stderr}");
+    assert_eq!(
+        status.code(),
+        Some(130),
+        "Ctrl-C saves, then exits 130 so scripts can tell: {stderr}"
+    );
     assert!(stderr.contains("interrupted: saved the model"), "{stderr}");
     assert_eq!(
         names(&out),
@@ -412,7 +439,10 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
                     labelled == range || Some(&labelled) == complete.as_ref(),
                     "run {i}: range {labelled} is neither the old nor the new labelling"
                 );
-                assert!(was_killed || labelled == range, "run {i} finished but left the old labels");
+                assert!(
+                    was_killed || labelled == range,
+                    "run {i} finished but left the old labels"
+                );
                 complete = Some(labelled);
             }
             None => {

@@ -23,7 +23,12 @@ fn read_ids(path: &Path) -> Vec<u16> {
 fn loosen(boxes: &Path, out: &Path, margin: f64, dip: f64) {
     let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(boxes).unwrap()).unwrap();
     for b in doc["boxes"].as_array_mut().unwrap() {
-        let size: Vec<f64> = b["size"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        let size: Vec<f64> = b["size"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
         let bottom = b["center"][2].as_f64().unwrap() - size[2] / 2.0;
         let height = size[2] + margin + dip;
         b["size"] = serde_json::json!([size[0] + 2.0 * margin, size[1] + 2.0 * margin, height]);
@@ -36,7 +41,16 @@ fn loosen(boxes: &Path, out: &Path, margin: f64, dip: f64) {
 /// and the share of labelled pixels that are not the object.
 fn label(scan: &Path, boxes: &Path, out: &Path, extra: &[&str]) -> (f64, f64) {
     let o = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-        .args(["label", scan.to_str().unwrap(), "--boxes", boxes.to_str().unwrap(), "--source", "sensor", "--out", out.to_str().unwrap()])
+        .args([
+            "label",
+            scan.to_str().unwrap(),
+            "--boxes",
+            boxes.to_str().unwrap(),
+            "--source",
+            "sensor",
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .args(extra)
         .output()
         .unwrap();
@@ -68,5 +82,8 @@ fn a_loose_box_labels_the_object_not_the_table() {
     assert!(exact_wrong > 0.3, "the exact loose box takes the table: {exact_wrong}");
     assert!(rule_wrong < 0.15, "the table is excluded: {rule_wrong}");
     assert!(rule_iou > exact_iou + 0.07, "{rule_iou} vs {exact_iou}");
-    assert!(rule_iou > tight_iou - 0.05, "the loose box labels about as well as the tight one: {rule_iou} vs {tight_iou}");
+    assert!(
+        rule_iou > tight_iou - 0.05,
+        "the loose box labels about as well as the tight one: {rule_iou} vs {tight_iou}"
+    );
 }

@@ -15,7 +15,12 @@ use std::process::Command;
 fn perturbed_tabletop(dir: &Path, frames: usize, sigma_m: f64, sigma_deg: f64) -> (PathBuf, Scan, Scan) {
     let mut options = FixtureOptions::new(SceneKind::Tabletop);
     (options.width, options.height, options.frames, options.seed) = (320, 240, Some(frames), 11);
-    options.corruptions = Corruptions { pose_noise: true, pose_sigma_m: sigma_m, pose_sigma_deg: sigma_deg, ..Corruptions::default() };
+    options.corruptions = Corruptions {
+        pose_noise: true,
+        pose_sigma_m: sigma_m,
+        pose_sigma_deg: sigma_deg,
+        ..Corruptions::default()
+    };
     let scan_dir = dir.join("scan");
     generate(&scan_dir, &options).unwrap();
     let exact_dir = dir.join("exact");
@@ -40,7 +45,9 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
     for (p, f) in poses.iter().zip(&exact.frames) {
         let pose = align * *p;
         rot += pose_difference(&f.camera_to_world, &pose).1.powi(2);
-        let (Some(depth), k) = (&f.depth, f.intrinsics) else { continue };
+        let (Some(depth), k) = (&f.depth, f.intrinsics) else {
+            continue;
+        };
         let world_to_camera = pose.inverse();
         for v in (0..depth.height).step_by(8) {
             for u in (0..depth.width).step_by(8) {
@@ -48,7 +55,9 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
                 if z <= 0.0 {
                     continue;
                 }
-                let world = f.camera_to_world.transform_point3(k.unproject(u as f64, v as f64) * z as f64);
+                let world = f
+                    .camera_to_world
+                    .transform_point3(k.unproject(u as f64, v as f64) * z as f64);
                 if let Some((x, y)) = k.project(world_to_camera.transform_point3(world)) {
                     px += (x - u as f64).powi(2) + (y - v as f64).powi(2);
                     count += 1;
@@ -64,15 +73,27 @@ fn refinement_recovers_known_pose_perturbations() {
     let dir = tempfile::tempdir().unwrap();
     let (_, scan, exact) = perturbed_tabletop(dir.path(), 36, 0.006, 0.3);
     let (px0, deg0) = rms_error(&scan.poses(), &exact);
-    let refined = refine_poses(&scan, &RefineOptions::default()).unwrap().expect("the scan has depth");
+    let refined = refine_poses(&scan, &RefineOptions::default())
+        .unwrap()
+        .expect("the scan has depth");
     let (px1, deg1) = rms_error(&refined.camera_to_world, &exact);
     eprintln!("reprojection error {px0:.2} px, {deg0:.3} deg -> {px1:.2} px, {deg1:.3} deg");
     // Measured: 1.75 px, 0.32 deg -> 0.63 px, 0.14 deg.
     assert!(px1 < 0.45 * px0, "reprojection RMS error {px0:.2} px -> {px1:.2} px");
     assert!(deg1 < 0.55 * deg0, "rotation RMS error {deg0:.3} deg -> {deg1:.3} deg");
-    assert!(refined.refined_count() * 10 >= scan.frames.len() * 9, "{} of {} frames refined", refined.refined_count(), scan.frames.len());
+    assert!(
+        refined.refined_count() * 10 >= scan.frames.len() * 9,
+        "{} of {} frames refined",
+        refined.refined_count(),
+        scan.frames.len()
+    );
     let (before, after) = refined.median_residuals();
-    assert!(after < 0.5 * before, "median disagreement {:.2} mm -> {:.2} mm", before * 1e3, after * 1e3);
+    assert!(
+        after < 0.5 * before,
+        "median disagreement {:.2} mm -> {:.2} mm",
+        before * 1e3,
+        after * 1e3
+    );
 }
 
 /// `fit` refines by default, stores the poses in the model (which `label`
@@ -84,7 +105,17 @@ fn fit_stores_refined_poses_and_reports_them() {
     let (scan_dir, scan, exact) = perturbed_tabletop(dir.path(), 24, 0.004, 0.2);
     let fit = |model: &Path, extra: &[&str]| {
         let out = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-            .args(["fit", scan_dir.to_str().unwrap(), "--steps", "3", "--preset", "fast", "--holdout", "0", "--model"])
+            .args([
+                "fit",
+                scan_dir.to_str().unwrap(),
+                "--steps",
+                "3",
+                "--preset",
+                "fast",
+                "--holdout",
+                "0",
+                "--model",
+            ])
             .arg(model)
             .args(extra)
             .output()
@@ -94,19 +125,33 @@ fn fit_stores_refined_poses_and_reports_them() {
     };
     let refined_path = dir.path().join("refined.nlf");
     let stderr = fit(&refined_path, &[]);
-    assert!(stderr.contains("aligned") && stderr.contains("poses to the depth"), "{stderr}");
+    assert!(
+        stderr.contains("aligned") && stderr.contains("poses to the depth"),
+        "{stderr}"
+    );
     let model = Model::load(&refined_path).unwrap();
     let mut labelled = scan.clone();
     let changed = model.apply_fitted_poses(&mut labelled);
-    assert!(changed * 10 >= scan.frames.len() * 9, "{changed} of {} poses changed", scan.frames.len());
+    assert!(
+        changed * 10 >= scan.frames.len() * 9,
+        "{changed} of {} poses changed",
+        scan.frames.len()
+    );
     let (px0, _) = rms_error(&scan.poses(), &exact);
     let (px1, _) = rms_error(&labelled.poses(), &exact);
-    assert!(px1 < 0.7 * px0, "the model's poses: reprojection error {px0:.2} px -> {px1:.2} px");
+    assert!(
+        px1 < 0.7 * px0,
+        "the model's poses: reprojection error {px0:.2} px -> {px1:.2} px"
+    );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("refined.report.json")).unwrap()).unwrap();
-    let corrections = report["pose_refinement"]["frames"].as_array().expect("the report lists the corrections");
+    let corrections = report["pose_refinement"]["frames"]
+        .as_array()
+        .expect("the report lists the corrections");
     assert_eq!(corrections.len(), scan.frames.len());
-    assert!(corrections.iter().all(|c| c["translation_m"].as_f64().is_some_and(|t| t.is_finite() && t < 0.05)));
+    assert!(corrections
+        .iter()
+        .all(|c| c["translation_m"].as_f64().is_some_and(|t| t.is_finite() && t < 0.05)));
     // The model still belongs to the scan as captured.
     assert_eq!(model.matches_scan(&scan), nerflabel::nerf::model_file::ScanMatch::Same);
 
@@ -129,7 +174,15 @@ fn sweep_rounds() {
     let dir = tempfile::tempdir().unwrap();
     let (_, scan, exact) = perturbed_tabletop(dir.path(), 36, 0.006, 0.3);
     for rounds in [0, 1, 2, 4, 8, 16, 32] {
-        let refined = refine_poses(&scan, &RefineOptions { rounds, ..RefineOptions::default() }).unwrap().unwrap();
+        let refined = refine_poses(
+            &scan,
+            &RefineOptions {
+                rounds,
+                ..RefineOptions::default()
+            },
+        )
+        .unwrap()
+        .unwrap();
         let (px, deg) = rms_error(&refined.camera_to_world, &exact);
         let (before, after) = refined.median_residuals();
         eprintln!(
@@ -174,22 +227,41 @@ fn up_to_scale_poses_are_found_and_made_metric() {
     for factor in [0.4, 2.5] {
         let scaled = dir.path().join(format!("scaled-{factor}"));
         scaled_copy(&scan_dir, &scaled, factor);
-        let info = Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(["info", scaled.to_str().unwrap()]).output().unwrap();
+        let info = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+            .args(["info", scaled.to_str().unwrap()])
+            .output()
+            .unwrap();
         let stdout = String::from_utf8_lossy(&info.stdout);
         assert!(stdout.contains("poses are up to scale"), "x{factor}: {stdout}");
         let model = scaled.join("model.nlf");
         let out = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
-            .args(["fit", scaled.to_str().unwrap(), "--steps", "2", "--preset", "fast", "--holdout", "0", "--model"])
+            .args([
+                "fit",
+                scaled.to_str().unwrap(),
+                "--steps",
+                "2",
+                "--preset",
+                "fast",
+                "--holdout",
+                "0",
+                "--model",
+            ])
             .arg(&model)
             .output()
             .unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(scaled.join("model.report.json")).unwrap()).unwrap();
-        let applied = report["pose_scale"]["applied"].as_f64().expect("the report gives the applied scale");
+        let report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(scaled.join("model.report.json")).unwrap()).unwrap();
+        let applied = report["pose_scale"]["applied"]
+            .as_f64()
+            .expect("the report gives the applied scale");
         assert!((applied * factor - 1.0).abs() < 0.01, "x{factor}: applied {applied}");
     }
     // The metric original is left as it is.
-    let info = Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(["info", scan_dir.to_str().unwrap()]).output().unwrap();
+    let info = Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(["info", scan_dir.to_str().unwrap()])
+        .output()
+        .unwrap();
     assert!(String::from_utf8_lossy(&info.stdout).contains("poses look metric"));
 }
 
@@ -200,6 +272,12 @@ fn up_to_scale_poses_are_found_and_made_metric() {
 fn centimetre_pose_error_still_gives_a_scale_verdict() {
     let dir = tempfile::tempdir().unwrap();
     let (_, scan, _) = perturbed_tabletop(dir.path(), 36, 0.02, 1.0);
-    let e = nerflabel::poses::estimate_pose_scale(&scan).unwrap().expect("the scan has depth");
-    assert!(e.looks_metric() && (e.scale - 1.0).abs() < 0.05, "{e:?}: {}", e.verdict());
+    let e = nerflabel::poses::estimate_pose_scale(&scan)
+        .unwrap()
+        .expect("the scan has depth");
+    assert!(
+        e.looks_metric() && (e.scale - 1.0).abs() < 0.05,
+        "{e:?}: {}",
+        e.verdict()
+    );
 }

@@ -43,7 +43,12 @@ impl Room {
     }
 
     fn scan(&self) -> Scan {
-        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
         let frames = (0..self.frames)
             .map(|i| {
                 let yaw = TAU * i as f64 / self.frames as f64;
@@ -74,7 +79,11 @@ impl Room {
                     id: i as u64,
                     name: format!("{i:06}"),
                     rgb,
-                    depth: self.with_depth.then_some(DepthMap { width: W, height: H, metres }),
+                    depth: self.with_depth.then_some(DepthMap {
+                        width: W,
+                        height: H,
+                        metres,
+                    }),
                     camera_to_world: DMat4::from_cols(
                         world_rot.x_axis.extend(0.0),
                         world_rot.y_axis.extend(0.0),
@@ -86,7 +95,14 @@ impl Room {
                 }
             })
             .collect();
-        Scan { root: "synthetic-room".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new(), inputs: Vec::new() }
+        Scan {
+            root: "synthetic-room".into(),
+            layout: Layout::Native,
+            frames,
+            bounds: None,
+            warnings: Vec::new(),
+            inputs: Vec::new(),
+        }
     }
 }
 
@@ -107,27 +123,56 @@ fn max_abs_diff(a: DVec3, b: DVec3) -> f64 {
 #[test]
 fn bounds_ignore_one_percent_flying_pixels_at_1000x_range() {
     let clean = bounds_of(&Room::default().scan());
-    let noisy = bounds_of(&Room { flying: 0.01, ..Room::default() }.scan());
+    let noisy = bounds_of(
+        &Room {
+            flying: 0.01,
+            ..Room::default()
+        }
+        .scan(),
+    );
     assert_eq!(noisy.source, BoundsSource::Depth);
     let extent = clean.aabb.max_extent();
-    assert!(max_abs_diff(clean.aabb.min, noisy.aabb.min) < 0.02 * extent, "{:?} vs {:?}", noisy.aabb, clean.aabb);
-    assert!(max_abs_diff(clean.aabb.max, noisy.aabb.max) < 0.02 * extent, "{:?} vs {:?}", noisy.aabb, clean.aabb);
+    assert!(
+        max_abs_diff(clean.aabb.min, noisy.aabb.min) < 0.02 * extent,
+        "{:?} vs {:?}",
+        noisy.aabb,
+        clean.aabb
+    );
+    assert!(
+        max_abs_diff(clean.aabb.max, noisy.aabb.max) < 0.02 * extent,
+        "{:?} vs {:?}",
+        noisy.aabb,
+        clean.aabb
+    );
     // The flying pixels are counted as rejected.
     let flying = noisy.stats.sampled as f64 * 0.01;
-    assert!(noisy.stats.rejected as f64 > 0.8 * flying, "{} rejected of ~{flying}", noisy.stats.rejected);
+    assert!(
+        noisy.stats.rejected as f64 > 0.8 * flying,
+        "{} rejected of ~{flying}",
+        noisy.stats.rejected
+    );
 }
 
 #[test]
 fn bounds_ignore_flying_pixels_all_on_one_side() {
     // Cameras that all look the same way put every flying pixel beyond one
     // face: more than the 0.5 % percentile trims, so the gap rule must act.
-    let mut scan = Room { flying: 0.02, ..Room::default() }.scan();
+    let mut scan = Room {
+        flying: 0.02,
+        ..Room::default()
+    }
+    .scan();
     scan.frames.retain(|f| f.camera_to_world.z_axis.x > 0.5);
     let mut clean = Room::default().scan();
     clean.frames.retain(|f| f.camera_to_world.z_axis.x > 0.5);
     let (noisy, clean) = (bounds_of(&scan), bounds_of(&clean));
     let extent = clean.aabb.max_extent();
-    assert!(max_abs_diff(clean.aabb.max, noisy.aabb.max) < 0.02 * extent, "{:?} vs {:?}", noisy.aabb, clean.aabb);
+    assert!(
+        max_abs_diff(clean.aabb.max, noisy.aabb.max) < 0.02 * extent,
+        "{:?} vs {:?}",
+        noisy.aabb,
+        clean.aabb
+    );
 }
 
 #[test]
@@ -136,7 +181,12 @@ fn bounds_enclose_all_cameras_even_a_far_one() {
     scan.frames[5].camera_to_world.w_axis = DVec3::new(30.0, -4.0, 2.0).extend(1.0);
     let b = bounds_of(&scan);
     for f in &scan.frames {
-        assert!(b.aabb.contains(f.camera_center()), "{} outside {:?}", f.camera_center(), b.aabb);
+        assert!(
+            b.aabb.contains(f.camera_center()),
+            "{} outside {:?}",
+            f.camera_center(),
+            b.aabb
+        );
     }
 }
 
@@ -144,7 +194,10 @@ fn bounds_enclose_all_cameras_even_a_far_one() {
 fn bbox_txt_overrides_the_depth() {
     let mut scan = Room::default().scan();
     // Reaches the wall at x = 2 (bounds holding no surface are refused).
-    let user = Bounds { min: DVec3::new(-0.5, -0.25, -0.1), max: DVec3::new(2.5, 0.75, 0.3) };
+    let user = Bounds {
+        min: DVec3::new(-0.5, -0.25, -0.1),
+        max: DVec3::new(2.5, 0.75, 0.3),
+    };
     scan.bounds = Some(user);
     let (b, n) = normalization_of(&scan);
     assert_eq!(b.source, BoundsSource::User);
@@ -159,14 +212,20 @@ fn bbox_txt_overrides_the_depth() {
 fn bbox_txt_holding_no_surface_is_refused() {
     // Regression: bounds away from the scene trained nothing and exited 0.
     let mut scan = Room::default().scan();
-    scan.bounds = Some(Bounds { min: DVec3::new(-0.5, -0.25, -0.1), max: DVec3::new(0.5, 0.75, 0.3) });
+    scan.bounds = Some(Bounds {
+        min: DVec3::new(-0.5, -0.25, -0.1),
+        max: DVec3::new(0.5, 0.75, 0.3),
+    });
     let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err().to_string();
     assert!(err.contains("bbox.txt") && err.contains("hold 0 of"), "{err}");
 }
 
 #[test]
 fn no_depth_fallback_is_finite_and_contains_the_cameras() {
-    let room = Room { with_depth: false, ..Room::default() };
+    let room = Room {
+        with_depth: false,
+        ..Room::default()
+    };
     let scan = room.scan();
     let b = bounds_of(&scan);
     assert_eq!(b.source, BoundsSource::CameraFrusta);
@@ -175,7 +234,9 @@ fn no_depth_fallback_is_finite_and_contains_the_cameras() {
         assert!(b.aabb.contains(f.camera_center()));
         // Each optical axis is kept for the documented range, 2 x the
         // camera box diagonal (0.7 m radius trajectory: diagonal > 1.4 m).
-        assert!(b.aabb.contains(f.camera_center() + f.camera_to_world.z_axis.truncate() * 2.8));
+        assert!(b
+            .aabb
+            .contains(f.camera_center() + f.camera_to_world.z_axis.truncate() * 2.8));
     }
     assert!(b.aabb.max_extent() < 20.0, "{:?}", b.aabb);
     let n = normalize(&b, &NormalizeOptions::default()).unwrap();
@@ -188,17 +249,31 @@ fn normalisation_maps_the_bounds_into_the_unit_cube() {
     assert!(!n.rotated);
     for c in b.aabb.corners() {
         let l = n.transform.world_to_local_point(c);
-        assert!(n.local_aabb.padded(1e-12).contains(l) && DAabb::UNIT.contains(l), "{c} -> {l}");
+        assert!(
+            n.local_aabb.padded(1e-12).contains(l) && DAabb::UNIT.contains(l),
+            "{c} -> {l}"
+        );
     }
     assert!((n.local_aabb.max_extent() - 0.9).abs() < 1e-12);
     assert!(max_abs_diff(n.local_aabb.center(), DVec3::splat(0.5)) < 1e-12);
 
-    let room = Room { rotation: DQuat::from_rotation_z(0.6) * DQuat::from_rotation_y(-0.25), ..Room::default() };
+    let room = Room {
+        rotation: DQuat::from_rotation_z(0.6) * DQuat::from_rotation_y(-0.25),
+        ..Room::default()
+    };
     let (b, n) = normalization_of(&room.scan());
     assert!(n.rotated, "a tilted room is aligned with its walls");
     assert!(DAabb::UNIT.contains_box(&n.local_aabb));
-    let inside = b.samples.iter().filter(|p| n.local_aabb.contains(n.transform.world_to_local_point(**p))).count();
-    assert!(inside as f64 > 0.99 * b.samples.len() as f64, "{inside} of {}", b.samples.len());
+    let inside = b
+        .samples
+        .iter()
+        .filter(|p| n.local_aabb.contains(n.transform.world_to_local_point(**p)))
+        .count();
+    assert!(
+        inside as f64 > 0.99 * b.samples.len() as f64,
+        "{inside} of {}",
+        b.samples.len()
+    );
     for c in &b.cameras {
         assert!(n.local_aabb.contains(n.transform.world_to_local_point(*c)));
     }
@@ -209,7 +284,11 @@ fn normalisation_maps_the_bounds_into_the_unit_cube() {
 
 #[test]
 fn normalisation_round_trips_and_preserves_angles_and_ratios() {
-    let room = Room { rotation: DQuat::from_rotation_z(0.6), scale: 3.0, ..Room::default() };
+    let room = Room {
+        rotation: DQuat::from_rotation_z(0.6),
+        scale: 3.0,
+        ..Room::default()
+    };
     let (_, n) = normalization_of(&room.scan());
     let t = n.transform;
     let mut rng = Rng::new(11, 0);
@@ -219,7 +298,11 @@ fn normalisation_round_trips_and_preserves_angles_and_ratios() {
         let r = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0;
         assert!((t.local_to_world_point(t.world_to_local_point(p)) - p).length() < 1e-9);
         assert!((t.inverse().world_to_local_point(t.world_to_local_point(p)) - p).length() < 1e-9);
-        let (lp, lq, lr) = (t.world_to_local_point(p), t.world_to_local_point(q), t.world_to_local_point(r));
+        let (lp, lq, lr) = (
+            t.world_to_local_point(p),
+            t.world_to_local_point(q),
+            t.world_to_local_point(r),
+        );
         let ratio = (q - p).length() / (r - p).length();
         assert!(((lq - lp).length() / (lr - lp).length() - ratio).abs() < 1e-9 * ratio.max(1.0));
         let angle = (q - p).angle_between(r - p);
@@ -233,14 +316,22 @@ fn normalisation_round_trips_and_preserves_angles_and_ratios() {
 
 #[test]
 fn camera_poses_stay_orthonormal_in_local_space_and_round_trip() {
-    let room = Room { rotation: DQuat::from_rotation_x(0.3), scale: 0.01, ..Room::default() };
+    let room = Room {
+        rotation: DQuat::from_rotation_x(0.3),
+        scale: 0.01,
+        ..Room::default()
+    };
     let scan = room.scan();
     let (_, n) = normalization_of(&scan);
     let t = n.transform;
     for f in &scan.frames {
         let local = t.world_to_local_pose(&f.camera_to_world);
         let r = DMat3::from_mat4(local);
-        let err = (r.transpose() * r - DMat3::IDENTITY).abs().to_cols_array().into_iter().fold(0.0, f64::max);
+        let err = (r.transpose() * r - DMat3::IDENTITY)
+            .abs()
+            .to_cols_array()
+            .into_iter()
+            .fold(0.0, f64::max);
         assert!(err < 1e-12 && (r.determinant() - 1.0).abs() < 1e-12, "frame {}", f.name);
         assert_eq!(local.row(3), glam::DVec4::W);
         // The optical axis and centre follow the points.
@@ -254,14 +345,35 @@ fn camera_poses_stay_orthonormal_in_local_space_and_round_trip() {
 
 #[test]
 fn scaled_scenes_get_the_same_local_coordinates() {
-    for rotation in [DQuat::IDENTITY, DQuat::from_rotation_z(0.6) * DQuat::from_rotation_y(-0.25)] {
-        let (_, base) = normalization_of(&Room { rotation, ..Room::default() }.scan());
+    for rotation in [
+        DQuat::IDENTITY,
+        DQuat::from_rotation_z(0.6) * DQuat::from_rotation_y(-0.25),
+    ] {
+        let (_, base) = normalization_of(
+            &Room {
+                rotation,
+                ..Room::default()
+            }
+            .scan(),
+        );
         for scale in [0.01, 100.0] {
-            let room = Room { rotation, scale, ..Room::default() };
+            let room = Room {
+                rotation,
+                scale,
+                ..Room::default()
+            };
             let (_, n) = normalization_of(&room.scan());
             assert_eq!(n.rotated, base.rotated);
-            assert!(max_abs_diff(n.local_aabb.min, base.local_aabb.min) < 1e-5, "{scale}: {:?}", n.local_aabb);
-            assert!(max_abs_diff(n.local_aabb.max, base.local_aabb.max) < 1e-5, "{scale}: {:?}", n.local_aabb);
+            assert!(
+                max_abs_diff(n.local_aabb.min, base.local_aabb.min) < 1e-5,
+                "{scale}: {:?}",
+                n.local_aabb
+            );
+            assert!(
+                max_abs_diff(n.local_aabb.max, base.local_aabb.max) < 1e-5,
+                "{scale}: {:?}",
+                n.local_aabb
+            );
             for p in [DVec3::ZERO, DVec3::new(1.0, -0.5, 0.25), DVec3::new(-2.0, 1.5, 1.25)] {
                 let a = base.transform.world_to_local_point(rotation * p);
                 let b = n.transform.world_to_local_point(room.to_world(p));
@@ -274,10 +386,19 @@ fn scaled_scenes_get_the_same_local_coordinates() {
 
 #[test]
 fn identity_orientation_keeps_world_axes() {
-    let room = Room { rotation: DQuat::from_rotation_z(0.6), ..Room::default() };
+    let room = Room {
+        rotation: DQuat::from_rotation_z(0.6),
+        ..Room::default()
+    };
     let b = bounds_of(&room.scan());
-    let n =
-        normalize(&b, &NormalizeOptions { orientation: Orientation::Identity, ..NormalizeOptions::default() }).unwrap();
+    let n = normalize(
+        &b,
+        &NormalizeOptions {
+            orientation: Orientation::Identity,
+            ..NormalizeOptions::default()
+        },
+    )
+    .unwrap();
     assert!(!n.rotated);
     assert_eq!(n.transform.rotation, DQuat::IDENTITY);
     assert!(DAabb::UNIT.contains_box(&n.local_aabb));
@@ -286,15 +407,30 @@ fn identity_orientation_keeps_world_axes() {
 /// Header lines and little-endian body of a binary PLY file.
 fn parse_ply(bytes: &[u8]) -> (Vec<String>, &[u8]) {
     let marker = b"end_header\n";
-    let end = bytes.windows(marker.len()).position(|w| w == marker).expect("PLY has no end_header") + marker.len();
-    let header = std::str::from_utf8(&bytes[..end]).unwrap().lines().map(str::to_owned).collect();
+    let end = bytes
+        .windows(marker.len())
+        .position(|w| w == marker)
+        .expect("PLY has no end_header")
+        + marker.len();
+    let header = std::str::from_utf8(&bytes[..end])
+        .unwrap()
+        .lines()
+        .map(str::to_owned)
+        .collect();
     (header, &bytes[end..])
 }
 
 #[test]
 fn ply_file_has_the_expected_header_and_points() {
     let scan = Room::default().scan();
-    let cloud = fuse_cloud(&scan, &CloudOptions { voxels_per_extent: 64, ..CloudOptions::default() }).unwrap();
+    let cloud = fuse_cloud(
+        &scan,
+        &CloudOptions {
+            voxels_per_extent: 64,
+            ..CloudOptions::default()
+        },
+    )
+    .unwrap();
     assert!(cloud.len() > 1000, "{}", cloud.len());
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("sub/cloud.ply");
@@ -312,7 +448,11 @@ fn ply_file_has_the_expected_header_and_points() {
     assert_eq!(header[0], "ply");
     assert_eq!(header[1], "format binary_little_endian 1.0");
     assert!(header.contains(&format!("element vertex {}", cloud.len())));
-    let props: Vec<&str> = header.iter().filter(|l| l.starts_with("property")).map(String::as_str).collect();
+    let props: Vec<&str> = header
+        .iter()
+        .filter(|l| l.starts_with("property"))
+        .map(String::as_str)
+        .collect();
     assert_eq!(props, expected_props);
     assert_eq!(body.len(), cloud.len() * 15);
     for (i, rec) in body.chunks_exact(15).enumerate() {
@@ -329,7 +469,15 @@ fn ply_file_has_the_expected_header_and_points() {
 #[test]
 fn cloud_of_a_scaled_scene_scales_with_it() {
     let a = fuse_cloud(&Room::default().scan(), &CloudOptions::default()).unwrap();
-    let b = fuse_cloud(&Room { scale: 100.0, ..Room::default() }.scan(), &CloudOptions::default()).unwrap();
+    let b = fuse_cloud(
+        &Room {
+            scale: 100.0,
+            ..Room::default()
+        }
+        .scan(),
+        &CloudOptions::default(),
+    )
+    .unwrap();
     assert!((b.voxel_size / a.voxel_size - 100.0).abs() < 1e-3);
     let ratio = b.len() as f64 / a.len() as f64;
     assert!((ratio - 1.0).abs() < 0.01, "{} vs {} points", b.len(), a.len());

@@ -28,7 +28,9 @@ fn fixture(dir: &Path, name: &str, frames: u32, extra: &[&str]) -> PathBuf {
     let out = dir.join(name);
     let frames = frames.to_string();
     let o = bin()
-        .args(["fixture", "--scene", "small", "--width", "80", "--height", "60", "--frames", &frames, "--clean"])
+        .args([
+            "fixture", "--scene", "small", "--width", "80", "--height", "60", "--frames", &frames, "--clean",
+        ])
         .args(extra)
         .arg(&out)
         .output()
@@ -41,7 +43,15 @@ fn fit(scan: &Path, model: &Path, steps: u32) -> Output {
     bin()
         .arg("fit")
         .arg(scan)
-        .args(["--steps", &steps.to_string(), "--holdout", "0", "--seed", "1", "--model"])
+        .args([
+            "--steps",
+            &steps.to_string(),
+            "--holdout",
+            "0",
+            "--seed",
+            "1",
+            "--model",
+        ])
         .arg(model)
         .output()
         .unwrap()
@@ -72,7 +82,10 @@ fn assert_report_finite(path: &Path, what: &str) {
         match v {
             serde_json::Value::Number(n) => assert!(n.as_f64().is_some_and(f64::is_finite), "{what}: {at} = {n}"),
             serde_json::Value::Null => panic!("{what}: {at} is null (NaN?)"),
-            serde_json::Value::Array(a) => a.iter().enumerate().for_each(|(i, x)| walk(x, &format!("{at}[{i}]"), what)),
+            serde_json::Value::Array(a) => a
+                .iter()
+                .enumerate()
+                .for_each(|(i, x)| walk(x, &format!("{at}[{i}]"), what)),
             serde_json::Value::Object(o) => o.iter().for_each(|(k, x)| walk(x, &format!("{at}.{k}"), what)),
             _ => {}
         }
@@ -101,8 +114,15 @@ fn fit_degenerate(scan: &Path, steps: u32, what: &str) -> Outcome {
         Outcome::Fitted
     } else {
         assert_ne!(o.status.code(), Some(101), "{what}: exit code of a panic\n{stderr}");
-        assert!(stderr.trim_start().starts_with("error:"), "{what}: no error message\n{stderr}");
-        assert_eq!(stderr.matches("error:").count(), 1, "{what}: more than one message\n{stderr}");
+        assert!(
+            stderr.trim_start().starts_with("error:"),
+            "{what}: no error message\n{stderr}"
+        );
+        assert_eq!(
+            stderr.matches("error:").count(),
+            1,
+            "{what}: more than one message\n{stderr}"
+        );
         assert!(!model_path.exists(), "{what}: a refused fit left a model behind");
         Outcome::Refused(stderr)
     }
@@ -126,7 +146,11 @@ fn map_depth(scan: &Path, f: impl Fn(u16) -> u16) {
 }
 
 fn read_pose(p: &Path) -> [[f64; 4]; 4] {
-    let nums: Vec<f64> = std::fs::read_to_string(p).unwrap().split_whitespace().map(|s| s.parse().unwrap()).collect();
+    let nums: Vec<f64> = std::fs::read_to_string(p)
+        .unwrap()
+        .split_whitespace()
+        .map(|s| s.parse().unwrap())
+        .collect();
     let mut m = [[0.0; 4]; 4];
     for (i, v) in nums.iter().enumerate().take(16) {
         m[i / 4][i % 4] = *v;
@@ -135,12 +159,19 @@ fn read_pose(p: &Path) -> [[f64; 4]; 4] {
 }
 
 fn write_pose(p: &Path, m: &[[f64; 4]; 4]) {
-    let text: String = m.iter().map(|r| format!("{:.17} {:.17} {:.17} {:.17}\n", r[0], r[1], r[2], r[3])).collect();
+    let text: String = m
+        .iter()
+        .map(|r| format!("{:.17} {:.17} {:.17} {:.17}\n", r[0], r[1], r[2], r[3]))
+        .collect();
     std::fs::write(p, text).unwrap();
 }
 
 fn write_intrinsics(scan: &Path, fx: f64, fy: f64, cx: f64, cy: f64) {
-    std::fs::write(scan.join("intrinsics.txt"), format!("{fx} 0 {cx}\n0 {fy} {cy}\n0 0 1\n")).unwrap();
+    std::fs::write(
+        scan.join("intrinsics.txt"),
+        format!("{fx} 0 {cx}\n0 {fy} {cy}\n0 0 1\n"),
+    )
+    .unwrap();
 }
 
 #[test]
@@ -269,7 +300,12 @@ fn label_masks(scan: &Path, model: &Path, boxes: &Path, out: &Path) -> Vec<(Stri
         .arg(out)
         .output()
         .unwrap();
-    assert!(o.status.success(), "label {}: {}", scan.display(), String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "label {}: {}",
+        scan.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
     frame_files(&out.join("masks"))
         .into_iter()
         .map(|p| (p.file_stem().unwrap().to_string_lossy().into_owned(), read_ids(&p)))
@@ -280,7 +316,11 @@ fn label_masks(scan: &Path, model: &Path, boxes: &Path, out: &Path) -> Vec<(Stri
 fn scores_against_truth(scan: &Path, masks: &[(String, Vec<u16>)], width: usize) -> MaskScores {
     let mut s = MaskScores::default();
     for (name, mask) in masks {
-        s.add(mask, &read_ids(&scan.join("gt/masks").join(format!("{name}.png"))), width);
+        s.add(
+            mask,
+            &read_ids(&scan.join("gt/masks").join(format!("{name}.png"))),
+            width,
+        );
     }
     s
 }
@@ -305,11 +345,25 @@ fn scaled_fits() -> &'static Scaled {
                 let o = bin()
                     .arg("fit")
                     .arg(&scan)
-                    .args(["--steps", "150", "--preset", "fast", "--holdout", "0", "--seed", "1", "--model"])
+                    .args([
+                        "--steps",
+                        "150",
+                        "--preset",
+                        "fast",
+                        "--holdout",
+                        "0",
+                        "--seed",
+                        "1",
+                        "--model",
+                    ])
                     .arg(&model_path)
                     .output()
                     .unwrap();
-                assert!(o.status.success(), "scale {scale}: {}", String::from_utf8_lossy(&o.stderr));
+                assert!(
+                    o.status.success(),
+                    "scale {scale}: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                );
                 (scale.parse().unwrap(), scan, model_path)
             })
             .collect();
@@ -321,7 +375,20 @@ fn scaled_fits() -> &'static Scaled {
 fn bin_fixture(dir: &Path, name: &str, scale: &str) -> PathBuf {
     let out = dir.join(name);
     let o = bin()
-        .args(["fixture", "--scene", "small", "--width", "160", "--height", "120", "--frames", "12", "--holdout", "2", "--clean"])
+        .args([
+            "fixture",
+            "--scene",
+            "small",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--frames",
+            "12",
+            "--holdout",
+            "2",
+            "--clean",
+        ])
         .args(["--scale", scale, "--layout", "nerfstudio"])
         .arg(&out)
         .output()
@@ -339,7 +406,10 @@ fn tiny_and_huge_scene_scales_fit_without_nan_and_agree() {
         assert_report_finite(&scan.join("model.report.json"), &format!("scale {scale}"));
         let score = score_holdout(&model, scan).unwrap();
         eprintln!("scale {scale}: {score:?}");
-        assert!(score.psnr.is_finite() && score.depth_mae_m.is_finite(), "scale {scale}: {score:?}");
+        assert!(
+            score.psnr.is_finite() && score.depth_mae_m.is_finite(),
+            "scale {scale}: {score:?}"
+        );
         relative.push(score.depth_mae_m / scale);
     }
     let (small, large) = (relative[0], relative[1]);
@@ -347,8 +417,14 @@ fn tiny_and_huge_scene_scales_fit_without_nan_and_agree() {
     // Bounds, steps and loss widths follow the scale: the same scene gives the
     // same error relative to its size (the fit is scale-invariant up to rounding).
     let (lo, hi) = (small.min(large), small.max(large));
-    assert!(hi <= 1.02 * lo, "relative depth MAE differs: 0.01 -> {small}, 100 -> {large}");
-    assert!(hi < 0.05, "150 steps must place the surface within 5 % of the scene size: {hi}");
+    assert!(
+        hi <= 1.02 * lo,
+        "relative depth MAE differs: 0.01 -> {small}, 100 -> {large}"
+    );
+    assert!(
+        hi < 0.05,
+        "150 steps must place the surface within 5 % of the scene size: {hi}"
+    );
 }
 
 #[test]
@@ -358,15 +434,32 @@ fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
     for (scale, scan, model_path) in &scaled_fits().fits {
         // The generator writes boxes.json in the scaled world frame.
         let boxes = nerflabel::boxes::read_boxes(&scan.join("boxes.json")).unwrap();
-        let masks = label_masks(scan, model_path, &scan.join("boxes.json"), &dir.path().join(format!("labels{scale}")));
+        let masks = label_masks(
+            scan,
+            model_path,
+            &scan.join("boxes.json"),
+            &dir.path().join(format!("labels{scale}")),
+        );
         let truth = scores_against_truth(scan, &masks, 160);
-        eprintln!("scale {scale}: per object {:?}, mean {:.3}", truth.per_object(), truth.mean_object_iou());
+        eprintln!(
+            "scale {scale}: per object {:?}, mean {:.3}",
+            truth.per_object(),
+            truth.mean_object_iou()
+        );
         runs.push((boxes, masks, truth));
     }
     let (b0, b1) = (&runs[0].0.boxes, &runs[1].0.boxes);
     for (a, b) in b0.iter().zip(b1) {
-        assert!((b.center - a.center * 1e4).length() <= 1e-9 * b.center.length().max(1.0), "box {} centre not scaled", a.instance_id);
-        assert!((b.size - a.size * 1e4).length() <= 1e-9 * b.size.length(), "box {} size not scaled", a.instance_id);
+        assert!(
+            (b.center - a.center * 1e4).length() <= 1e-9 * b.center.length().max(1.0),
+            "box {} centre not scaled",
+            a.instance_id
+        );
+        assert!(
+            (b.size - a.size * 1e4).length() <= 1e-9 * b.size.length(),
+            "box {} size not scaled",
+            a.instance_id
+        );
     }
     // The masks of the two scales, compared with each other.
     let mut agreement = MaskScores::default();
@@ -379,13 +472,23 @@ fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
     }
     let objects = agreement.per_object();
     eprintln!("scale 100 against scale 0.01: per object {objects:?}; {labelled} labelled pixels");
-    assert!(labelled > 12 * 160 * 120 / 50, "masks must not be (nearly) empty: {labelled} pixels");
+    assert!(
+        labelled > 12 * 160 * 120 / 50,
+        "masks must not be (nearly) empty: {labelled} pixels"
+    );
     for (id, iou) in &objects {
-        assert!(*iou >= 0.97, "instance {id}: masks at scales 0.01 and 100 differ (IoU {iou})");
+        assert!(
+            *iou >= 0.97,
+            "instance {id}: masks at scales 0.01 and 100 differ (IoU {iou})"
+        );
     }
     // Both are real labels, not the same garbage.
     for (_, _, truth) in &runs {
-        assert!(truth.mean_object_iou() > 0.5, "IoU against the ground truth {}", truth.mean_object_iou());
+        assert!(
+            truth.mean_object_iou() > 0.5,
+            "IoU against the ground truth {}",
+            truth.mean_object_iou()
+        );
     }
 }
 
@@ -397,14 +500,41 @@ fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
 fn scan_without_any_depth_still_labels() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
-    let o = bin().args(["fixture", "--scene", "small", "--width", "160", "--height", "120", "--frames", "24", "--holdout", "0", "--clean"]).arg(&scan).output().unwrap();
+    let o = bin()
+        .args([
+            "fixture",
+            "--scene",
+            "small",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--frames",
+            "24",
+            "--holdout",
+            "0",
+            "--clean",
+        ])
+        .arg(&scan)
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     std::fs::remove_dir_all(scan.join("depth")).unwrap();
     let model_path = dir.path().join("model.nlf");
     let o = bin()
         .arg("fit")
         .arg(&scan)
-        .args(["--steps", "1000", "--preset", "fast", "--holdout", "0", "--seed", "1", "--model"])
+        .args([
+            "--steps",
+            "1000",
+            "--preset",
+            "fast",
+            "--holdout",
+            "0",
+            "--seed",
+            "1",
+            "--model",
+        ])
         .arg(&model_path)
         .output()
         .unwrap();
@@ -413,12 +543,21 @@ fn scan_without_any_depth_still_labels() {
     let masks = label_masks(&scan, &model_path, &scan.join("boxes.json"), &dir.path().join("labels"));
     assert_eq!(masks.len(), 24);
     let s = scores_against_truth(&scan, &masks, 160);
-    eprintln!("no depth: per object {:?}, mean {:.3}, frame mIoU {:.3}", s.per_object(), s.mean_object_iou(), s.mean_frame_iou());
+    eprintln!(
+        "no depth: per object {:?}, mean {:.3}, frame mIoU {:.3}",
+        s.per_object(),
+        s.mean_object_iou(),
+        s.mean_frame_iou()
+    );
     // A broken model (no surface, or floaters in front of everything) scores near 0.
     // Measured 0.49 (box 0.66, ball 0.18, can 0.64); coarse, capped rays
     // without depth (right for the few holes of a scan with depth) gave 0.19.
     assert!(s.mean_object_iou() > 0.4, "no-depth labels IoU {}", s.mean_object_iou());
-    assert!(s.per_object().values().filter(|&&v| v > 0.5).count() >= 2, "{:?}", s.per_object());
+    assert!(
+        s.per_object().values().filter(|&&v| v > 0.5).count() >= 2,
+        "{:?}",
+        s.per_object()
+    );
 }
 
 /// A real model file, fitted for a few steps.
@@ -475,18 +614,31 @@ fn failed_fit_leaves_the_existing_model_untouched() {
     assert!(!o.status.success(), "the broken scan fitted");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!stderr.contains("panicked") && stderr.contains("000001"), "{stderr}");
-    assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
+    assert!(
+        std::fs::read(&model_path).unwrap() == before,
+        "the old model bytes changed"
+    );
     // A scan whose intrinsics are invalid (zero focal length).
     let bad_k = fixture(dir.path(), "badk", 4, &[]);
     write_intrinsics(&bad_k, 0.0, 0.0, 40.0, 30.0);
     let o = fit(&bad_k, &model_path, 5);
     assert!(!o.status.success(), "zero focal length fitted");
-    assert!(std::fs::read(&model_path).unwrap() == before, "the old model bytes changed");
-    assert!(std::fs::read(&checkpoint).unwrap() == checkpoint_before, "the old checkpoint changed");
+    assert!(
+        std::fs::read(&model_path).unwrap() == before,
+        "the old model bytes changed"
+    );
+    assert!(
+        std::fs::read(&checkpoint).unwrap() == checkpoint_before,
+        "the old checkpoint changed"
+    );
     // No temp files left beside the model.
     let leftovers: Vec<_> = frame_files(dir.path())
         .into_iter()
-        .filter(|p| p.is_file() && p.extension().is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint" && e != "lock"))
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .is_none_or(|e| e != "nlf" && e != "json" && e != "checkpoint" && e != "lock")
+        })
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }

@@ -11,12 +11,12 @@
 //! `cargo test --release --test robustness_training -- --ignored`
 
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::nerf::train::settings::FitSettings;
-use nerflabel::nerf::train::checkpoint::Checkpoint;
-use nerflabel::nerf::train::settings::Preset;
 use nerflabel::nerf::field::Field;
-use nerflabel::nerf::train::fit::{fit, prepare, resume, FitError, FitEvent, FitOptions, Prepared};
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::checkpoint::Checkpoint;
+use nerflabel::nerf::train::fit::{fit, prepare, resume, FitError, FitEvent, FitOptions, Prepared};
+use nerflabel::nerf::train::settings::FitSettings;
+use nerflabel::nerf::train::settings::Preset;
 use nerflabel::scan::{load, LoadOptions, Scan};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -52,8 +52,24 @@ fn assert_model_finite(model: &Model, what: &str) {
 fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     let scan = small_scan();
     let dir = tempfile::tempdir().unwrap();
-    let opts = |name: &str| FitOptions { settings: FitSettings { preset: Preset::Fast, holdout_every: 12, seed: 2, ..FitSettings::default() }, steps: Some(40), checkpoint: Some(dir.path().join(name)), ..FitOptions::default() };
-    let whole = fit(&mut scan.clone(), &opts("whole.checkpoint"), &AtomicBool::new(false), &mut |_| {}).unwrap();
+    let opts = |name: &str| FitOptions {
+        settings: FitSettings {
+            preset: Preset::Fast,
+            holdout_every: 12,
+            seed: 2,
+            ..FitSettings::default()
+        },
+        steps: Some(40),
+        checkpoint: Some(dir.path().join(name)),
+        ..FitOptions::default()
+    };
+    let whole = fit(
+        &mut scan.clone(),
+        &opts("whole.checkpoint"),
+        &AtomicBool::new(false),
+        &mut |_| {},
+    )
+    .unwrap();
 
     // Stop after step 15 of 40, as Ctrl-C does.
     let stop = AtomicBool::new(false);
@@ -75,7 +91,13 @@ fn interrupted_then_resumed_fit_equals_the_uninterrupted_fit_byte_for_byte() {
     // Other settings or another scan are refused, naming what differs.
     let err = resume(
         &mut scan.clone(),
-        &FitOptions { settings: FitSettings { seed: 3, ..FitSettings::default() }, ..opts("x.checkpoint") },
+        &FitOptions {
+            settings: FitSettings {
+                seed: 3,
+                ..FitSettings::default()
+            },
+            ..opts("x.checkpoint")
+        },
         ckpt,
         &stop,
         &mut |_| {},
@@ -212,7 +234,10 @@ fn too_high_learning_rate_is_caught_and_trains(lr: &str) {
     eprintln!("lr {lr}: {skipped} of 150 batches skipped, held-out PSNR {psnr:.2} dB, depth MAE {depth_mm:?} mm");
     assert_eq!(skipped, printed, "stdout and report agree");
     assert_eq!(report["counters"]["steps"], 150, "skipped batches still count as steps");
-    assert!((1..=30).contains(&skipped), "the guard must fire, then let training go on: {skipped} skipped");
+    assert!(
+        (1..=30).contains(&skipped),
+        "the guard must fire, then let training go on: {skipped} skipped"
+    );
     assert_eq!(
         report["lr_scale"].as_f64(),
         Some(0.5f64.powi(skipped as i32)),
@@ -255,21 +280,44 @@ fn absurd_learning_rate_fails_the_fit_and_keeps_the_previous_model() {
         Command::new(env!("CARGO_BIN_EXE_nerflabel"))
             .arg("fit")
             .arg(small_fixture())
-            .args(["--steps", "30", "--preset", "fast", "--holdout", "12", "--learning-rate", lr, "--model"])
+            .args([
+                "--steps",
+                "30",
+                "--preset",
+                "fast",
+                "--holdout",
+                "12",
+                "--learning-rate",
+                lr,
+                "--model",
+            ])
             .arg(&model_path)
             .output()
             .unwrap()
     };
     let good = fit("0.01");
     assert!(good.status.success(), "{}", String::from_utf8_lossy(&good.stderr));
-    let (model_before, report_before) = (std::fs::read(&model_path).unwrap(), std::fs::read(dir.path().join("model.report.json")).unwrap());
+    let (model_before, report_before) = (
+        std::fs::read(&model_path).unwrap(),
+        std::fs::read(dir.path().join("model.report.json")).unwrap(),
+    );
     let o = fit("1e8");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && !stderr.contains("panicked"), "{stderr}");
-    assert!(stderr.contains("trained no usable model") && stderr.contains("batches"), "{stderr}");
-    assert!(std::fs::read(&model_path).unwrap() == model_before, "previous model kept");
-    assert!(std::fs::read(dir.path().join("model.report.json")).unwrap() == report_before, "previous report kept");
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("model.failed.report.json")).unwrap()).unwrap();
+    assert!(
+        stderr.contains("trained no usable model") && stderr.contains("batches"),
+        "{stderr}"
+    );
+    assert!(
+        std::fs::read(&model_path).unwrap() == model_before,
+        "previous model kept"
+    );
+    assert!(
+        std::fs::read(dir.path().join("model.report.json")).unwrap() == report_before,
+        "previous report kept"
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("model.failed.report.json")).unwrap()).unwrap();
     assert_json_finite(&report, "report", "1e8");
     let skipped = report["counters"]["skipped_batches"].as_u64().unwrap();
     eprintln!("lr 1e8: {skipped} of 30 batches skipped");
@@ -293,7 +341,16 @@ fn norms(field: &Field) -> [(f64, f64); 3] {
 /// `settle`, the grid's RMS and max at the end are at most that factor
 /// above their values half-way: the grid has stopped drifting.
 fn long_run(scan: &Scan, steps: u64, every: u64, grid_caps: (f64, f64), settle: Option<f64>) {
-    let opts = FitOptions { settings: FitSettings { preset: Preset::Fast, holdout_every: 0, seed: 7, ..FitSettings::default() }, steps: Some(steps), ..FitOptions::default() };
+    let opts = FitOptions {
+        settings: FitSettings {
+            preset: Preset::Fast,
+            holdout_every: 0,
+            seed: 7,
+            ..FitSettings::default()
+        },
+        steps: Some(steps),
+        ..FitOptions::default()
+    };
     let Prepared { data, mut trainer, .. } = prepare(scan, &opts).unwrap();
     let start = norms(&trainer.field);
     let (mut first_loss, mut last_loss) = (Vec::new(), Vec::new());
@@ -312,7 +369,11 @@ fn long_run(scan: &Scan, steps: u64, every: u64, grid_caps: (f64, f64), settle: 
         if (s + 1) % every == 0 || s + 1 == steps {
             let n = norms(&trainer.field);
             let occupied = trainer.occupancy.occupied_fraction();
-            eprintln!("step {}: loss {:.4}, (RMS, max) grid/density/colour {n:.3?}, occupied {occupied:.4}", s + 1, stats.loss);
+            eprintln!(
+                "step {}: loss {:.4}, (RMS, max) grid/density/colour {n:.3?}, occupied {occupied:.4}",
+                s + 1,
+                stats.loss
+            );
             for (k, ((rms, max), name)) in n.iter().zip(["grid", "density MLP", "colour MLP"]).enumerate() {
                 assert!(
                     rms.is_finite() && max.is_finite(),

@@ -106,7 +106,9 @@ struct Case {
 
 fn depth_png_sized(path: &Path, w: u32, h: u32) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-    ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(w, h, Luma([1500])).save(path).unwrap();
+    ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(w, h, Luma([1500]))
+        .save(path)
+        .unwrap();
 }
 
 fn cases() -> Vec<Case> {
@@ -149,8 +151,13 @@ fn cases() -> Vec<Case> {
             build: |r| {
                 native(r);
                 std::fs::remove_file(r.join("depth/000001.png")).unwrap();
-                let made = std::process::Command::new("mkfifo").arg(r.join("depth/000001.png")).status();
-                assert!(made.is_ok_and(|s| s.success()), "mkfifo (coreutils) is needed for this case");
+                let made = std::process::Command::new("mkfifo")
+                    .arg(r.join("depth/000001.png"))
+                    .status();
+                assert!(
+                    made.is_ok_and(|s| s.success()),
+                    "mkfifo (coreutils) is needed for this case"
+                );
                 r.to_path_buf()
             },
             expect: &["depth/000001.png", "not a regular file"],
@@ -643,17 +650,35 @@ fn one_pose_a_hundred_kilometres_off_is_excluded_with_a_warning_naming_it() {
     copy_dir(&small_fixture(), dir.path());
     let pose = dir.path().join("pose/000007.txt");
     let text = std::fs::read_to_string(&pose).unwrap();
-    let mut rows: Vec<Vec<f64>> = text.lines().filter(|l| !l.trim().is_empty()).map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect()).collect();
+    let mut rows: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect();
     rows[1][3] += 1e5;
-    let text: String = rows.iter().map(|r| r.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" ") + "\n").collect();
+    let text: String = rows
+        .iter()
+        .map(|r| r.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" ") + "\n")
+        .collect();
     std::fs::write(&pose, text).unwrap();
     let scan = load(dir.path(), &LoadOptions::default()).unwrap();
     assert_eq!(scan.frames.len(), 23);
     assert!(scan.frames.iter().all(|f| f.name != "000007"));
-    let warning = scan.warnings.iter().find(|w| w.contains("excluded")).expect("a warning");
-    assert!(warning.contains("000007") && warning.contains("far from the rest of the trajectory"), "{warning}");
+    let warning = scan
+        .warnings
+        .iter()
+        .find(|w| w.contains("excluded"))
+        .expect("a warning");
+    assert!(
+        warning.contains("000007") && warning.contains("far from the rest of the trajectory"),
+        "{warning}"
+    );
     let bounds = nerflabel::poses::scene_bounds(&scan, &Default::default()).unwrap();
-    assert!(bounds.aabb.max_extent() < 20.0, "bounds stay those of the scene: {}", bounds.aabb.max_extent());
+    assert!(
+        bounds.aabb.max_extent() < 20.0,
+        "bounds stay those of the scene: {}",
+        bounds.aabb.max_extent()
+    );
 
     // Ten of 24 poses moved is not an outlier to exclude: the trajectory is broken.
     let far = std::fs::read(&pose).unwrap();
@@ -682,6 +707,11 @@ fn generated_and_real_scans_have_no_pose_outliers() {
     }
     for path in scans {
         let scan = load(&path, &LoadOptions::default()).unwrap();
-        assert!(!scan.warnings.iter().any(|w| w.contains("excluded")), "{}: {:?}", path.display(), scan.warnings);
+        assert!(
+            !scan.warnings.iter().any(|w| w.contains("excluded")),
+            "{}: {:?}",
+            path.display(),
+            scan.warnings
+        );
     }
 }

@@ -700,17 +700,39 @@ fn load_500_frames_timing() {
 fn colmap_layout_reads_world_to_camera_quaternions_in_any_order() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
-    write(&root.join("sparse/0/cameras.txt"), &format!("# CAMERA_ID MODEL W H PARAMS\n1 PINHOLE {W} {H} {} {} {} {}\n", K.fx, K.fy, K.cx, K.cy));
+    write(
+        &root.join("sparse/0/cameras.txt"),
+        &format!(
+            "# CAMERA_ID MODEL W H PARAMS\n1 PINHOLE {W} {H} {} {} {} {}\n",
+            K.fx, K.fy, K.cx, K.cy
+        ),
+    );
     let mut images = String::from("# Image list with two lines of data per image:\n");
     for (i, cam) in cams().iter().enumerate().rev() {
         let name = format!("frame_{i:03}");
         write_rgb(&root.join(format!("images/{name}.jpg")), i as u8);
-        write_depth(&root.join(format!("depth/{name}.png")), &cam.c2w(), (W / 4, H / 4), 1000.0);
+        write_depth(
+            &root.join(format!("depth/{name}.png")),
+            &cam.c2w(),
+            (W / 4, H / 4),
+            1000.0,
+        );
         // World-to-camera: rotation R^T (quaternion conjugate), translation -R^T c.
         let [qx, qy, qz, qw] = cam.quaternion();
         let t = -(rodrigues(cam.axis, cam.angle).transpose() * cam.centre);
         let points = if i == 1 { "" } else { "12.5 30.5 -1 40.0 20.0 17" };
-        writeln!(images, "{} {qw} {} {} {} {} {} {} 1 {name}.jpg\n{points}", 40 - i, -qx, -qy, -qz, t.x, t.y, t.z).unwrap();
+        writeln!(
+            images,
+            "{} {qw} {} {} {} {} {} {} 1 {name}.jpg\n{points}",
+            40 - i,
+            -qx,
+            -qy,
+            -qz,
+            t.x,
+            t.y,
+            t.z
+        )
+        .unwrap();
     }
     write(&root.join("sparse/0/images.txt"), &images);
     write(&root.join("sparse/0/points3D.txt"), "# unused\n");
@@ -725,7 +747,13 @@ fn colmap_layout_reads_world_to_camera_quaternions_in_any_order() {
     check_reprojection(&scan);
 
     // A distorting camera is refused with the command that fixes it, naming the file.
-    write(&root.join("sparse/0/cameras.txt"), &format!("1 SIMPLE_RADIAL {W} {H} {} {} {} 0.2\n", K.fx, K.cx, K.cy));
+    write(
+        &root.join("sparse/0/cameras.txt"),
+        &format!("1 SIMPLE_RADIAL {W} {H} {} {} {} 0.2\n", K.fx, K.cx, K.cy),
+    );
     let err = load(root, &LoadOptions::default()).unwrap_err().to_string();
-    assert!(err.contains("cameras.txt") && err.contains("image_undistorter"), "{err}");
+    assert!(
+        err.contains("cameras.txt") && err.contains("image_undistorter"),
+        "{err}"
+    );
 }

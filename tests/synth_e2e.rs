@@ -5,17 +5,17 @@
 //! agree with the fixture's exact ground truth.
 
 use arrow_array::cast::AsArray;
-use nerflabel::nerf::train::settings::FitSettings;
 use arrow_array::types::{Float32Type, Float64Type, Int32Type};
 use arrow_array::{Array, RecordBatch};
 use glam::DMat4;
 use image::DynamicImage;
-use nerflabel::fixture::{generate, Corruptions, read_meta, FixtureOptions, Render, SceneKind};
+use nerflabel::boxes::read_boxes;
+use nerflabel::fixture::{generate, read_meta, Corruptions, FixtureOptions, Render, SceneKind};
+use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::metrics::psnr;
-use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{load, Intrinsics, LoadOptions, Scan};
-use nerflabel::boxes::read_boxes;
 use nerflabel::synth::{read_poses, synthesize, SynthError, SynthOptions, SynthSummary, ViewSpec};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::collections::BTreeMap;
@@ -52,9 +52,22 @@ fn fitted() -> &'static Fitted {
         o.corruptions = Corruptions::none();
         generate(&scan_dir, &o).unwrap();
         let mut scan = load(&scan_dir, &LoadOptions::default()).unwrap();
-        let opts = FitOptions { settings: FitSettings { holdout_every: 0, ..FitSettings::default() }, steps: Some(STEPS), time: None, ..FitOptions::default() };
+        let opts = FitOptions {
+            settings: FitSettings {
+                holdout_every: 0,
+                ..FitSettings::default()
+            },
+            steps: Some(STEPS),
+            time: None,
+            ..FitOptions::default()
+        };
         let outcome = fit(&mut scan, &opts, &AtomicBool::new(false), &mut |_| {}).unwrap();
-        Fitted { _dir: dir, scan_dir, scan, model: outcome.model }
+        Fitted {
+            _dir: dir,
+            scan_dir,
+            scan,
+            model: outcome.model,
+        }
     })
 }
 
@@ -77,7 +90,12 @@ struct Row {
 
 fn read_batches(path: &Path) -> (arrow_schema::SchemaRef, Vec<RecordBatch>, BTreeMap<String, String>) {
     let builder = ParquetRecordBatchReaderBuilder::try_new(File::open(path).unwrap()).unwrap();
-    let kv = builder.metadata().file_metadata().key_value_metadata().cloned().unwrap_or_default();
+    let kv = builder
+        .metadata()
+        .file_metadata()
+        .key_value_metadata()
+        .cloned()
+        .unwrap_or_default();
     let kv = kv.into_iter().map(|e| (e.key, e.value.unwrap_or_default())).collect();
     let schema = builder.schema().clone();
     let batches = builder.build().unwrap().map(|b| b.unwrap()).collect();
@@ -100,21 +118,35 @@ fn read_rows(path: &Path) -> Vec<Row> {
             let m: Vec<f64> = m.as_primitive::<Float64Type>().values().to_vec();
             let spec = ViewSpec {
                 camera_to_world: DMat4::from_cols_array(&m.try_into().unwrap()).transpose(),
-                intrinsics: Intrinsics { fx: kv[0], fy: kv[1], cx: kv[2], cy: kv[3] },
+                intrinsics: Intrinsics {
+                    fx: kv[0],
+                    fy: kv[1],
+                    cx: kv[2],
+                    cy: kv[3],
+                },
                 width: widths[i] as u32,
                 height: heights[i] as u32,
             };
             let decode = |c: &arrow_array::ArrayRef| image::load_from_memory(c.as_binary::<i32>().value(i)).unwrap();
-            let DynamicImage::ImageRgb8(rgb) = decode(&rgb) else { panic!("rgb is not 8-bit RGB") };
-            let DynamicImage::ImageLuma16(depth) = decode(&depth) else { panic!("depth is not 16-bit grey") };
-            let DynamicImage::ImageLuma8(mask) = decode(&mask) else { panic!("mask is not 8-bit grey") };
+            let DynamicImage::ImageRgb8(rgb) = decode(&rgb) else {
+                panic!("rgb is not 8-bit RGB")
+            };
+            let DynamicImage::ImageLuma16(depth) = decode(&depth) else {
+                panic!("depth is not 16-bit grey")
+            };
+            let DynamicImage::ImageLuma8(mask) = decode(&mask) else {
+                panic!("mask is not 8-bit grey")
+            };
             for img in [rgb.dimensions(), depth.dimensions(), mask.dimensions()] {
                 assert_eq!(img, (spec.width, spec.height));
             }
             let list = boxes.as_list::<i32>().value(i);
             let s = list.as_struct();
             let f = |n: usize| s.column(n).as_primitive::<Float32Type>().values().to_vec();
-            let (bid, labels) = (s.column(0).as_primitive::<Int32Type>().values().to_vec(), s.column(1).as_string::<i32>());
+            let (bid, labels) = (
+                s.column(0).as_primitive::<Int32Type>().values().to_vec(),
+                s.column(1).as_string::<i32>(),
+            );
             let (x0, y0, x1, y1) = (f(2), f(3), f(4), f(5));
             rows.push(Row {
                 view_id: ids[i],
@@ -122,7 +154,9 @@ fn read_rows(path: &Path) -> Vec<Row> {
                 rgb: rgb.into_raw(),
                 depth_mm: depth.into_raw(),
                 mask: mask.into_raw(),
-                boxes: (0..s.len()).map(|j| (bid[j], labels.value(j).to_string(), [x0[j], y0[j], x1[j], y1[j]])).collect(),
+                boxes: (0..s.len())
+                    .map(|j| (bid[j], labels.value(j).to_string(), [x0[j], y0[j], x1[j], y1[j]]))
+                    .collect(),
             });
         }
     }
@@ -167,7 +201,10 @@ fn mean_iou(pairs: &[(Vec<u8>, Vec<u16>)]) -> (f64, usize) {
             }
         }
     }
-    let ious: Vec<f64> = counts.values().map(|&(i, p, g)| i as f64 / (p + g - i).max(1) as f64).collect();
+    let ious: Vec<f64> = counts
+        .values()
+        .map(|&(i, p, g)| i as f64 / (p + g - i).max(1) as f64)
+        .collect();
     (ious.iter().sum::<f64>() / ious.len().max(1) as f64, ious.len())
 }
 
@@ -175,7 +212,12 @@ fn mean_iou(pairs: &[(Vec<u8>, Vec<u16>)]) -> (f64, usize) {
 fn parquet_file_matches_the_schema_and_its_rows_are_consistent() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("nested/synth.parquet");
-    let opts = SynthOptions { n: 5, seed: 2, model_checksum: 0xdead_beef, ..SynthOptions::default() };
+    let opts = SynthOptions {
+        n: 5,
+        seed: 2,
+        model_checksum: 0xdead_beef,
+        ..SynthOptions::default()
+    };
     let summary = run(&opts, &out, &AtomicBool::new(false)).unwrap();
     assert_eq!(summary.views, 5);
     assert!(summary.attempts >= 5 && summary.attempts == 5 + summary.rejections.total());
@@ -185,14 +227,27 @@ fn parquet_file_matches_the_schema_and_its_rows_are_consistent() {
     let fields: Vec<String> = schema
         .fields()
         .iter()
-        .map(|f| format!("{}: {}{}", f.name(), f.data_type(), if f.is_nullable() { " (nullable)" } else { "" }))
+        .map(|f| {
+            format!(
+                "{}: {}{}",
+                f.name(),
+                f.data_type(),
+                if f.is_nullable() { " (nullable)" } else { "" }
+            )
+        })
         .collect();
     insta::assert_snapshot!("synth_parquet_schema", fields.join("\n"));
     assert_eq!(batches.iter().map(|b| b.num_rows()).sum::<usize>(), 5);
-    assert_eq!(kv.get("nerflabel_version").map(String::as_str), Some(env!("CARGO_PKG_VERSION")));
+    assert_eq!(
+        kv.get("nerflabel_version").map(String::as_str),
+        Some(env!("CARGO_PKG_VERSION"))
+    );
     assert_eq!(kv.get("seed").map(String::as_str), Some("2"));
     assert_eq!(kv.get("model_crc32").map(String::as_str), Some("deadbeef"));
-    assert_eq!(kv.get("scan").map(String::as_str), Some(fitted().scan.root.display().to_string().as_str()));
+    assert_eq!(
+        kv.get("scan").map(String::as_str),
+        Some(fitted().scan.root.display().to_string().as_str())
+    );
     assert_eq!(kv.get("views").map(String::as_str), Some("5"));
 
     let rows = read_rows(&out);
@@ -204,7 +259,10 @@ fn parquet_file_matches_the_schema_and_its_rows_are_consistent() {
         assert_eq!(row.view_id, i as i32);
         assert_eq!((row.spec.width, row.spec.height), (w, h), "default size is the scan's");
         assert_eq!(row.spec.intrinsics, k);
-        assert!(row.depth_mm.iter().filter(|&&d| d > 0).count() > (w * h / 2) as usize, "view {i} hits little");
+        assert!(
+            row.depth_mm.iter().filter(|&&d| d > 0).count() > (w * h / 2) as usize,
+            "view {i} hits little"
+        );
         assert!(row.rgb.iter().any(|&c| c != row.rgb[0]), "view {i} is flat");
         labelled_pixels += row.mask.iter().filter(|&&m| m > 0).count();
         // Boxes list exactly the instances of the mask, with their tight extents and labels.
@@ -215,18 +273,37 @@ fn parquet_file_matches_the_schema_and_its_rows_are_consistent() {
             assert_eq!(label, &boxes.boxes[*id as usize - 1].label);
         }
     }
-    assert!(labelled_pixels > 500, "sampled views barely see the objects: {labelled_pixels} px");
-    assert_eq!(std::fs::read_dir(out.parent().unwrap()).unwrap().count(), 1, "temp files left behind");
+    assert!(
+        labelled_pixels > 500,
+        "sampled views barely see the objects: {labelled_pixels} px"
+    );
+    assert_eq!(
+        std::fs::read_dir(out.parent().unwrap()).unwrap().count(),
+        1,
+        "temp files left behind"
+    );
 }
 
 #[test]
 fn same_seed_gives_the_same_bytes() {
     let dir = tempfile::tempdir().unwrap();
-    let opts = SynthOptions { n: 3, seed: 11, ..SynthOptions::default() };
+    let opts = SynthOptions {
+        n: 3,
+        seed: 11,
+        ..SynthOptions::default()
+    };
     let stop = AtomicBool::new(false);
     let a = run(&opts, &dir.path().join("a.parquet"), &stop).unwrap();
     let b = run(&opts, &dir.path().join("b.parquet"), &stop).unwrap();
-    run(&SynthOptions { seed: 12, ..opts.clone() }, &dir.path().join("c.parquet"), &stop).unwrap();
+    run(
+        &SynthOptions {
+            seed: 12,
+            ..opts.clone()
+        },
+        &dir.path().join("c.parquet"),
+        &stop,
+    )
+    .unwrap();
     let read = |n: &str| std::fs::read(dir.path().join(n)).unwrap();
     assert!(read("a.parquet") == read("b.parquet"), "same seed, different bytes");
     assert!(read("a.parquet") != read("c.parquet"), "the seed changes nothing");
@@ -248,7 +325,10 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     std::fs::write(&poses_path, json.to_string()).unwrap();
     let poses = read_poses(&poses_path).unwrap();
     let out = dir.path().join("p.parquet");
-    let opts = SynthOptions { poses: Some(poses), ..SynthOptions::default() };
+    let opts = SynthOptions {
+        poses: Some(poses),
+        ..SynthOptions::default()
+    };
     let summary = run(&opts, &out, &AtomicBool::new(false)).unwrap();
     assert_eq!((summary.views, summary.attempts, summary.clearance_m), (1, 0, None));
 
@@ -272,17 +352,35 @@ fn poses_file_on_a_training_frame_reproduces_it() {
         frame.name,
         err / n as f64 * 1e3
     );
-    assert!(against_frame > 20.0, "PSNR {against_frame:.2} dB against the training frame");
-    assert!(against_truth > 20.0, "PSNR {against_truth:.2} dB against the exact render");
-    assert!(n > (w * h / 2) as usize && err / (n as f64) < 0.03, "depth MAE {} m", err / n as f64);
-    assert!(instances >= 1 && miou > 0.8, "mask mIoU {miou:.3} over {instances} instances");
+    assert!(
+        against_frame > 20.0,
+        "PSNR {against_frame:.2} dB against the training frame"
+    );
+    assert!(
+        against_truth > 20.0,
+        "PSNR {against_truth:.2} dB against the exact render"
+    );
+    assert!(
+        n > (w * h / 2) as usize && err / (n as f64) < 0.03,
+        "depth MAE {} m",
+        err / n as f64
+    );
+    assert!(
+        instances >= 1 && miou > 0.8,
+        "mask mIoU {miou:.3} over {instances} instances"
+    );
 }
 
 #[test]
 fn masks_of_sampled_views_agree_with_exact_ground_truth() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.parquet");
-    let opts = SynthOptions { n: 6, seed: 5, width: Some(128), ..SynthOptions::default() };
+    let opts = SynthOptions {
+        n: 6,
+        seed: 5,
+        width: Some(128),
+        ..SynthOptions::default()
+    };
     run(&opts, &out, &AtomicBool::new(false)).unwrap();
     let rows = read_rows(&out);
     assert_eq!(rows.len(), 6);
@@ -290,7 +388,10 @@ fn masks_of_sampled_views_agree_with_exact_ground_truth() {
     let (miou, instances) = mean_iou(&pairs);
     eprintln!("sampled views: mask mIoU {miou:.3} over {instances} instances");
     assert_eq!(rows[0].spec.height, 96, "height follows the scan's aspect");
-    assert!(instances >= 2 && miou > 0.8, "mask mIoU {miou:.3} over {instances} instances");
+    assert!(
+        instances >= 2 && miou > 0.8,
+        "mask mIoU {miou:.3} over {instances} instances"
+    );
 }
 
 #[test]
@@ -298,26 +399,65 @@ fn interruption_and_impossible_clearance_leave_nothing_behind() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("x.parquet");
     let stopped = AtomicBool::new(true);
-    let err = run(&SynthOptions { n: 4, ..SynthOptions::default() }, &out, &stopped).unwrap_err();
+    let err = run(
+        &SynthOptions {
+            n: 4,
+            ..SynthOptions::default()
+        },
+        &out,
+        &stopped,
+    )
+    .unwrap_err();
     assert!(matches!(err, SynthError::Interrupted { views: 0, .. }), "{err}");
-    let err = run(&SynthOptions { n: 4, clearance: Some(1e3), ..SynthOptions::default() }, &out, &AtomicBool::new(false))
-        .unwrap_err();
-    let SynthError::GaveUp { attempts, accepted: 0, wanted: 4, rejections } = &err else { panic!("{err}") };
+    let err = run(
+        &SynthOptions {
+            n: 4,
+            clearance: Some(1e3),
+            ..SynthOptions::default()
+        },
+        &out,
+        &AtomicBool::new(false),
+    )
+    .unwrap_err();
+    let SynthError::GaveUp {
+        attempts,
+        accepted: 0,
+        wanted: 4,
+        rejections,
+    } = &err
+    else {
+        panic!("{err}")
+    };
     assert_eq!(rejections.too_close, *attempts, "{err}");
     assert!(err.to_string().contains("too close"), "{err}");
-    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "something was left at the output");
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        0,
+        "something was left at the output"
+    );
 }
 
 #[test]
 fn the_file_loads_in_pyarrow() {
-    let check = std::process::Command::new("python3").args(["-c", "import pyarrow.parquet"]).output();
+    let check = std::process::Command::new("python3")
+        .args(["-c", "import pyarrow.parquet"])
+        .output();
     if !matches!(&check, Ok(o) if o.status.success()) {
         eprintln!("skipping: python3 with pyarrow is not available");
         return;
     }
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("py.parquet");
-    run(&SynthOptions { n: 3, seed: 4, ..SynthOptions::default() }, &out, &AtomicBool::new(false)).unwrap();
+    run(
+        &SynthOptions {
+            n: 3,
+            seed: 4,
+            ..SynthOptions::default()
+        },
+        &out,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
     let script = r#"
 import sys, pyarrow.parquet as pq
 t = pq.read_table(sys.argv[1])
@@ -327,13 +467,29 @@ print(t.schema.field("boxes_2d").type)
 print(len(t.column("rgb_png")[0].as_py()) > 0, t.column("camera_to_world")[0].as_py()[15])
 print(pq.ParquetFile(sys.argv[1]).metadata.metadata[b"seed"].decode())
 "#;
-    let o = std::process::Command::new("python3").arg("-c").arg(script).arg(&out).output().unwrap();
-    assert!(o.status.success(), "pyarrow failed: {}", String::from_utf8_lossy(&o.stderr));
+    let o = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "pyarrow failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let text = String::from_utf8(o.stdout).unwrap();
     let lines: Vec<&str> = text.lines().collect();
     assert_eq!(lines[0], "3");
-    assert_eq!(lines[1], "view_id,width,height,intrinsics,camera_to_world,rgb_png,depth_png,mask_png,boxes_2d");
-    assert!(lines[2].starts_with("list<item: struct<instance_id: int32 not null, label: string not null"), "{}", lines[2]);
+    assert_eq!(
+        lines[1],
+        "view_id,width,height,intrinsics,camera_to_world,rgb_png,depth_png,mask_png,boxes_2d"
+    );
+    assert!(
+        lines[2].starts_with("list<item: struct<instance_id: int32 not null, label: string not null"),
+        "{}",
+        lines[2]
+    );
     assert_eq!(lines[3], "True 1.0");
     assert_eq!(lines[4], "4");
 }

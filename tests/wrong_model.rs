@@ -12,9 +12,16 @@ fn shift_poses(scan: &Path) {
     for entry in std::fs::read_dir(scan.join("pose")).unwrap() {
         let path = entry.unwrap().path();
         let text = std::fs::read_to_string(&path).unwrap();
-        let mut rows: Vec<Vec<f64>> = text.lines().filter(|l| !l.trim().is_empty()).map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect()).collect();
+        let mut rows: Vec<Vec<f64>> = text
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+            .collect();
         rows[0][3] += 0.3;
-        let text: String = rows.iter().map(|r| r.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" ") + "\n").collect();
+        let text: String = rows
+            .iter()
+            .map(|r| r.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" ") + "\n")
+            .collect();
         std::fs::write(&path, text).unwrap();
     }
 }
@@ -40,23 +47,46 @@ fn a_model_of_the_scan_before_its_poses_moved_is_refused_unless_forced() {
     let o = label(&[]);
     assert!(!o.status.success());
     let msg = stderr(&o);
-    assert!(msg.contains("fitted to another scan") && msg.contains("other poses") && msg.contains("--force"), "{msg}");
+    assert!(
+        msg.contains("fitted to another scan") && msg.contains("other poses") && msg.contains("--force"),
+        "{msg}"
+    );
     let poses = dir.path().join("poses.json");
     one_view_poses(&poses);
     let views = dir.path().join("v.parquet");
     let synth = |extra: &[&str]| {
-        let mut args = vec!["synth", s(&scan), "--poses", s(&poses), "--out", s(&views), "--overwrite"];
+        let mut args = vec![
+            "synth",
+            s(&scan),
+            "--poses",
+            s(&poses),
+            "--out",
+            s(&views),
+            "--overwrite",
+        ];
         args.extend_from_slice(extra);
         run(&args)
     };
     let o = synth(&[]);
-    assert!(!o.status.success() && stderr(&o).contains("fitted to another scan"), "{}", stderr(&o));
+    assert!(
+        !o.status.success() && stderr(&o).contains("fitted to another scan"),
+        "{}",
+        stderr(&o)
+    );
 
     // --force uses it with a warning; the sensor source needs no model at all.
     let o = label(&["--force"]);
-    assert!(o.status.success() && stderr(&o).contains("using it anyway"), "{}", stderr(&o));
+    assert!(
+        o.status.success() && stderr(&o).contains("using it anyway"),
+        "{}",
+        stderr(&o)
+    );
     let o = synth(&["--force"]);
-    assert!(o.status.success() && stderr(&o).contains("using it anyway"), "{}", stderr(&o));
+    assert!(
+        o.status.success() && stderr(&o).contains("using it anyway"),
+        "{}",
+        stderr(&o)
+    );
     let o = label(&["--source", "sensor"]);
     assert!(o.status.success(), "{}", stderr(&o));
 
@@ -65,7 +95,11 @@ fn a_model_of_the_scan_before_its_poses_moved_is_refused_unless_forced() {
     std::fs::remove_file(scan.join("pose/000023.txt")).unwrap();
     std::fs::remove_file(scan.join("depth/000023.png")).unwrap();
     let o = label(&[]);
-    assert!(stderr(&o).contains("fitted to 24 frames, this scan has 23"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("fitted to 24 frames, this scan has 23"),
+        "{}",
+        stderr(&o)
+    );
 }
 
 #[test]
@@ -78,21 +112,70 @@ fn messages_say_what_is_true_for_corrupt_models_missing_boxes_and_the_sensor_sou
     // Regression: the first line said "run nerflabel fit first", the cause was on the second.
     let model = dir.path().join("corrupt.nlf");
     std::fs::write(&model, b"NERFLBL\0garbage").unwrap();
-    let o = run(&["label", s(&scan), "--boxes", s(&boxes), "--model", s(&model), "--out", s(&out)]);
+    let o = run(&[
+        "label",
+        s(&scan),
+        "--boxes",
+        s(&boxes),
+        "--model",
+        s(&model),
+        "--out",
+        s(&out),
+    ]);
     let first = stderr(&o).lines().next().unwrap_or_default().to_string();
-    assert!(!o.status.success() && first.contains("corrupt.nlf") && !first.contains("fit` first"), "{}", stderr(&o));
-    let o = run(&["label", s(&scan), "--boxes", s(&boxes), "--model", s(&dir.path().join("none.nlf")), "--out", s(&out)]);
-    assert!(stderr(&o).contains("no model here: run `nerflabel fit` first"), "{}", stderr(&o));
+    assert!(
+        !o.status.success() && first.contains("corrupt.nlf") && !first.contains("fit` first"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&[
+        "label",
+        s(&scan),
+        "--boxes",
+        s(&boxes),
+        "--model",
+        s(&dir.path().join("none.nlf")),
+        "--out",
+        s(&out),
+    ]);
+    assert!(
+        stderr(&o).contains("no model here: run `nerflabel fit` first"),
+        "{}",
+        stderr(&o)
+    );
     // Regression: the sensor source printed "rendered 16.1 % of the pixels".
-    let o = run(&["label", s(&scan), "--boxes", s(&boxes), "--source", "sensor", "--out", s(&out)]);
+    let o = run(&[
+        "label",
+        s(&scan),
+        "--boxes",
+        s(&boxes),
+        "--source",
+        "sensor",
+        "--out",
+        s(&out),
+    ]);
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success() && stdout.contains("classified") && !stdout.contains("rendered"), "{stdout}");
+    assert!(
+        o.status.success() && stdout.contains("classified") && !stdout.contains("rendered"),
+        "{stdout}"
+    );
     // Regression: synth without any boxes wrote empty masks without a word.
     std::fs::remove_file(&boxes).unwrap();
     let fit = run(&["fit", s(&scan), "--steps", "2", "--preset", "fast", "--holdout", "0"]);
     assert!(fit.status.success(), "{}", stderr(&fit));
     let poses = dir.path().join("poses.json");
     one_view_poses(&poses);
-    let o = run(&["synth", s(&scan), "--poses", s(&poses), "--out", s(&dir.path().join("v.parquet"))]);
-    assert!(o.status.success() && stderr(&o).contains("every mask will be empty"), "{}", stderr(&o));
+    let o = run(&[
+        "synth",
+        s(&scan),
+        "--poses",
+        s(&poses),
+        "--out",
+        s(&dir.path().join("v.parquet")),
+    ]);
+    assert!(
+        o.status.success() && stderr(&o).contains("every mask will be empty"),
+        "{}",
+        stderr(&o)
+    );
 }

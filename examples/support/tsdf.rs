@@ -24,6 +24,17 @@ pub fn raycast_frame(tsdf: &BoxTsdf, frame: &Frame) -> Frame {
             tsdf.depth_along(origin, ray / len, 1.0 / len) as f32
         })
         .collect();
-    let depth = DepthMap { width: w, height: h, metres };
-    Frame::new(frame.id, frame.name.clone(), frame.rgb.clone(), Some(depth), frame.camera_to_world, frame.intrinsics)
+    let depth = DepthMap {
+        width: w,
+        height: h,
+        metres,
+    };
+    Frame::new(
+        frame.id,
+        frame.name.clone(),
+        frame.rgb.clone(),
+        Some(depth),
+        frame.camera_to_world,
+        frame.intrinsics,
+    )
 }

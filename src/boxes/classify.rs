@@ -3,8 +3,8 @@
 //! smallest (FORMATS.md section 2; ties: the lower instance id), or, with
 //! [`Overlap::Deepest`], to the box it lies deepest inside.
 
-use crate::poses::DAabb;
 use super::parse::BoxSet;
+use crate::poses::DAabb;
 use glam::{DMat3, DVec3};
 
 /// One box prepared for fast tests.
@@ -42,7 +42,9 @@ impl Prepared {
     fn ray(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let o = self.world_to_box * (origin - self.center);
         let d = self.world_to_box * dir;
-        DAabb::new(-self.half, self.half).line_crossing(o, d).map(|c| (c.t_near, c.t_far))
+        DAabb::new(-self.half, self.half)
+            .line_crossing(o, d)
+            .map(|c| (c.t_near, c.t_far))
     }
 }
 
@@ -87,7 +89,11 @@ impl BoxClassifier {
     /// Prepare every box of `set` with the given overlap rule.
     pub fn with_overlap(set: &BoxSet, overlap: Overlap) -> Self {
         let mut order: Vec<&super::parse::Box3> = set.boxes.iter().collect();
-        order.sort_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)));
+        order.sort_by(|a, b| {
+            a.volume()
+                .total_cmp(&b.volume())
+                .then(a.instance_id.cmp(&b.instance_id))
+        });
         let boxes = order
             .into_iter()
             .map(|b| {
@@ -223,7 +229,11 @@ mod tests {
         set.boxes
             .iter()
             .filter(|b| b.contains(p))
-            .min_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)))
+            .min_by(|a, b| {
+                a.volume()
+                    .total_cmp(&b.volume())
+                    .then(a.instance_id.cmp(&b.instance_id))
+            })
             .map_or(0, |b| b.instance_id)
     }
 
@@ -246,7 +256,9 @@ mod tests {
             // Points near every box's centre exercise the nested cases densely.
             for b in &set.boxes {
                 for _ in 0..200 {
-                    let p = b.center + b.rotation * (b.size * DVec3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.6, 0.6)));
+                    let p = b.center
+                        + b.rotation
+                            * (b.size * DVec3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.6, 0.6)));
                     assert_eq!(classifier.classify(p), brute_force(&set, p));
                 }
             }
@@ -262,7 +274,12 @@ mod tests {
         set.boxes
             .iter()
             .filter(|b| b.contains(p))
-            .min_by(|a, b| depth(b).total_cmp(&depth(a)).then(a.volume().total_cmp(&b.volume())).then(a.instance_id.cmp(&b.instance_id)))
+            .min_by(|a, b| {
+                depth(b)
+                    .total_cmp(&depth(a))
+                    .then(a.volume().total_cmp(&b.volume()))
+                    .then(a.instance_id.cmp(&b.instance_id))
+            })
             .map_or(0, |b| b.instance_id)
     }
 
@@ -304,12 +321,19 @@ mod tests {
         let deepest = BoxClassifier::with_overlap(&set, Overlap::Deepest);
         assert_eq!((deepest.classify(small_face), deepest.classify(big_face)), (1, 2));
         // Outside both, and deep inside each: the rules agree.
-        for (p, id) in [(DVec3::new(-0.02, 0.0, 0.0), 0), (DVec3::new(0.05, 0.0, 0.0), 1), (DVec3::new(0.2, 0.0, 0.0), 2)] {
+        for (p, id) in [
+            (DVec3::new(-0.02, 0.0, 0.0), 0),
+            (DVec3::new(0.05, 0.0, 0.0), 1),
+            (DVec3::new(0.2, 0.0, 0.0), 2),
+        ] {
             assert_eq!((smallest.classify(p), deepest.classify(p)), (id, id), "{p}");
         }
         use clap::ValueEnum;
         assert_eq!(Overlap::from_str("deepest", false), Ok(Overlap::Deepest));
-        assert_eq!(Overlap::from_str(Overlap::Smallest.name(), false), Ok(Overlap::Smallest));
+        assert_eq!(
+            Overlap::from_str(Overlap::Smallest.name(), false),
+            Ok(Overlap::Smallest)
+        );
         assert!(Overlap::from_str("largest", false).is_err());
     }
 
@@ -322,13 +346,27 @@ mod tests {
             let c = BoxClassifier::new(&set);
             for _ in 0..300 {
                 let origin = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
-                let dir = (DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)) - origin).normalize();
+                let dir =
+                    (DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)) - origin).normalize();
                 let (t, tolerance) = (rng.range(0.0, 5.0), rng.range(0.0, 0.5));
                 // Reference by sampling: the point's own box, else the smallest
                 // box holding a sample within the tolerance behind it.
                 let step = 1e-4;
-                let entries: Vec<f64> = set.boxes.iter().filter_map(|b| c.boxes.iter().find(|p| p.instance_id == b.instance_id)?.ray(origin, dir)).map(|(t0, _)| t0).collect();
-                if entries.iter().any(|&t0| (t0 - t).abs() < 2.0 * step || (t0 - t - tolerance).abs() < 2.0 * step) {
+                let entries: Vec<f64> = set
+                    .boxes
+                    .iter()
+                    .filter_map(|b| {
+                        c.boxes
+                            .iter()
+                            .find(|p| p.instance_id == b.instance_id)?
+                            .ray(origin, dir)
+                    })
+                    .map(|(t0, _)| t0)
+                    .collect();
+                if entries
+                    .iter()
+                    .any(|&t0| (t0 - t).abs() < 2.0 * step || (t0 - t - tolerance).abs() < 2.0 * step)
+                {
                     continue;
                 }
                 let own = brute_force(&set, origin + dir * t);
@@ -339,16 +377,38 @@ mod tests {
                     let ahead: Vec<&Box3> = set
                         .boxes
                         .iter()
-                        .filter(|b| (1..=(tolerance / step) as usize).any(|k| b.contains(origin + dir * (t + k as f64 * step))))
+                        .filter(|b| {
+                            (1..=(tolerance / step) as usize).any(|k| b.contains(origin + dir * (t + k as f64 * step)))
+                        })
                         .collect();
-                    let best = ahead.iter().min_by(|a, b| a.volume().total_cmp(&b.volume()).then(a.instance_id.cmp(&b.instance_id)));
-                    best.map_or_else(|| { outside += 1; 0 }, |b| { in_front += 1; b.instance_id })
+                    let best = ahead.iter().min_by(|a, b| {
+                        a.volume()
+                            .total_cmp(&b.volume())
+                            .then(a.instance_id.cmp(&b.instance_id))
+                    });
+                    best.map_or_else(
+                        || {
+                            outside += 1;
+                            0
+                        },
+                        |b| {
+                            in_front += 1;
+                            b.instance_id
+                        },
+                    )
                 };
-                assert_eq!(c.classify_on_ray(origin, dir, t, tolerance), want, "t {t} tolerance {tolerance}");
+                assert_eq!(
+                    c.classify_on_ray(origin, dir, t, tolerance),
+                    want,
+                    "t {t} tolerance {tolerance}"
+                );
                 assert_eq!(c.classify_on_ray(origin, dir, t, 0.0), own);
             }
         }
-        assert!(inside > 100 && in_front > 100 && outside > 100, "{inside} inside, {in_front} in front, {outside} outside");
+        assert!(
+            inside > 100 && in_front > 100 && outside > 100,
+            "{inside} inside, {in_front} in front, {outside} outside"
+        );
     }
 
     #[test]
@@ -407,6 +467,9 @@ mod tests {
         assert_eq!(c.ray_interval(DVec3::ZERO, DVec3::X), Some((0.0, 0.5)));
         assert_eq!(c.ray_interval(DVec3::new(2.0, 0.0, 0.0), DVec3::X), None);
         assert_eq!(c.ray_interval(DVec3::new(2.0, 0.7, 0.0), -DVec3::X), None);
-        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.0, 0.0), -DVec3::X * 2.0), Some((0.75, 1.25)));
+        assert_eq!(
+            c.ray_interval(DVec3::new(2.0, 0.0, 0.0), -DVec3::X * 2.0),
+            Some((0.75, 1.25))
+        );
     }
 }

@@ -31,7 +31,10 @@ pub fn clean_mask(mask: &mut [u16], width: u32, height: u32, fraction: f64) -> u
         for x in 0..w {
             let i = y * w + x;
             let a = c.label[i] as usize;
-            for j in [(x + 1 < w).then(|| i + 1), (y + 1 < h).then(|| i + w)].into_iter().flatten() {
+            for j in [(x + 1 < w).then(|| i + 1), (y + 1 < h).then(|| i + w)]
+                .into_iter()
+                .flatten()
+            {
                 let b = c.label[j] as usize;
                 if a == b {
                     continue;

@@ -102,7 +102,10 @@ pub fn frame_record(label: &FrameLabel, boxes: &BoxSet, file_name: String) -> Fr
     let mut annotations = Vec::new();
     let mut yolo = String::new();
     for inst in &label.instances {
-        let (Some(rle), Some(b)) = (rles.get(&(inst.instance_id as u16)), boxes.by_instance(inst.instance_id)) else {
+        let (Some(rle), Some(b)) = (
+            rles.get(&(inst.instance_id as u16)),
+            boxes.by_instance(inst.instance_id),
+        ) else {
             continue;
         };
         let category_id = boxes.category_id(&b.label).unwrap_or(0);
@@ -114,7 +117,10 @@ pub fn frame_record(label: &FrameLabel, boxes: &BoxSet, file_name: String) -> Fr
             category_id,
             bbox: [r.x0 as f64, r.y0 as f64, bw, bh],
             area: inst.area as f64,
-            segmentation: CocoRle { size: [label.height, label.width], counts: rle.to_coco_string() },
+            segmentation: CocoRle {
+                size: [label.height, label.width],
+                counts: rle.to_coco_string(),
+            },
             iscrowd: 0,
             instance_id: inst.instance_id,
             object_to_camera: rows4(&inst.object_to_camera),
@@ -149,18 +155,35 @@ pub fn assemble(info: CocoInfo, boxes: &BoxSet, records: &[FrameRecord]) -> Coco
     let mut annotations = Vec::new();
     for (i, rec) in records.iter().enumerate() {
         let image_id = i as u64 + 1;
-        images.push(CocoImage { id: image_id, ..rec.image.clone() });
+        images.push(CocoImage {
+            id: image_id,
+            ..rec.image.clone()
+        });
         for a in &rec.annotations {
-            annotations.push(CocoAnnotation { id: annotations.len() as u64 + 1, image_id, ..a.clone() });
+            annotations.push(CocoAnnotation {
+                id: annotations.len() as u64 + 1,
+                image_id,
+                ..a.clone()
+            });
         }
     }
     let categories = boxes
         .categories
         .iter()
         .enumerate()
-        .map(|(i, name)| CocoCategory { id: i as u32 + 1, name: name.clone(), supercategory: String::new() })
+        .map(|(i, name)| CocoCategory {
+            id: i as u32 + 1,
+            name: name.clone(),
+            supercategory: String::new(),
+        })
         .collect();
-    CocoFile { info, licenses: Vec::new(), images, categories, annotations }
+    CocoFile {
+        info,
+        licenses: Vec::new(),
+        images,
+        categories,
+        annotations,
+    }
 }
 
 /// `classes.txt` for YOLO: one label per line, class index = line number.
@@ -215,24 +238,48 @@ mod tests {
         let rec = frame_record(&label, &boxes, "rgb/000012.png".into());
         assert_eq!(rec.annotations.len(), 2);
         let book = &rec.annotations[0];
-        assert_eq!((book.instance_id, book.category_id, book.bbox, book.area), (2, 2, [7.0, 0.0, 1.0, 1.0], 1.0));
+        assert_eq!(
+            (book.instance_id, book.category_id, book.bbox, book.area),
+            (2, 2, [7.0, 0.0, 1.0, 1.0], 1.0)
+        );
         let mug = &rec.annotations[1];
-        assert_eq!((mug.instance_id, mug.category_id, mug.bbox, mug.area), (3, 1, [2.0, 1.0, 3.0, 2.0], 6.0));
+        assert_eq!(
+            (mug.instance_id, mug.category_id, mug.bbox, mug.area),
+            (3, 1, [2.0, 1.0, 3.0, 2.0], 6.0)
+        );
         // Column-major runs [9, 2, 2, 2, 2, 2, 13]; from the fourth on, deltas to two back: 0 0 0 11.
         assert_eq!(mug.segmentation.size, [4, 8]);
         assert_eq!(mug.segmentation.counts, "922000;");
-        assert_eq!(mug.object_to_camera[2][3], 3.0, "box 3 sits at z = 2 m, camera shifted by +1");
+        assert_eq!(
+            mug.object_to_camera[2][3], 3.0,
+            "box 3 sits at z = 2 m, camera shifted by +1"
+        );
         assert_eq!(mug.object_to_camera[0][3], 3.0);
         let lines: Vec<&str> = rec.yolo.lines().collect();
-        assert_eq!(lines, vec!["1 0.937500 0.125000 0.125000 0.250000", "0 0.437500 0.500000 0.375000 0.500000"]);
+        assert_eq!(
+            lines,
+            vec![
+                "1 0.937500 0.125000 0.125000 0.250000",
+                "0 0.437500 0.500000 0.375000 0.500000"
+            ]
+        );
         let coco = assemble(CocoInfo::default(), &boxes, &[rec.clone(), rec]);
         assert_eq!(coco.images.iter().map(|i| i.id).collect::<Vec<_>>(), vec![1, 2]);
-        assert_eq!(coco.annotations.iter().map(|a| (a.id, a.image_id)).collect::<Vec<_>>(), vec![(1, 1), (2, 1), (3, 2), (4, 2)]);
+        assert_eq!(
+            coco.annotations.iter().map(|a| (a.id, a.image_id)).collect::<Vec<_>>(),
+            vec![(1, 1), (2, 1), (3, 2), (4, 2)]
+        );
         assert_eq!(coco.categories.len(), 2);
         assert_eq!(yolo_classes(&boxes), "mug\nbook\n");
         let json = serde_json::to_value(&coco).unwrap();
-        assert_eq!(json["annotations"][1]["segmentation"]["counts"], serde_json::json!(coco.annotations[1].segmentation.counts));
-        assert_eq!(json["annotations"][1]["object_to_camera"][0], serde_json::json!([1.0, 0.0, 0.0, 3.0]));
+        assert_eq!(
+            json["annotations"][1]["segmentation"]["counts"],
+            serde_json::json!(coco.annotations[1].segmentation.counts)
+        );
+        assert_eq!(
+            json["annotations"][1]["object_to_camera"][0],
+            serde_json::json!([1.0, 0.0, 0.0, 3.0])
+        );
         assert_eq!(json["annotations"][1]["iscrowd"], 0);
     }
 }

@@ -12,17 +12,17 @@ use super::cleanup::clean_mask;
 use super::options::{DepthSource, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
-use crate::nerf::camera::LocalCamera;
-use crate::nerf::render::march::ray_interval;
-use crate::nerf::model_file::Model;
-use crate::nerf::render::rays::{RenderOptions, RenderRay};
 use super::support::{excluded_planes, ExcludedPlane};
-use super::tsdf::BoxTsdf;
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
-use crate::poses::sample_depth_points;
-use crate::scan::Scan;
+use super::tsdf::BoxTsdf;
+use crate::nerf::camera::LocalCamera;
+use crate::nerf::model_file::Model;
+use crate::nerf::render::march::ray_interval;
+use crate::nerf::render::rays::{RenderOptions, RenderRay};
 use crate::nerf::render::view::ViewRenderer;
+use crate::poses::sample_depth_points;
 use crate::scan::Frame;
+use crate::scan::Scan;
 use glam::{DMat3, DMat4};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -105,7 +105,11 @@ impl<'a> Labeler<'a> {
             (true, Some(m)) => {
                 // Whole frames: a grid re-estimated from the field skips more
                 // empty space, well worth its set-up over many frames.
-                let r = if options.full_depth { ViewRenderer::pruned(m)? } else { ViewRenderer::new(m)? };
+                let r = if options.full_depth {
+                    ViewRenderer::pruned(m)?
+                } else {
+                    ViewRenderer::new(m)?
+                };
                 let cell_local = 1.0 / m.header.field.grid.finest_resolution.max(1) as f64;
                 let cell_m = r.transform.local_to_world_distance(cell_local);
                 (Some(r), Some(m.render_options(false)), cell_m)
@@ -273,7 +277,9 @@ impl<'a> Labeler<'a> {
                 let len = ray.length();
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
                 let dir = ray / len;
-                let id = self.classifier.classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
+                let id = self
+                    .classifier
+                    .classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
                 let point = origin + dir * (z * len);
                 // On an excluded plane's band: the plane itself, unless the
                 // surface there is steep to it (an object's side meeting its
@@ -285,7 +291,11 @@ impl<'a> Labeler<'a> {
                             && !surface_normal(&z_image, w, h, j.x, j.y, &point_at)
                                 .is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
                 };
-                let excluded = id > 0 && self.excluded.get(id as usize - 1).is_some_and(|planes| planes.iter().any(excluded_by));
+                let excluded = id > 0
+                    && self
+                        .excluded
+                        .get(id as usize - 1)
+                        .is_some_and(|planes| planes.iter().any(excluded_by));
                 mask[index] = if excluded { 0 } else { id as u16 };
             }
         }
@@ -328,8 +338,11 @@ impl<'a> Labeler<'a> {
         let scale = renderer.transform.scale;
         let near = opts.rule.min_step;
         let (field, grid) = (&renderer.model.field, renderer.grid());
-        let crossing =
-            CrossingOptions { rule: opts.rule, threshold: self.options.surface_opacity, max_samples: opts.max_samples_per_ray };
+        let crossing = CrossingOptions {
+            rule: opts.rule,
+            threshold: self.options.surface_opacity,
+            max_samples: opts.max_samples_per_ray,
+        };
         jobs.par_chunks(PACKET).zip(depth.par_chunks_mut(PACKET)).for_each_init(
             || (SurfaceWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
             |(ws, rays, index, out), (chunk, depth)| {
@@ -337,7 +350,9 @@ impl<'a> Labeler<'a> {
                 index.clear();
                 for (i, j) in chunk.iter().enumerate() {
                     let (ray, norm) = camera.ray(j.x as f32, j.y as f32);
-                    let Some((t0, t1)) = ray_interval(&ray, near) else { continue };
+                    let Some((t0, t1)) = ray_interval(&ray, near) else {
+                        continue;
+                    };
                     // World metres along the unit ray -> local units along the unit local ray.
                     let t_max = match (self.options.full_depth, j.box_far) {
                         (false, Some(far)) => t1.min((far * scale) as f32),
@@ -374,7 +389,14 @@ const STEEP_COSINE: f64 = std::f64::consts::FRAC_1_SQRT_2;
 /// `z` (0 = no surface): along each image axis, the difference to the
 /// neighbour nearer in depth, so a depth edge does not tilt it. `None`
 /// without a neighbour on either axis.
-fn surface_normal(z: &[f64], w: u32, h: u32, x: u32, y: u32, point_at: &dyn Fn(u32, u32, f64) -> glam::DVec3) -> Option<glam::DVec3> {
+fn surface_normal(
+    z: &[f64],
+    w: u32,
+    h: u32,
+    x: u32,
+    y: u32,
+    point_at: &dyn Fn(u32, u32, f64) -> glam::DVec3,
+) -> Option<glam::DVec3> {
     let at = |x: u32, y: u32| z[y as usize * w as usize + x as usize];
     let centre_z = at(x, y);
     let centre = point_at(x, y, centre_z);
@@ -382,7 +404,9 @@ fn surface_normal(z: &[f64], w: u32, h: u32, x: u32, y: u32, point_at: &dyn Fn(u
     let tangent = |a: Option<(u32, u32)>, b: Option<(u32, u32)>| -> Option<glam::DVec3> {
         let near = |p: Option<(u32, u32)>| p.map(|(px, py)| (px, py, at(px, py))).filter(|&(_, _, pz)| pz > 0.0);
         match (near(a), near(b)) {
-            (Some(p), Some(q)) if (p.2 - centre_z).abs() <= (q.2 - centre_z).abs() => Some(centre - point_at(p.0, p.1, p.2)),
+            (Some(p), Some(q)) if (p.2 - centre_z).abs() <= (q.2 - centre_z).abs() => {
+                Some(centre - point_at(p.0, p.1, p.2))
+            }
             (_, Some(q)) => Some(point_at(q.0, q.1, q.2) - centre),
             (Some(p), None) => Some(centre - point_at(p.0, p.1, p.2)),
             (None, None) => None,
@@ -396,7 +420,13 @@ fn surface_normal(z: &[f64], w: u32, h: u32, x: u32, y: u32, point_at: &dyn Fn(u
 }
 
 /// Tight boxes, areas and camera-frame poses of the instances in a mask.
-pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world_to_camera: &DMat4) -> Vec<InstanceLabel> {
+pub fn instances_of(
+    mask: &[u16],
+    width: u32,
+    height: u32,
+    boxes: &BoxSet,
+    world_to_camera: &DMat4,
+) -> Vec<InstanceLabel> {
     let mut found: std::collections::BTreeMap<u16, (PixelRect, u64)> = std::collections::BTreeMap::new();
     for y in 0..height {
         let row = &mask[y as usize * width as usize..(y as usize + 1) * width as usize];
@@ -405,8 +435,21 @@ pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world
                 continue;
             }
             let x = x as u32;
-            let e = found.entry(id).or_insert((PixelRect { x0: x, y0: y, x1: x + 1, y1: y + 1 }, 0));
-            e.0 = e.0.union(&PixelRect { x0: x, y0: y, x1: x + 1, y1: y + 1 });
+            let e = found.entry(id).or_insert((
+                PixelRect {
+                    x0: x,
+                    y0: y,
+                    x1: x + 1,
+                    y1: y + 1,
+                },
+                0,
+            ));
+            e.0 = e.0.union(&PixelRect {
+                x0: x,
+                y0: y,
+                x1: x + 1,
+                y1: y + 1,
+            });
             e.1 += 1;
         }
     }
@@ -414,7 +457,12 @@ pub fn instances_of(mask: &[u16], width: u32, height: u32, boxes: &BoxSet, world
         .into_iter()
         .filter_map(|(id, (bbox, area))| {
             let b = boxes.by_instance(id as u32)?;
-            Some(InstanceLabel { instance_id: id as u32, bbox, area, object_to_camera: *world_to_camera * b.object_to_world() })
+            Some(InstanceLabel {
+                instance_id: id as u32,
+                bbox,
+                area,
+                object_to_camera: *world_to_camera * b.object_to_world(),
+            })
         })
         .collect()
 }
@@ -432,29 +480,68 @@ mod tests {
     #[test]
     fn sensor_labels_of_a_wall_through_a_box() {
         let (w, h) = (64u32, 48u32);
-        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
-        let depth = DepthMap { width: w, height: h, metres: vec![2.0; (w * h) as usize] };
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        let depth = DepthMap {
+            width: w,
+            height: h,
+            metres: vec![2.0; (w * h) as usize],
+        };
         let frame = Frame::new(7, "000007", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
-        let cube = Box3 { label: "cube".into(), instance_id: 1, center: DVec3::new(0.0, 0.0, 2.0), size: DVec3::splat(0.5), rotation: DMat3::IDENTITY };
-        let away = Box3 { label: "away".into(), instance_id: 2, center: DVec3::new(0.0, 0.0, -3.0), ..cube.clone() };
+        let cube = Box3 {
+            label: "cube".into(),
+            instance_id: 1,
+            center: DVec3::new(0.0, 0.0, 2.0),
+            size: DVec3::splat(0.5),
+            rotation: DMat3::IDENTITY,
+        };
+        let away = Box3 {
+            label: "away".into(),
+            instance_id: 2,
+            center: DVec3::new(0.0, 0.0, -3.0),
+            ..cube.clone()
+        };
         let boxes = BoxSet::from_boxes(vec![cube, away]);
-        let opts = LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() };
+        let opts = LabelOptions {
+            source: DepthSource::Sensor,
+            ..LabelOptions::default()
+        };
         let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
         // Wall points (x, y, 2) fall in the cube when |x|, |y| <= 0.25: |u - cx| <= 40 * 0.25 / 2 = 5.
         let inside = |u: u32, v: u32| (u as f64 - k.cx).abs() <= 5.0 && (v as f64 - k.cy).abs() <= 5.0;
         for v in 0..h {
             for u in 0..w {
-                assert_eq!(label.mask[(v * w + u) as usize], inside(u, v) as u16, "pixel ({u}, {v})");
+                assert_eq!(
+                    label.mask[(v * w + u) as usize],
+                    inside(u, v) as u16,
+                    "pixel ({u}, {v})"
+                );
             }
         }
         assert_eq!(label.in_view, vec![1]);
         assert_eq!(label.instances.len(), 1);
         let inst = &label.instances[0];
         assert_eq!((inst.instance_id, inst.area), (1, 100));
-        assert_eq!(inst.bbox, PixelRect { x0: 27, y0: 19, x1: 37, y1: 29 });
+        assert_eq!(
+            inst.bbox,
+            PixelRect {
+                x0: 27,
+                y0: 19,
+                x1: 37,
+                y1: 29
+            }
+        );
         assert_eq!(inst.object_to_camera.w_axis.truncate(), DVec3::new(0.0, 0.0, 2.0));
         // Rays through the cube: its front face spans |u - cx| <= 40 * 0.25 / 1.75.
-        assert!(label.box_pixels > 100 && label.box_pixels < 14 * 14, "{}", label.box_pixels);
+        assert!(
+            label.box_pixels > 100 && label.box_pixels < 14 * 14,
+            "{}",
+            label.box_pixels
+        );
         assert_eq!(label.rendered_rays, 0);
         assert!(label.depth_m.is_none());
     }
@@ -465,22 +552,51 @@ mod tests {
     #[test]
     fn an_objects_foot_in_the_support_band_is_kept_and_the_support_is_not() {
         let (w, h) = (200u32, 200u32);
-        let k = Intrinsics { fx: 400.0, fy: 400.0, cx: 99.5, cy: 99.5 };
+        let k = Intrinsics {
+            fx: 400.0,
+            fy: 400.0,
+            cx: 99.5,
+            cy: 99.5,
+        };
         // Camera at the origin looking along +z, y down: a face at z = 2 for
         // |x| <= 0.25 down to the floor at y = 0.3.
         let surface = |u: u32, v: u32| -> (f64, bool) {
             let (dx, dy) = ((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy);
             let on_face = (2.0 * dx).abs() <= 0.25 && 2.0 * dy < 0.3;
-            if on_face || dy <= 0.0 { (if on_face { 2.0 } else { 0.0 }, on_face) } else { (0.3 / dy, false) }
+            if on_face || dy <= 0.0 {
+                (if on_face { 2.0 } else { 0.0 }, on_face)
+            } else {
+                (0.3 / dy, false)
+            }
         };
-        let metres = (0..h).flat_map(|v| (0..w).map(move |u| (u, v))).map(|(u, v)| surface(u, v).0 as f32).collect();
-        let depth = DepthMap { width: w, height: h, metres };
+        let metres = (0..h)
+            .flat_map(|v| (0..w).map(move |u| (u, v)))
+            .map(|(u, v)| surface(u, v).0 as f32)
+            .collect();
+        let depth = DepthMap {
+            width: w,
+            height: h,
+            metres,
+        };
         let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
-        let b = Box3 { label: "face".into(), instance_id: 1, center: DVec3::new(0.0, 0.055, 2.0), size: DVec3::new(0.52, 0.51, 0.2), rotation: DMat3::IDENTITY };
+        let b = Box3 {
+            label: "face".into(),
+            instance_id: 1,
+            center: DVec3::new(0.0, 0.055, 2.0),
+            size: DVec3::new(0.52, 0.51, 0.2),
+            rotation: DMat3::IDENTITY,
+        };
         let boxes = BoxSet::from_boxes(vec![b.clone()]);
-        let opts = LabelOptions { source: DepthSource::Sensor, ..LabelOptions::default() };
+        let opts = LabelOptions {
+            source: DepthSource::Sensor,
+            ..LabelOptions::default()
+        };
         let mut labeler = Labeler::new(&boxes, None, opts).unwrap();
-        labeler.excluded = vec![vec![ExcludedPlane { normal: DVec3::new(0.0, -1.0, 0.0), offset: 0.3, band: 0.01 }]];
+        labeler.excluded = vec![vec![ExcludedPlane {
+            normal: DVec3::new(0.0, -1.0, 0.0),
+            offset: 0.3,
+            band: 0.01,
+        }]];
         let label = labeler.label_frame(&frame);
         let (mut foot, mut floor_in_box) = (0, 0);
         for v in 0..h {
@@ -490,7 +606,11 @@ mod tests {
                 let labelled = label.mask[(v * w + u) as usize] == 1;
                 if on_face && p.y > 0.29 && u > 2 && u < w - 3 {
                     foot += 1;
-                    assert!(labelled, "the face's foot at ({u}, {v}), {:.3} m above the floor, is kept", 0.3 - p.y);
+                    assert!(
+                        labelled,
+                        "the face's foot at ({u}, {v}), {:.3} m above the floor, is kept",
+                        0.3 - p.y
+                    );
                 }
                 if !on_face && z > 0.0 && b.contains(p) {
                     floor_in_box += 1;
@@ -498,7 +618,10 @@ mod tests {
                 }
             }
         }
-        assert!(foot >= 100 && floor_in_box >= 100, "{foot} foot and {floor_in_box} floor pixels tested");
+        assert!(
+            foot >= 100 && floor_in_box >= 100,
+            "{foot} foot and {floor_in_box} floor pixels tested"
+        );
     }
 
     /// Two boxes side by side on the wall, overlapping by 10 cm: the
@@ -507,15 +630,40 @@ mod tests {
     #[test]
     fn overlapping_boxes_follow_the_overlap_rule() {
         let (w, h) = (64u32, 48u32);
-        let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 23.5 };
-        let depth = DepthMap { width: w, height: h, metres: vec![2.0; (w * h) as usize] };
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        let depth = DepthMap {
+            width: w,
+            height: h,
+            metres: vec![2.0; (w * h) as usize],
+        };
         let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
         // Box 1: x in [-0.5, 0.05]; box 2 (larger): x in [-0.05, 0.55].
-        let left = Box3 { label: "a".into(), instance_id: 1, center: DVec3::new(-0.225, 0.0, 2.0), size: DVec3::new(0.55, 0.5, 0.5), rotation: DMat3::IDENTITY };
-        let right = Box3 { label: "b".into(), instance_id: 2, center: DVec3::new(0.25, 0.0, 2.0), size: DVec3::new(0.6, 0.5, 0.5), ..left.clone() };
+        let left = Box3 {
+            label: "a".into(),
+            instance_id: 1,
+            center: DVec3::new(-0.225, 0.0, 2.0),
+            size: DVec3::new(0.55, 0.5, 0.5),
+            rotation: DMat3::IDENTITY,
+        };
+        let right = Box3 {
+            label: "b".into(),
+            instance_id: 2,
+            center: DVec3::new(0.25, 0.0, 2.0),
+            size: DVec3::new(0.6, 0.5, 0.5),
+            ..left.clone()
+        };
         let boxes = BoxSet::from_boxes(vec![left, right]);
         let id_at = |overlap: Overlap, x: f64| {
-            let opts = LabelOptions { source: DepthSource::Sensor, overlap, ..LabelOptions::default() };
+            let opts = LabelOptions {
+                source: DepthSource::Sensor,
+                overlap,
+                ..LabelOptions::default()
+            };
             let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
             // Wall point x at 2 m: u = cx + fx * x / 2.
             let u = (k.cx + k.fx * x / 2.0).round() as usize;

@@ -27,7 +27,7 @@ pub mod tsdf;
 
 pub use classify::{BoxClassifier, Overlap};
 pub use label::{FrameLabel, InstanceLabel, Labeler};
-pub use output::{write_labels, LabelSummary, OutputOptions};
 pub use options::{DepthSource, FrameRange, LabelError, LabelOptions, DEFAULT_SOURCE};
+pub use output::{write_labels, LabelSummary, OutputOptions};
 pub use parse::{parse_boxes, read_boxes, Box3, BoxError, BoxSet};
 pub use project::{project_box, PixelRect};

@@ -51,7 +51,10 @@ impl FromStr for DepthSource {
     type Err = LabelError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         <DepthSource as clap::ValueEnum>::from_str(s.trim(), true).map_err(|_| {
-            LabelError::Option(format!("unknown depth source `{s}`: expected one of {}", crate::value_names::<DepthSource>()))
+            LabelError::Option(format!(
+                "unknown depth source `{s}`: expected one of {}",
+                crate::value_names::<DepthSource>()
+            ))
         })
     }
 }
@@ -81,17 +84,26 @@ impl FromStr for FrameRange {
     type Err = LabelError;
     /// `A..B`, `A..` or `..B` with frame ids.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let bad = |why: &str| LabelError::Option(format!("frame range `{s}`: {why} (expected A..B with frame ids, B exclusive)"));
+        let bad = |why: &str| {
+            LabelError::Option(format!(
+                "frame range `{s}`: {why} (expected A..B with frame ids, B exclusive)"
+            ))
+        };
         let (a, b) = s.trim().split_once("..").ok_or_else(|| bad("missing `..`"))?;
         let id = |t: &str| -> Result<Option<u64>, LabelError> {
             let t = t.trim();
             if t.is_empty() {
                 Ok(None)
             } else {
-                t.parse::<u64>().map(Some).map_err(|_| bad(&format!("`{t}` is not a frame id")))
+                t.parse::<u64>()
+                    .map(Some)
+                    .map_err(|_| bad(&format!("`{t}` is not a frame id")))
             }
         };
-        let range = FrameRange { start: id(a)?, end: id(b)? };
+        let range = FrameRange {
+            start: id(a)?,
+            end: id(b)?,
+        };
         if let (Some(a), Some(b)) = (range.start, range.end) {
             if a >= b {
                 return Err(bad("the range is empty"));
@@ -167,7 +179,9 @@ pub enum LabelError {
     Json { path: PathBuf, source: serde_json::Error },
     #[error("{path}: holds `{entry}` but was not written by `nerflabel label`; refusing to replace it (choose an empty or new --out folder)")]
     NotOurs { path: PathBuf, entry: String },
-    #[error("{path}: cannot update the labels of the other frames: {reason}; label every frame instead (without --frames)")]
+    #[error(
+        "{path}: cannot update the labels of the other frames: {reason}; label every frame instead (without --frames)"
+    )]
     Merge { path: PathBuf, reason: String },
 }
 
@@ -178,7 +192,13 @@ mod tests {
     #[test]
     fn frame_ranges_parse_and_reject_nonsense() {
         let r: FrameRange = "3..7".parse().unwrap();
-        assert_eq!(r, FrameRange { start: Some(3), end: Some(7) });
+        assert_eq!(
+            r,
+            FrameRange {
+                start: Some(3),
+                end: Some(7)
+            }
+        );
         assert!(!r.contains(2) && r.contains(3) && r.contains(6) && !r.contains(7));
         let open: FrameRange = " 5.. ".parse().unwrap();
         assert!(open.contains(5) && open.contains(u64::MAX) && !open.contains(4));
@@ -197,7 +217,11 @@ mod tests {
             assert_eq!(s.name().parse::<DepthSource>().unwrap(), s);
         }
         assert_eq!("NeRF".parse::<DepthSource>().unwrap(), DepthSource::Nerf);
-        assert!("tsdf".parse::<DepthSource>().unwrap_err().to_string().contains("`tsdf`"));
+        assert!("tsdf"
+            .parse::<DepthSource>()
+            .unwrap_err()
+            .to_string()
+            .contains("`tsdf`"));
         assert!(!DepthSource::Sensor.needs_model() && DepthSource::Fused.needs_model());
     }
 }

@@ -55,12 +55,18 @@ pub struct LabelSummary {
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LabelError + '_ {
-    move |source| LabelError::Io { path: path.to_path_buf(), source }
+    move |source| LabelError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 /// Write an encoder's PNG atomically.
 fn write_png(path: &Path, encoded: Result<Vec<u8>, ImageError>) -> Result<(), LabelError> {
-    let png = encoded.map_err(|source| LabelError::Encode { path: path.to_path_buf(), source })?;
+    let png = encoded.map_err(|source| LabelError::Encode {
+        path: path.to_path_buf(),
+        source,
+    })?;
     atomic::write_file(path, &png).map_err(io_err(path))
 }
 
@@ -111,9 +117,15 @@ pub fn write_labels(
     options: &OutputOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<LabelSummary, LabelError> {
-    let frames: Vec<&Frame> = scan.frames.iter().filter(|f| options.frames.is_none_or(|r| r.contains(f.id))).collect();
+    let frames: Vec<&Frame> = scan
+        .frames
+        .iter()
+        .filter(|f| options.frames.is_none_or(|r| r.contains(f.id)))
+        .collect();
     if frames.is_empty() {
-        return Err(LabelError::NoFrames(options.frames.unwrap_or(FrameRange { start: None, end: None })));
+        return Err(LabelError::NoFrames(
+            options.frames.unwrap_or(FrameRange { start: None, end: None }),
+        ));
     }
     let labelled_before = claim(out)?;
     let staging = out.join(format!(".staging-{}", std::process::id()));
@@ -149,7 +161,10 @@ fn claim(out: &Path) -> Result<bool, LabelError> {
     let marked = out.join(MARKER).is_file();
     if !marked {
         if let Some(entry) = OWNED.iter().find(|name| out.join(name).exists()) {
-            return Err(LabelError::NotOurs { path: out.to_path_buf(), entry: entry.to_string() });
+            return Err(LabelError::NotOurs {
+                path: out.to_path_buf(),
+                entry: entry.to_string(),
+            });
         }
     }
     fs::create_dir_all(out).map_err(io_err(out))?;
@@ -176,7 +191,10 @@ fn carry_over(out: &Path, staging: &Path, relabelled: &BTreeSet<&str>) -> Result
         for entry in fs::read_dir(&old).map_err(io_err(&old))? {
             let entry = entry.map_err(io_err(&old))?;
             let path = entry.path();
-            let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let stem = path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
             let target = new.join(entry.file_name());
             if target.exists() {
                 continue;
@@ -203,18 +221,24 @@ fn carry_over(out: &Path, staging: &Path, relabelled: &BTreeSet<&str>) -> Result
 /// every frame of the old one that this run did not relabel; image and
 /// annotation ids are renumbered in frame order.
 fn merge_coco(old_path: &Path, staged_path: &Path, relabelled: &[&Frame]) -> Result<(), LabelError> {
-    let merge_err = |reason: String| LabelError::Merge { path: old_path.to_path_buf(), reason };
+    let merge_err = |reason: String| LabelError::Merge {
+        path: old_path.to_path_buf(),
+        reason,
+    };
     let read = |path: &Path| -> Result<serde_json::Value, LabelError> {
         let bytes = fs::read(path).map_err(io_err(path))?;
         serde_json::from_slice(&bytes).map_err(|e| merge_err(format!("its coco.json is not valid JSON ({e})")))
     };
     let (old, mut new) = (read(old_path)?, read(staged_path)?);
     if old.get("categories") != new.get("categories") {
-        return Err(merge_err("the boxes' labels (COCO categories) changed since it was written".into()));
+        return Err(merge_err(
+            "the boxes' labels (COCO categories) changed since it was written".into(),
+        ));
     }
     let ids: BTreeSet<u64> = relabelled.iter().map(|f| f.id).collect();
     let frame_of = |image: &serde_json::Value| image.get("frame_id").and_then(|v| v.as_u64());
-    let array = |doc: &serde_json::Value, key: &str| doc.get(key).and_then(|v| v.as_array()).cloned().unwrap_or_default();
+    let array =
+        |doc: &serde_json::Value, key: &str| doc.get(key).and_then(|v| v.as_array()).cloned().unwrap_or_default();
     // (frame id, image, its annotations) from both files.
     let mut frames: Vec<(u64, serde_json::Value, Vec<serde_json::Value>)> = Vec::new();
     for (doc, keep) in [(&old, false), (&new, true)] {
@@ -224,8 +248,15 @@ fn merge_coco(old_path: &Path, staged_path: &Path, relabelled: &[&Frame]) -> Res
             if ids.contains(&frame) != keep {
                 continue;
             }
-            let id = image.get("id").and_then(|v| v.as_u64()).ok_or_else(|| merge_err("an image has no id".into()))?;
-            let own = annotations.iter().filter(|a| a.get("image_id").and_then(|v| v.as_u64()) == Some(id)).cloned().collect();
+            let id = image
+                .get("id")
+                .and_then(|v| v.as_u64())
+                .ok_or_else(|| merge_err("an image has no id".into()))?;
+            let own = annotations
+                .iter()
+                .filter(|a| a.get("image_id").and_then(|v| v.as_u64()) == Some(id))
+                .cloned()
+                .collect();
             frames.push((frame, image, own));
         }
     }
@@ -243,7 +274,10 @@ fn merge_coco(old_path: &Path, staged_path: &Path, relabelled: &[&Frame]) -> Res
     }
     new["images"] = images.into();
     new["annotations"] = annotations.into();
-    let json = serde_json::to_vec(&new).map_err(|source| LabelError::Json { path: staged_path.to_path_buf(), source })?;
+    let json = serde_json::to_vec(&new).map_err(|source| LabelError::Json {
+        path: staged_path.to_path_buf(),
+        source,
+    })?;
     atomic::write_file(staged_path, &json).map_err(io_err(staged_path))
 }
 
@@ -264,7 +298,13 @@ fn stage(
         .map(|frame| {
             let label: FrameLabel = labeler.label_frame(frame);
             let (w, h) = (label.width, label.height);
-            write_mask(&staging.join("masks").join(format!("{}.png", label.name)), &label.mask, w, h, box_count)?;
+            write_mask(
+                &staging.join("masks").join(format!("{}.png", label.name)),
+                &label.mask,
+                w,
+                h,
+                box_count,
+            )?;
             let depth_overflow = match &label.depth_m {
                 Some(d) => write_depth_mm(&staging.join("depth").join(format!("{}.png", label.name)), d, w, h)?,
                 None => 0,
@@ -306,7 +346,10 @@ fn stage(
     for b in &boxes.boxes {
         let i = b.instance_id as usize - 1;
         if frames_in_view[i] == 0 {
-            warnings.push(format!("box {} (`{}`) is outside the view of every labelled frame", b.instance_id, b.label));
+            warnings.push(format!(
+                "box {} (`{}`) is outside the view of every labelled frame",
+                b.instance_id, b.label
+            ));
         } else if frames_visible[i] == 0 {
             warnings.push(format!(
                 "box {} (`{}`) is in view of {} frames but no surface point falls inside it (empty box, or hidden)",
@@ -331,7 +374,10 @@ fn stage(
     };
     let coco = assemble(info, boxes, &records);
     let path = staging.join("coco.json");
-    let json = serde_json::to_vec(&coco).map_err(|source| LabelError::Json { path: path.clone(), source })?;
+    let json = serde_json::to_vec(&coco).map_err(|source| LabelError::Json {
+        path: path.clone(),
+        source,
+    })?;
     atomic::write_file(&path, &json).map_err(io_err(&path))?;
 
     let pixels: usize = written.iter().map(|w| w.pixels).sum();
@@ -389,14 +435,22 @@ mod tests {
         let pd = dir.path().join("d.png");
         let overflow = write_depth_mm(&pd, &[0.0, 1.2344, 70.0, f32::NAN], 2, 2).unwrap();
         assert_eq!(overflow, 1);
-        assert_eq!(image::open(&pd).unwrap().as_luma16().unwrap().as_raw(), &vec![0u16, 1234, 0, 0]);
+        assert_eq!(
+            image::open(&pd).unwrap().as_luma16().unwrap().as_raw(),
+            &vec![0u16, 1234, 0, 0]
+        );
     }
 
     #[test]
     fn swap_replaces_owned_entries_and_keeps_the_rest() {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("labels");
-        for (rel, text) in [("masks/000001.png", "old"), ("depth/000001.png", "old"), ("coco.json", "old"), ("notes.txt", "mine")] {
+        for (rel, text) in [
+            ("masks/000001.png", "old"),
+            ("depth/000001.png", "old"),
+            ("coco.json", "old"),
+            ("notes.txt", "mine"),
+        ] {
             atomic::write_file(&out.join(rel), text.as_bytes()).unwrap();
         }
         let staging = out.join(".staging-test");
@@ -404,7 +458,10 @@ mod tests {
             atomic::write_file(&staging.join(rel), b"new").unwrap();
         }
         swap_in(&out, &staging).unwrap();
-        let mut names: Vec<String> = fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        let mut names: Vec<String> = fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
         names.sort();
         assert_eq!(names, vec![".staging-test", "coco.json", "masks", "notes.txt"]);
         assert_eq!(fs::read_to_string(out.join("coco.json")).unwrap(), "new");

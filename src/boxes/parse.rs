@@ -35,7 +35,12 @@ impl Box3 {
     /// Rigid object pose: box frame (origin at the centre) to world.
     pub fn object_to_world(&self) -> DMat4 {
         let r = self.rotation;
-        DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), self.center.extend(1.0))
+        DMat4::from_cols(
+            r.x_axis.extend(0.0),
+            r.y_axis.extend(0.0),
+            r.z_axis.extend(0.0),
+            self.center.extend(1.0),
+        )
     }
 
     /// Volume in cubic metres.
@@ -118,7 +123,14 @@ impl BoxSet {
         self.boxes
             .iter()
             .filter(|b| b.volume() == 0.0)
-            .map(|b| format!("box {} (`{}`) has zero volume (size {:?}): it can contain nothing", b.instance_id, b.label, b.size.to_array()))
+            .map(|b| {
+                format!(
+                    "box {} (`{}`) has zero volume (size {:?}): it can contain nothing",
+                    b.instance_id,
+                    b.label,
+                    b.size.to_array()
+                )
+            })
             .collect()
     }
 }
@@ -136,39 +148,72 @@ pub enum BoxError {
     Format { path: PathBuf, problem: String },
     /// `index` is 1-based (the instance id).
     #[error("{path}: box {index} (boxes[{}]), field `{field}`: {problem}", .index - 1)]
-    Box { path: PathBuf, index: usize, field: String, problem: String },
+    Box {
+        path: PathBuf,
+        index: usize,
+        field: String,
+        problem: String,
+    },
 }
 
 /// Read and validate a boxes file.
 pub fn read_boxes(path: &Path) -> Result<BoxSet, BoxError> {
-    let read_err = |source| BoxError::Read { path: path.to_path_buf(), source };
+    let read_err = |source| BoxError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
     let bytes = std::fs::metadata(path).map_err(read_err)?.len();
     if bytes > MAX_FILE_BYTES {
-        return Err(BoxError::TooLarge { path: path.to_path_buf(), bytes });
+        return Err(BoxError::TooLarge {
+            path: path.to_path_buf(),
+            bytes,
+        });
     }
     // Devices and pipes report no length: read at most one byte past the cap.
     let mut raw = Vec::new();
-    std::io::Read::read_to_end(&mut std::io::Read::take(std::fs::File::open(path).map_err(read_err)?, MAX_FILE_BYTES + 1), &mut raw)
-        .map_err(read_err)?;
+    std::io::Read::read_to_end(
+        &mut std::io::Read::take(std::fs::File::open(path).map_err(read_err)?, MAX_FILE_BYTES + 1),
+        &mut raw,
+    )
+    .map_err(read_err)?;
     if raw.len() as u64 > MAX_FILE_BYTES {
-        return Err(BoxError::TooLarge { path: path.to_path_buf(), bytes: raw.len() as u64 });
+        return Err(BoxError::TooLarge {
+            path: path.to_path_buf(),
+            bytes: raw.len() as u64,
+        });
     }
-    let text = String::from_utf8(raw).map_err(|_| BoxError::Format { path: path.to_path_buf(), problem: "not UTF-8 text".into() })?;
+    let text = String::from_utf8(raw).map_err(|_| BoxError::Format {
+        path: path.to_path_buf(),
+        problem: "not UTF-8 text".into(),
+    })?;
     parse_boxes(&text, path)
 }
 
 /// Parse and validate boxes JSON; `source` only names the file in errors.
 pub fn parse_boxes(text: &str, source: &Path) -> Result<BoxSet, BoxError> {
-    let format = |problem: String| BoxError::Format { path: source.to_path_buf(), problem };
+    let format = |problem: String| BoxError::Format {
+        path: source.to_path_buf(),
+        problem,
+    };
     if text.len() as u64 > MAX_FILE_BYTES {
-        return Err(BoxError::TooLarge { path: source.to_path_buf(), bytes: text.len() as u64 });
+        return Err(BoxError::TooLarge {
+            path: source.to_path_buf(),
+            bytes: text.len() as u64,
+        });
     }
     // Editors on Windows may start the file with a byte-order mark.
     let text = text.strip_prefix('\u{feff}').unwrap_or(text);
-    let root: Value = serde_json::from_str(text).map_err(|e| BoxError::Json { path: source.to_path_buf(), source: e })?;
-    let root = root.as_object().ok_or_else(|| format("expected a JSON object with a `boxes` array".into()))?;
+    let root: Value = serde_json::from_str(text).map_err(|e| BoxError::Json {
+        path: source.to_path_buf(),
+        source: e,
+    })?;
+    let root = root
+        .as_object()
+        .ok_or_else(|| format("expected a JSON object with a `boxes` array".into()))?;
     if let Some(key) = root.keys().find(|k| k.as_str() != "boxes") {
-        return Err(format(format!("unknown key `{key}` at the top level (expected only `boxes`)")));
+        return Err(format(format!(
+            "unknown key `{key}` at the top level (expected only `boxes`)"
+        )));
     }
     let list = match root.get("boxes") {
         None => return Err(format("missing the `boxes` array".into())),
@@ -179,12 +224,22 @@ pub fn parse_boxes(text: &str, source: &Path) -> Result<BoxSet, BoxError> {
         return Err(format("`boxes` is empty: nothing to label".into()));
     }
     if list.len() > MAX_BOXES {
-        return Err(format(format!("{} boxes is more than the {MAX_BOXES} a 16-bit mask can hold", list.len())));
+        return Err(format(format!(
+            "{} boxes is more than the {MAX_BOXES} a 16-bit mask can hold",
+            list.len()
+        )));
     }
     let boxes = list
         .iter()
         .enumerate()
-        .map(|(i, v)| parse_box(v, i + 1).map_err(|(field, problem)| BoxError::Box { path: source.to_path_buf(), index: i + 1, field, problem }))
+        .map(|(i, v)| {
+            parse_box(v, i + 1).map_err(|(field, problem)| BoxError::Box {
+                path: source.to_path_buf(),
+                index: i + 1,
+                field,
+                problem,
+            })
+        })
         .collect::<Result<Vec<_>, _>>()?;
     Ok(BoxSet::from_boxes(boxes))
 }
@@ -209,15 +264,23 @@ fn kind(v: &Value) -> &'static str {
 
 /// One box entry; `id` is its 1-based index.
 fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
-    let obj: &Map<String, Value> = v.as_object().ok_or_else(|| field_err("", format!("expected an object, found {}", kind(v))))?;
+    let obj: &Map<String, Value> = v
+        .as_object()
+        .ok_or_else(|| field_err("", format!("expected an object, found {}", kind(v))))?;
     if let Some(key) = obj.keys().find(|k| !BOX_KEYS.contains(&k.as_str())) {
-        return Err(field_err(key, format!("unknown key (expected {})", BOX_KEYS.join(", "))));
+        return Err(field_err(
+            key,
+            format!("unknown key (expected {})", BOX_KEYS.join(", ")),
+        ));
     }
     let label = match obj.get("label") {
         None => return Err(field_err("label", "missing")),
         Some(Value::String(s)) if s.trim().is_empty() => return Err(field_err("label", "must not be empty")),
         Some(Value::String(s)) if s.len() > MAX_LABEL_BYTES => {
-            return Err(field_err("label", format!("{} bytes is longer than {MAX_LABEL_BYTES}", s.len())))
+            return Err(field_err(
+                "label",
+                format!("{} bytes is longer than {MAX_LABEL_BYTES}", s.len()),
+            ))
         }
         Some(Value::String(s)) if s.chars().any(char::is_control) => {
             return Err(field_err("label", "must not contain control characters"))
@@ -228,20 +291,45 @@ fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
     let center = DVec3::from_array(numbers::<3>(obj, "center")?);
     let size = DVec3::from_array(numbers::<3>(obj, "size")?);
     if let Some(axis) = (0..3).find(|&a| size[a] < 0.0) {
-        return Err(field_err("size", format!("edge {} is {}; sizes must not be negative", ["x", "y", "z"][axis], size[axis])));
+        return Err(field_err(
+            "size",
+            format!(
+                "edge {} is {}; sizes must not be negative",
+                ["x", "y", "z"][axis],
+                size[axis]
+            ),
+        ));
     }
     // Volume and corners must be finite numbers (a size of 1e307 overflows both).
     let corner = center.abs() + size * 0.5;
     if !(size.x * size.y * size.z).is_finite() || !corner.is_finite() {
-        return Err(field_err("size", format!("{:?} with centre {:?} is too large: its volume or corners are not finite numbers", size.to_array(), center.to_array())));
+        return Err(field_err(
+            "size",
+            format!(
+                "{:?} with centre {:?} is too large: its volume or corners are not finite numbers",
+                size.to_array(),
+                center.to_array()
+            ),
+        ));
     }
     let rotation = match (obj.get("rotation"), obj.get("quaternion")) {
-        (Some(_), Some(_)) => return Err(field_err("quaternion", "give either `rotation` or `quaternion`, not both")),
+        (Some(_), Some(_)) => {
+            return Err(field_err(
+                "quaternion",
+                "give either `rotation` or `quaternion`, not both",
+            ))
+        }
         (Some(r), None) => rotation_matrix(r)?,
         (None, Some(q)) => rotation_quaternion(q)?,
         (None, None) => DMat3::IDENTITY,
     };
-    Ok(Box3 { label, instance_id: id as u32, center, size, rotation })
+    Ok(Box3 {
+        label,
+        instance_id: id as u32,
+        center,
+        size,
+        rotation,
+    })
 }
 
 /// A finite number.
@@ -255,7 +343,9 @@ fn number(v: &Value, field: &str, at: &str) -> Result<f64, FieldError> {
 
 /// An array of exactly N finite numbers.
 fn number_array<const N: usize>(v: &Value, field: &str) -> Result<[f64; N], FieldError> {
-    let list = v.as_array().ok_or_else(|| field_err(field, format!("expected an array of {N} numbers, found {}", kind(v))))?;
+    let list = v
+        .as_array()
+        .ok_or_else(|| field_err(field, format!("expected an array of {N} numbers, found {}", kind(v))))?;
     if list.len() != N {
         return Err(field_err(field, format!("expected {N} numbers, found {}", list.len())));
     }
@@ -275,15 +365,25 @@ fn numbers<const N: usize>(obj: &Map<String, Value>, field: &str) -> Result<[f64
 /// Row-major 3x3 rotation, checked orthonormal with determinant +1, then
 /// re-orthonormalised so containment tests are exact.
 fn rotation_matrix(v: &Value) -> Result<DMat3, FieldError> {
-    let rows = v.as_array().ok_or_else(|| field_err("rotation", format!("expected 3 rows of 3 numbers, found {}", kind(v))))?;
+    let rows = v
+        .as_array()
+        .ok_or_else(|| field_err("rotation", format!("expected 3 rows of 3 numbers, found {}", kind(v))))?;
     if rows.len() != 3 {
         return Err(field_err("rotation", format!("expected 3 rows, found {}", rows.len())));
     }
     let mut m = [[0.0; 3]; 3];
     for (r, row) in rows.iter().enumerate() {
-        let values = row.as_array().ok_or_else(|| field_err("rotation", format!("row {r} must be an array of 3 numbers, found {}", kind(row))))?;
+        let values = row.as_array().ok_or_else(|| {
+            field_err(
+                "rotation",
+                format!("row {r} must be an array of 3 numbers, found {}", kind(row)),
+            )
+        })?;
         if values.len() != 3 {
-            return Err(field_err("rotation", format!("row {r} has {} numbers, expected 3", values.len())));
+            return Err(field_err(
+                "rotation",
+                format!("row {r} has {} numbers, expected 3", values.len()),
+            ));
         }
         for (c, x) in values.iter().enumerate() {
             m[r][c] = number(x, "rotation", &format!("row {r} column {c}"))?;
@@ -292,13 +392,22 @@ fn rotation_matrix(v: &Value) -> Result<DMat3, FieldError> {
     // glam takes columns: column c = (m[0][c], m[1][c], m[2][c]).
     let mat = DMat3::from_cols_array_2d(&m).transpose();
     let gram = mat.transpose() * mat;
-    let off = (gram - DMat3::IDENTITY).to_cols_array().iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    let off = (gram - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |a, x| a.max(x.abs()));
     if off > ROTATION_TOLERANCE {
-        return Err(field_err("rotation", format!("not orthonormal (R^T R differs from identity by {off:.2e}, tolerance {ROTATION_TOLERANCE})")));
+        return Err(field_err(
+            "rotation",
+            format!("not orthonormal (R^T R differs from identity by {off:.2e}, tolerance {ROTATION_TOLERANCE})"),
+        ));
     }
     let det = mat.determinant();
     if (det - 1.0).abs() > ROTATION_TOLERANCE {
-        return Err(field_err("rotation", format!("determinant is {det:.4}, expected +1 (a reflection is not a rotation)")));
+        return Err(field_err(
+            "rotation",
+            format!("determinant is {det:.4}, expected +1 (a reflection is not a rotation)"),
+        ));
     }
     Ok(DMat3::from_quat(DQuat::from_mat3(&mat).normalize()))
 }
@@ -309,7 +418,10 @@ fn rotation_quaternion(v: &Value) -> Result<DMat3, FieldError> {
     let q = DQuat::from_xyzw(x, y, z, w);
     let len = q.length();
     if !(len > 1e-9 && len.is_finite()) {
-        return Err(field_err("quaternion", format!("length is {len}; a rotation quaternion must not be zero")));
+        return Err(field_err(
+            "quaternion",
+            format!("length is {len}; a rotation quaternion must not be zero"),
+        ));
     }
     Ok(DMat3::from_quat(q / len))
 }
@@ -336,8 +448,14 @@ mod tests {
         let set = parse(&text).unwrap();
         assert_eq!(set.boxes.len(), 3);
         assert_eq!(set.categories, vec!["mug".to_string(), "book".to_string()]);
-        assert_eq!((set.category_id("mug"), set.category_id("book"), set.category_id("cup")), (Some(1), Some(2), None));
-        assert_eq!(set.boxes.iter().map(|b| b.instance_id).collect::<Vec<_>>(), vec![1, 2, 3]);
+        assert_eq!(
+            (set.category_id("mug"), set.category_id("book"), set.category_id("cup")),
+            (Some(1), Some(2), None)
+        );
+        assert_eq!(
+            set.boxes.iter().map(|b| b.instance_id).collect::<Vec<_>>(),
+            vec![1, 2, 3]
+        );
         let yaw45 = DMat3::from_rotation_z(std::f64::consts::FRAC_PI_4);
         assert!((set.boxes[0].rotation - yaw45).abs_diff_eq(DMat3::ZERO, 1e-12));
         assert!((set.boxes[1].rotation - yaw45).abs_diff_eq(DMat3::ZERO, 1e-9));
@@ -376,32 +494,128 @@ mod tests {
         let cases: &[(&str, &str, &str)] = &[
             (r#"[1, 2]"#, "", "expected an object"),
             (r#"{"center": [0, 0, 0], "size": [1, 1, 1]}"#, "label", "missing"),
-            (r#"{"label": "", "center": [0, 0, 0], "size": [1, 1, 1]}"#, "label", "empty"),
-            (r#"{"label": "  ", "center": [0, 0, 0], "size": [1, 1, 1]}"#, "label", "empty"),
-            (r#"{"label": 3, "center": [0, 0, 0], "size": [1, 1, 1]}"#, "label", "expected a string"),
-            (r#"{"label": "a\u0007", "center": [0, 0, 0], "size": [1, 1, 1]}"#, "label", "control"),
+            (
+                r#"{"label": "", "center": [0, 0, 0], "size": [1, 1, 1]}"#,
+                "label",
+                "empty",
+            ),
+            (
+                r#"{"label": "  ", "center": [0, 0, 0], "size": [1, 1, 1]}"#,
+                "label",
+                "empty",
+            ),
+            (
+                r#"{"label": 3, "center": [0, 0, 0], "size": [1, 1, 1]}"#,
+                "label",
+                "expected a string",
+            ),
+            (
+                r#"{"label": "a\u0007", "center": [0, 0, 0], "size": [1, 1, 1]}"#,
+                "label",
+                "control",
+            ),
             (r#"{"label": "a", "size": [1, 1, 1]}"#, "center", "missing"),
-            (r#"{"label": "a", "center": [0, 0], "size": [1, 1, 1]}"#, "center", "expected 3 numbers"),
-            (r#"{"label": "a", "center": "here", "size": [1, 1, 1]}"#, "center", "expected an array"),
-            (r#"{"label": "a", "center": [0, "x", 0], "size": [1, 1, 1]}"#, "center", "element 1 must be a number"),
+            (
+                r#"{"label": "a", "center": [0, 0], "size": [1, 1, 1]}"#,
+                "center",
+                "expected 3 numbers",
+            ),
+            (
+                r#"{"label": "a", "center": "here", "size": [1, 1, 1]}"#,
+                "center",
+                "expected an array",
+            ),
+            (
+                r#"{"label": "a", "center": [0, "x", 0], "size": [1, 1, 1]}"#,
+                "center",
+                "element 1 must be a number",
+            ),
             (r#"{"label": "a", "center": [0, 0, 0]}"#, "size", "missing"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, -1, 1]}"#, "size", "edge y is -1"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1e307, 1e307, 1]}"#, "size", "too large"),
-            (r#"{"label": "a", "center": [1.7e308, 0, 0], "size": [1e308, 1, 1]}"#, "size", "too large"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, null]}"#, "size", "element 2 must be a number"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1, 1]}"#, "size", "expected 3 numbers, found 4"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "colour": "red"}"#, "colour", "unknown key"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0]]}"#, "rotation", "expected 3 rows"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1], [0, 0, 1]]}"#, "rotation", "row 1 has 2"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], 5, [0, 0, 1]]}"#, "rotation", "row 1 must be an array"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, "z"]]}"#, "rotation", "row 2 column 2"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}"#, "rotation", "not orthonormal"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0.01, 0], [0, 1, 0], [0, 0, 1]]}"#, "rotation", "not orthonormal"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}"#, "rotation", "determinant"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": "I"}"#, "rotation", "expected 3 rows of 3 numbers"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 0, 0]}"#, "quaternion", "must not be zero"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 1]}"#, "quaternion", "expected 4 numbers"),
-            (r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 0, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}"#, "quaternion", "not both"),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, -1, 1]}"#,
+                "size",
+                "edge y is -1",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1e307, 1e307, 1]}"#,
+                "size",
+                "too large",
+            ),
+            (
+                r#"{"label": "a", "center": [1.7e308, 0, 0], "size": [1e308, 1, 1]}"#,
+                "size",
+                "too large",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, null]}"#,
+                "size",
+                "element 2 must be a number",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1, 1]}"#,
+                "size",
+                "expected 3 numbers, found 4",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "colour": "red"}"#,
+                "colour",
+                "unknown key",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0]]}"#,
+                "rotation",
+                "expected 3 rows",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1], [0, 0, 1]]}"#,
+                "rotation",
+                "row 1 has 2",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], 5, [0, 0, 1]]}"#,
+                "rotation",
+                "row 1 must be an array",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, "z"]]}"#,
+                "rotation",
+                "row 2 column 2",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}"#,
+                "rotation",
+                "not orthonormal",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0.01, 0], [0, 1, 0], [0, 0, 1]]}"#,
+                "rotation",
+                "not orthonormal",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}"#,
+                "rotation",
+                "determinant",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": "I"}"#,
+                "rotation",
+                "expected 3 rows of 3 numbers",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 0, 0]}"#,
+                "quaternion",
+                "must not be zero",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 1]}"#,
+                "quaternion",
+                "expected 4 numbers",
+            ),
+            (
+                r#"{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "quaternion": [0, 0, 0, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}"#,
+                "quaternion",
+                "not both",
+            ),
         ];
         for (entry, field, words) in cases {
             // The bad box is the third: the message must say box 3 (boxes[2]).
@@ -425,7 +639,10 @@ mod tests {
         let cases: &[(&str, &str)] = &[
             ("{", "not valid JSON"),
             // JSON cannot hold NaN or infinity; an overflowing number is a JSON error with its position.
-            (r#"{"boxes": [{"label": "a", "center": [0, 1e999, 0], "size": [1, 1, 1]}]}"#, "number out of range"),
+            (
+                r#"{"boxes": [{"label": "a", "center": [0, 1e999, 0], "size": [1, 1, 1]}]}"#,
+                "number out of range",
+            ),
             ("[]", "expected a JSON object"),
             (r#"{}"#, "missing the `boxes` array"),
             (r#"{"boxes": {}}"#, "must be an array"),
@@ -441,7 +658,9 @@ mod tests {
         let many = format!(r#"{{"boxes": [{}]}}"#, vec![entry; MAX_BOXES + 1].join(","));
         let msg = parse(&many).expect_err("too many").to_string();
         assert!(msg.contains("65536 boxes"), "{msg}");
-        let missing = read_boxes(Path::new("/nonexistent/boxes.json")).expect_err("missing file").to_string();
+        let missing = read_boxes(Path::new("/nonexistent/boxes.json"))
+            .expect_err("missing file")
+            .to_string();
         assert!(missing.starts_with("/nonexistent/boxes.json: cannot read"), "{missing}");
     }
 
@@ -456,12 +675,16 @@ mod tests {
     #[test]
     fn byte_order_mark_is_accepted_and_dev_zero_is_capped() {
         // Regression: a BOM gave a bare "line 1 column 1".
-        let set = parse("\u{feff}{\"boxes\": [{\"label\": \"a\", \"center\": [0, 0, 0], \"size\": [1, 1, 1]}]}").unwrap();
+        let set =
+            parse("\u{feff}{\"boxes\": [{\"label\": \"a\", \"center\": [0, 0, 0], \"size\": [1, 1, 1]}]}").unwrap();
         assert_eq!(set.boxes.len(), 1);
         // Regression: /dev/zero (no length) was read past the size cap.
         if Path::new("/dev/zero").exists() {
             let err = read_boxes(Path::new("/dev/zero")).unwrap_err().to_string();
-            assert!(err.starts_with("/dev/zero") && err.contains("larger than any boxes file"), "{err}");
+            assert!(
+                err.starts_with("/dev/zero") && err.contains("larger than any boxes file"),
+                "{err}"
+            );
         }
     }
 }

@@ -28,13 +28,25 @@ impl PixelRect {
 
     /// Smallest rectangle holding both.
     pub fn union(&self, other: &PixelRect) -> PixelRect {
-        PixelRect { x0: self.x0.min(other.x0), y0: self.y0.min(other.y0), x1: self.x1.max(other.x1), y1: self.y1.max(other.y1) }
+        PixelRect {
+            x0: self.x0.min(other.x0),
+            y0: self.y0.min(other.y0),
+            x1: self.x1.max(other.x1),
+            y1: self.y1.max(other.y1),
+        }
     }
 }
 
 /// The 6 faces of a box as corner indices in cyclic order (bit k of a
 /// corner index picks the + side of axis k).
-const FACES: [[usize; 4]; 6] = [[0, 2, 6, 4], [1, 3, 7, 5], [0, 1, 5, 4], [2, 3, 7, 6], [0, 1, 3, 2], [4, 5, 7, 6]];
+const FACES: [[usize; 4]; 6] = [
+    [0, 2, 6, 4],
+    [1, 3, 7, 5],
+    [0, 1, 5, 4],
+    [2, 3, 7, 6],
+    [0, 1, 3, 2],
+    [4, 5, 7, 6],
+];
 
 /// Keep the part of a convex polygon where `plane . (p, 1) >= 0` (Sutherland-Hodgman).
 fn clip(poly: &[DVec3], plane: glam::DVec4, out: &mut Vec<DVec3>) {
@@ -107,7 +119,12 @@ pub fn project_box(b: &Box3, camera_to_world: &DMat4, k: &Intrinsics, size: (u32
     const SLACK: f64 = 1e-6;
     let first = |v: f64, n: u32| (v - SLACK).ceil().clamp(0.0, n as f64) as u32;
     let end = |v: f64, n: u32| ((v + SLACK).floor() + 1.0).clamp(0.0, n as f64) as u32;
-    let rect = PixelRect { x0: first(lo.0, w), y0: first(lo.1, h), x1: end(hi.0, w), y1: end(hi.1, h) };
+    let rect = PixelRect {
+        x0: first(lo.0, w),
+        y0: first(lo.1, h),
+        x1: end(hi.0, w),
+        y1: end(hi.1, h),
+    };
     (rect.x0 < rect.x1 && rect.y0 < rect.y1).then_some(rect)
 }
 
@@ -125,14 +142,24 @@ mod tests {
     fn camera_pose(rng: &mut Rng) -> DMat4 {
         let r = random_rotation(rng);
         let t = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
-        DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0))
+        DMat4::from_cols(
+            r.x_axis.extend(0.0),
+            r.y_axis.extend(0.0),
+            r.z_axis.extend(0.0),
+            t.extend(1.0),
+        )
     }
 
     /// Every pixel whose centre ray meets the box lies in the rectangle, and
     /// the rectangle is tight (within a pixel of the hit pixels' bounds).
     #[test]
     fn rectangle_holds_every_pixel_whose_ray_hits_and_is_tight() {
-        let k = Intrinsics { fx: 60.0, fy: 62.0, cx: 39.7, cy: 30.2 };
+        let k = Intrinsics {
+            fx: 60.0,
+            fy: 62.0,
+            cx: 39.7,
+            cy: 30.2,
+        };
         let (w, h) = (80u32, 60u32);
         let mut rng = Rng::new(21, 0);
         let (mut crossing, mut behind, mut visible) = (0, 0, 0);
@@ -141,7 +168,8 @@ mod tests {
             let origin = pose.w_axis.truncate();
             let forward = pose.z_axis.truncate();
             // Boxes around the camera: in front, behind and across its plane.
-            let center = origin + forward * rng.range(-1.5, 3.0) + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.5;
+            let center =
+                origin + forward * rng.range(-1.5, 3.0) + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.5;
             let b = Box3 {
                 label: "b".into(),
                 instance_id: 1,
@@ -163,7 +191,12 @@ mod tests {
                     if classifier.ray_interval(origin, dir).is_some() {
                         let r = rect.unwrap_or_else(|| panic!("pixel ({x}, {y}) hits but no rectangle"));
                         assert!(r.contains(x, y), "pixel ({x}, {y}) outside {r:?}");
-                        let p = PixelRect { x0: x, y0: y, x1: x + 1, y1: y + 1 };
+                        let p = PixelRect {
+                            x0: x,
+                            y0: y,
+                            x1: x + 1,
+                            y1: y + 1,
+                        };
                         hit_bounds = Some(hit_bounds.map_or(p, |q| q.union(&p)));
                     }
                 }
@@ -172,7 +205,10 @@ mod tests {
                 (None, _) => behind += z.iter().all(|&z| z <= 0.0) as usize,
                 (Some(r), Some(hb)) => {
                     visible += 1;
-                    assert!(r.x0 + 1 >= hb.x0 && r.y0 + 1 >= hb.y0 && r.x1 <= hb.x1 + 1 && r.y1 <= hb.y1 + 1, "{r:?} vs hits {hb:?}");
+                    assert!(
+                        r.x0 + 1 >= hb.x0 && r.y0 + 1 >= hb.y0 && r.x1 <= hb.x1 + 1 && r.y1 <= hb.y1 + 1,
+                        "{r:?} vs hits {hb:?}"
+                    );
                 }
                 (Some(r), None) => {
                     // A sliver between pixel centres may project without a hit.
@@ -180,18 +216,56 @@ mod tests {
                 }
             }
         }
-        assert!(crossing > 50 && behind > 20 && visible > 100, "cases: crossing {crossing} behind {behind} visible {visible}");
+        assert!(
+            crossing > 50 && behind > 20 && visible > 100,
+            "cases: crossing {crossing} behind {behind} visible {visible}"
+        );
     }
 
     #[test]
     fn box_around_the_camera_covers_the_image_and_box_behind_is_none() {
-        let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 40.0 };
-        let b = Box3 { label: "room".into(), instance_id: 1, center: DVec3::ZERO, size: DVec3::splat(4.0), rotation: DMat3::IDENTITY };
-        assert_eq!(project_box(&b, &DMat4::IDENTITY, &k, (100, 80)), Some(PixelRect { x0: 0, y0: 0, x1: 100, y1: 80 }));
-        let behind = Box3 { center: DVec3::new(0.0, 0.0, -3.0), size: DVec3::ONE, ..b.clone() };
+        let k = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 50.0,
+            cy: 40.0,
+        };
+        let b = Box3 {
+            label: "room".into(),
+            instance_id: 1,
+            center: DVec3::ZERO,
+            size: DVec3::splat(4.0),
+            rotation: DMat3::IDENTITY,
+        };
+        assert_eq!(
+            project_box(&b, &DMat4::IDENTITY, &k, (100, 80)),
+            Some(PixelRect {
+                x0: 0,
+                y0: 0,
+                x1: 100,
+                y1: 80
+            })
+        );
+        let behind = Box3 {
+            center: DVec3::new(0.0, 0.0, -3.0),
+            size: DVec3::ONE,
+            ..b.clone()
+        };
         assert_eq!(project_box(&behind, &DMat4::IDENTITY, &k, (100, 80)), None);
         // 1 m box at 5 m straight ahead: 20 px wide around the principal point.
-        let ahead = Box3 { center: DVec3::new(0.0, 0.0, 5.5), size: DVec3::ONE, ..b };
-        assert_eq!(project_box(&ahead, &DMat4::IDENTITY, &k, (100, 80)), Some(PixelRect { x0: 40, y0: 30, x1: 61, y1: 51 }));
+        let ahead = Box3 {
+            center: DVec3::new(0.0, 0.0, 5.5),
+            size: DVec3::ONE,
+            ..b
+        };
+        assert_eq!(
+            project_box(&ahead, &DMat4::IDENTITY, &k, (100, 80)),
+            Some(PixelRect {
+                x0: 40,
+                y0: 30,
+                x1: 61,
+                y1: 51
+            })
+        );
     }
 }

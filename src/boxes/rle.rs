@@ -180,7 +180,11 @@ mod tests {
                     *m = v;
                 }
                 i += run;
-                v = if rng.below(2) == 0 { 0 } else { 1 + rng.below(ids as u64) as u16 };
+                v = if rng.below(2) == 0 {
+                    0
+                } else {
+                    1 + rng.below(ids as u64) as u16
+                };
             }
             let encoded = encode_instances(&mask, w as u32, h as u32);
             for id in 1..=ids {

@@ -107,10 +107,18 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
         // Hypotheses from three shell points; scored with a threshold a
         // fiftieth of the box's half-extent, refined from the data below.
         let coarse = reach / 50.0;
-        let Some((normal, offset)) = ransac(&shell, coarse, &mut rng) else { break };
-        let Some((normal, offset, sigma)) = refine(&shell, normal, offset, coarse) else { break };
+        let Some((normal, offset)) = ransac(&shell, coarse, &mut rng) else {
+            break;
+        };
+        let Some((normal, offset, sigma)) = refine(&shell, normal, offset, coarse) else {
+            break;
+        };
         let band = BAND_SIGMAS * sigma;
-        let on_plane: Vec<DVec3> = shell.iter().copied().filter(|p| (normal.dot(*p) + offset).abs() <= band).collect();
+        let on_plane: Vec<DVec3> = shell
+            .iter()
+            .copied()
+            .filter(|p| (normal.dot(*p) + offset).abs() <= band)
+            .collect();
         if on_plane.len() < needed {
             break;
         }
@@ -125,7 +133,11 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
         if centre.abs() > radius + band + tolerance {
             continue;
         }
-        let off: Vec<f64> = inner.iter().map(|p| normal.dot(*p) + offset).filter(|d| d.abs() > band).collect();
+        let off: Vec<f64> = inner
+            .iter()
+            .map(|p| normal.dot(*p) + offset)
+            .filter(|d| d.abs() > band)
+            .collect();
         if off.len() < (inner.len() / 100).max(10) {
             continue;
         }
@@ -135,7 +147,11 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
             continue;
         }
         let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
-        planes.push(ExcludedPlane { normal: normal * sign, offset: offset * sign, band });
+        planes.push(ExcludedPlane {
+            normal: normal * sign,
+            offset: offset * sign,
+            band,
+        });
     }
     planes
 }
@@ -175,7 +191,11 @@ fn ransac(points: &[DVec3], threshold: f64, rng: &mut Rng) -> Option<(DVec3, f64
         }
         let normal = normal / len;
         let offset = -normal.dot(a);
-        let score = points.iter().step_by(step).filter(|p| (normal.dot(**p) + offset).abs() <= threshold).count();
+        let score = points
+            .iter()
+            .step_by(step)
+            .filter(|p| (normal.dot(**p) + offset).abs() <= threshold)
+            .count();
         if best.is_none_or(|(s, _, _)| score > s) {
             best = Some((score, normal, offset));
         }
@@ -190,7 +210,11 @@ fn refine(points: &[DVec3], mut normal: DVec3, mut offset: f64, threshold: f64) 
     let mut band = threshold;
     let mut sigma = threshold / BAND_SIGMAS;
     for _ in 0..3 {
-        let near: Vec<DVec3> = points.iter().copied().filter(|p| (normal.dot(*p) + offset).abs() <= band).collect();
+        let near: Vec<DVec3> = points
+            .iter()
+            .copied()
+            .filter(|p| (normal.dot(*p) + offset).abs() <= band)
+            .collect();
         if near.len() < 3 {
             return None;
         }
@@ -239,7 +263,13 @@ mod tests {
     use glam::DMat3;
 
     fn box3(center: DVec3, size: DVec3) -> Box3 {
-        Box3 { label: "obj".into(), instance_id: 1, center, size, rotation: DMat3::IDENTITY }
+        Box3 {
+            label: "obj".into(),
+            instance_id: 1,
+            center,
+            size,
+            rotation: DMat3::IDENTITY,
+        }
     }
 
     /// A table (z = 0, 2 mm noise) with a 10 cm cube on it and a wall at y = 0.1.
@@ -273,14 +303,34 @@ mod tests {
         let loose = box3(DVec3::new(0.0, 0.03, 0.045), DVec3::new(0.16, 0.16, 0.17));
         let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
         assert_eq!(planes.len(), 2, "{planes:?}");
-        let kept: Vec<&DVec3> = points.iter().filter(|p| loose.contains(**p) && !planes.iter().any(|pl| pl.excludes(**p))).collect();
-        let table_or_wall = kept.iter().filter(|p| p.z.abs() < 0.003 || (p.y - 0.1).abs() < 0.003).count();
-        let cube_in_box = points.iter().filter(|p| loose.contains(**p) && p.z > 0.01 && p.y < 0.09).count();
+        let kept: Vec<&DVec3> = points
+            .iter()
+            .filter(|p| loose.contains(**p) && !planes.iter().any(|pl| pl.excludes(**p)))
+            .collect();
+        let table_or_wall = kept
+            .iter()
+            .filter(|p| p.z.abs() < 0.003 || (p.y - 0.1).abs() < 0.003)
+            .count();
+        let cube_in_box = points
+            .iter()
+            .filter(|p| loose.contains(**p) && p.z > 0.01 && p.y < 0.09)
+            .count();
         assert_eq!(table_or_wall, 0, "no table or wall point is kept");
-        assert!(kept.len() as f64 >= 0.95 * cube_in_box as f64, "the cube is kept: {} of {cube_in_box}", kept.len());
+        assert!(
+            kept.len() as f64 >= 0.95 * cube_in_box as f64,
+            "the cube is kept: {} of {cube_in_box}",
+            kept.len()
+        );
         for plane in &planes {
-            assert!(plane.band > 0.001 && plane.band < 0.01, "band from the 2 mm noise: {}", plane.band);
-            assert!(plane.distance(DVec3::new(0.0, 0.0, 0.05)) > 0.0, "the cube's centre is on the kept side");
+            assert!(
+                plane.band > 0.001 && plane.band < 0.01,
+                "band from the 2 mm noise: {}",
+                plane.band
+            );
+            assert!(
+                plane.distance(DVec3::new(0.0, 0.0, 0.05)) > 0.0,
+                "the cube's centre is on the kept side"
+            );
         }
     }
 
@@ -348,7 +398,9 @@ mod tests {
     fn a_box_around_a_flat_sheet_keeps_it() {
         // A sheet flat on the table has nothing off the plane: nothing is excluded.
         let mut rng = Rng::new(4, 0);
-        let points: Vec<DVec3> = (0..30_000).map(|_| DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0)).collect();
+        let points: Vec<DVec3> = (0..30_000)
+            .map(|_| DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0))
+            .collect();
         let sheet = box3(DVec3::new(0.0, 0.0, 0.0), DVec3::new(0.2, 0.3, 0.02));
         assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1, 0.0)[0].is_empty());
     }

@@ -3,10 +3,10 @@
 //! accumulated opacity crosses a threshold (the surface point), so no sample
 //! behind the surface is ever evaluated.
 
-use crate::nerf::render::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
 use crate::nerf::field::{Field, FieldWorkspace};
-use crate::nerf::render::march::{march_skipping, Segment, StepRule};
 use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
+use crate::nerf::render::march::{march_skipping, Segment, StepRule};
 use crate::nerf::render::rays::RenderRay;
 
 /// Samples evaluated per round across all active rays.
@@ -57,9 +57,13 @@ pub fn first_crossings(
     debug_assert_eq!(rays.len(), out.len());
     out.iter_mut().for_each(|o| *o = None);
     ws.state.clear();
-    ws.state.extend(rays.iter().map(|r| State { t: r.t_min, ..State::default() }));
+    ws.state.extend(rays.iter().map(|r| State {
+        t: r.t_min,
+        ..State::default()
+    }));
     ws.active.clear();
-    ws.active.extend((0..rays.len()).filter(|&i| rays[i].t_max > rays[i].t_min));
+    ws.active
+        .extend((0..rays.len()).filter(|&i| rays[i].t_max > rays[i].t_min));
     while !ws.active.is_empty() {
         let per_ray = (ROUND_SAMPLES / ws.active.len()).clamp(4, 64);
         ws.segments.clear();
@@ -73,7 +77,8 @@ pub fn first_crossings(
             let count = ws.segments.len() - first;
             st.samples += count as u32;
             ws.owner.push((r, first, count));
-            ws.positions.extend(ws.segments[first..].iter().map(|s| rays[r].ray.at(s.mid())));
+            ws.positions
+                .extend(ws.segments[first..].iter().map(|s| rays[r].ray.at(s.mid())));
         }
         ws.sigma.resize(ws.positions.len(), 0.0);
         field.density_only(&ws.positions, &mut ws.field, &mut ws.sigma);
@@ -108,10 +113,10 @@ pub fn first_crossings(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::field::{FieldConfig, GridSpec};
-    use crate::nerf::field::hash_grid::HashGridConfig;
-    use crate::nerf::render::march::ray_interval;
     use crate::nerf::camera::LocalRay;
+    use crate::nerf::field::hash_grid::HashGridConfig;
+    use crate::nerf::field::{FieldConfig, GridSpec};
+    use crate::nerf::render::march::ray_interval;
     use crate::nerf::render::rays::{render_rays, RayOutput, RenderOptions, RenderWorkspace};
     use crate::rng::Rng;
 
@@ -121,29 +126,63 @@ mod tests {
     fn crossing_at_one_half_matches_the_full_renderers_median() {
         let mut rng = Rng::new(4, 0);
         let grid = HashGridConfig::for_scene(1.0, 1.0 / 64.0);
-        let config = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![16], color_hidden: vec![16] };
+        let config = FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![16],
+            color_hidden: vec![16],
+        };
         let mut field = Field::new(config, &mut rng);
         for p in field.grid.params.iter_mut() {
             *p = 4.0 * (rng.f32() - 0.5);
         }
         let occupancy = OccupancyGrid::full(32);
-        let rule = StepRule { min_step: 1.0 / 128.0, max_step: 1.0 / 32.0, cone: 1.0 / 256.0 };
+        let rule = StepRule {
+            min_step: 1.0 / 128.0,
+            max_step: 1.0 / 32.0,
+            cone: 1.0 / 256.0,
+        };
         let rays: Vec<RenderRay> = (0..3000)
             .filter_map(|_| {
                 let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, -0.6];
                 let target = [rng.f32(), rng.f32(), rng.f32()];
                 let d: [f32; 3] = std::array::from_fn(|a| target[a] - origin[a]);
                 let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                let ray = LocalRay { origin, dir: d.map(|v| v / n) };
+                let ray = LocalRay {
+                    origin,
+                    dir: d.map(|v| v / n),
+                };
                 ray_interval(&ray, rule.min_step).map(|(t_min, t_max)| RenderRay { ray, t_min, t_max })
             })
             .collect();
-        let opts = RenderOptions { color: false, rule, max_samples_per_ray: 4096, background: [0.0; 3] };
+        let opts = RenderOptions {
+            color: false,
+            rule,
+            max_samples_per_ray: 4096,
+            background: [0.0; 3],
+        };
         let mut reference = vec![RayOutput::default(); rays.len()];
-        render_rays(&field, &occupancy, &rays, &opts, &mut RenderWorkspace::default(), &mut reference);
+        render_rays(
+            &field,
+            &occupancy,
+            &rays,
+            &opts,
+            &mut RenderWorkspace::default(),
+            &mut reference,
+        );
         let mut found = vec![None; rays.len()];
-        let crossing = CrossingOptions { rule, threshold: 0.5, max_samples: 4096 };
-        first_crossings(&field, &occupancy, &rays, &crossing, &mut SurfaceWorkspace::default(), &mut found);
+        let crossing = CrossingOptions {
+            rule,
+            threshold: 0.5,
+            max_samples: 4096,
+        };
+        first_crossings(
+            &field,
+            &occupancy,
+            &rays,
+            &crossing,
+            &mut SurfaceWorkspace::default(),
+            &mut found,
+        );
         let mut hits = 0;
         for (r, f) in reference.iter().zip(&found) {
             match (r.depth_median, f) {
@@ -155,11 +194,25 @@ mod tests {
                 other => panic!("renderers disagree on whether there is a surface: {other:?}"),
             }
         }
-        assert!(hits > 300 && hits < found.len() - 300, "both outcomes occur: {hits} of {}", found.len());
+        assert!(
+            hits > 300 && hits < found.len() - 300,
+            "both outcomes occur: {hits} of {}",
+            found.len()
+        );
         // A lower threshold is crossed no later.
         let mut early = vec![None; rays.len()];
-        let crossing = CrossingOptions { threshold: 0.25, ..crossing };
-        first_crossings(&field, &occupancy, &rays, &crossing, &mut SurfaceWorkspace::default(), &mut early);
+        let crossing = CrossingOptions {
+            threshold: 0.25,
+            ..crossing
+        };
+        first_crossings(
+            &field,
+            &occupancy,
+            &rays,
+            &crossing,
+            &mut SurfaceWorkspace::default(),
+            &mut early,
+        );
         for (e, f) in early.iter().zip(&found) {
             if let Some(f) = f {
                 assert!(e.is_some_and(|e| e <= *f + 1e-6), "{e:?} after {f}");

@@ -5,8 +5,8 @@
 //! put it. The benchmarks also use it alone, as the TSDF baseline of the
 //! NeRFing-it paper.
 
-use crate::poses::DAabb;
 use super::parse::BoxSet;
+use crate::poses::DAabb;
 use crate::scan::Frame;
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
@@ -64,7 +64,9 @@ impl Block {
     /// Ray parameters where the ray is inside the block.
     fn interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let hi = self.origin + DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
-        DAabb::new(self.origin, hi).ray_interval(origin, dir).filter(|(t0, t1)| t0 < t1)
+        DAabb::new(self.origin, hi)
+            .ray_interval(origin, dir)
+            .filter(|(t0, t1)| t0 < t1)
     }
 }
 
@@ -92,7 +94,13 @@ impl BoxTsdf {
                 let span = half * 2.0 / voxel;
                 let dims = [span.x.ceil() as usize, span.y.ceil() as usize, span.z.ceil() as usize];
                 let n = dims[0] * dims[1] * dims[2];
-                let mut block = Block { origin: b.center - half, voxel, dims, tsdf: vec![0.0; n], weight: vec![0.0; n] };
+                let mut block = Block {
+                    origin: b.center - half,
+                    voxel,
+                    dims,
+                    tsdf: vec![0.0; n],
+                    weight: vec![0.0; n],
+                };
                 integrate(&mut block, frames, TRUNCATION_VOXELS * voxel);
                 block
             })
@@ -105,7 +113,9 @@ impl BoxTsdf {
     pub fn depth_along(&self, origin: DVec3, dir: DVec3, z_per_t: f64) -> f64 {
         let mut best = f64::INFINITY;
         for block in &self.blocks {
-            let Some((t0, t1)) = block.interval(origin, dir) else { continue };
+            let Some((t0, t1)) = block.interval(origin, dir) else {
+                continue;
+            };
             if t0 >= best {
                 continue;
             }
@@ -154,38 +164,43 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
             (rot, f.camera_to_world.w_axis.truncate(), f)
         })
         .collect();
-    block.tsdf.par_chunks_mut(slab).zip(block.weight.par_chunks_mut(slab)).enumerate().for_each(|(k, (tsdf, weight))| {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                let p = origin + DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
-                let n = j * dims[0] + i;
-                for (world_to_cam, eye, frame) in &views {
-                    let c = *world_to_cam * (p - *eye);
-                    if c.z <= 1e-6 {
-                        continue;
+    block
+        .tsdf
+        .par_chunks_mut(slab)
+        .zip(block.weight.par_chunks_mut(slab))
+        .enumerate()
+        .for_each(|(k, (tsdf, weight))| {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let p = origin + DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
+                    let n = j * dims[0] + i;
+                    for (world_to_cam, eye, frame) in &views {
+                        let c = *world_to_cam * (p - *eye);
+                        if c.z <= 1e-6 {
+                            continue;
+                        }
+                        let k = &frame.intrinsics;
+                        let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+                        let (w, h) = frame.size();
+                        if !(u >= -0.5 && v >= -0.5 && u < w as f64 - 0.5 && v < h as f64 - 0.5) {
+                            continue;
+                        }
+                        let Some(depth) = &frame.depth else { continue };
+                        let z = depth.get(u.round() as u32, v.round() as u32) as f64;
+                        if z <= 0.0 {
+                            continue;
+                        }
+                        let sdf = z - c.z;
+                        if sdf < -truncation {
+                            continue;
+                        }
+                        let value = (sdf / truncation).min(1.0) as f32;
+                        tsdf[n] = (tsdf[n] * weight[n] + value) / (weight[n] + 1.0);
+                        weight[n] += 1.0;
                     }
-                    let k = &frame.intrinsics;
-                    let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
-                    let (w, h) = frame.size();
-                    if !(u >= -0.5 && v >= -0.5 && u < w as f64 - 0.5 && v < h as f64 - 0.5) {
-                        continue;
-                    }
-                    let Some(depth) = &frame.depth else { continue };
-                    let z = depth.get(u.round() as u32, v.round() as u32) as f64;
-                    if z <= 0.0 {
-                        continue;
-                    }
-                    let sdf = z - c.z;
-                    if sdf < -truncation {
-                        continue;
-                    }
-                    let value = (sdf / truncation).min(1.0) as f32;
-                    tsdf[n] = (tsdf[n] * weight[n] + value) / (weight[n] + 1.0);
-                    weight[n] += 1.0;
                 }
             }
-        }
-    });
+        });
 }
 
 #[cfg(test)]
@@ -198,12 +213,22 @@ mod tests {
 
     /// A camera at `eye` looking straight down (OpenCV axes: x right, y down, z forward = -z world).
     fn looking_down(eye: DVec3) -> DMat4 {
-        DMat4::from_cols(DVec4::new(1.0, 0.0, 0.0, 0.0), DVec4::new(0.0, -1.0, 0.0, 0.0), DVec4::new(0.0, 0.0, -1.0, 0.0), eye.extend(1.0))
+        DMat4::from_cols(
+            DVec4::new(1.0, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, -1.0, 0.0, 0.0),
+            DVec4::new(0.0, 0.0, -1.0, 0.0),
+            eye.extend(1.0),
+        )
     }
 
     #[test]
     fn noisy_views_of_a_floor_fuse_to_the_floor() {
-        let k = Intrinsics { fx: 60.0, fy: 60.0, cx: 39.5, cy: 29.5 };
+        let k = Intrinsics {
+            fx: 60.0,
+            fy: 60.0,
+            cx: 39.5,
+            cy: 29.5,
+        };
         let mut rng = Rng::new(1, 0);
         let sigma = 0.004;
         let frames: Vec<Frame> = (0..12)
@@ -211,8 +236,19 @@ mod tests {
                 let eye = DVec3::new(0.02 * (i % 4) as f64, 0.02 * (i / 4) as f64, 1.0);
                 // Looking straight down at the floor z = 0: every pixel's z-depth is the height.
                 let metres = (0..80 * 60).map(|_| (1.0 + sigma * rng.normal()) as f32).collect();
-                let depth = DepthMap { width: 80, height: 60, metres };
-                Frame::new(i, format!("{i:06}"), image::RgbImage::new(80, 60), Some(depth), looking_down(eye), k)
+                let depth = DepthMap {
+                    width: 80,
+                    height: 60,
+                    metres,
+                };
+                Frame::new(
+                    i,
+                    format!("{i:06}"),
+                    image::RgbImage::new(80, 60),
+                    Some(depth),
+                    looking_down(eye),
+                    k,
+                )
             })
             .collect();
         let boxes = BoxSet::from_boxes(vec![Box3 {

@@ -11,7 +11,10 @@ pub fn run(args: &CloudArgs) -> anyhow::Result<()> {
     check_outputs(&outputs, None)?;
     let scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
-    let options = CloudOptions { voxel_size: args.voxel, ..CloudOptions::default() };
+    let options = CloudOptions {
+        voxel_size: args.voxel,
+        ..CloudOptions::default()
+    };
     let cloud = fuse_cloud(&scan, &options).context("cannot fuse the point cloud")?;
     write_ply(&args.output, &cloud).with_context(|| format!("cannot write {}", args.output.display()))?;
     println!("wrote {} points to {}", cloud.len(), args.output.display());

@@ -6,9 +6,9 @@ use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use nerflabel::nerf::model_file::{Model, ScanMatch};
 use nerflabel::scan::Scan;
-use std::path::{Path, PathBuf};
 use signal_hook::consts::{SIGINT, SIGTERM};
 use signal_hook::iterator::Signals;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::time::Duration;
 

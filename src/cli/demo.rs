@@ -7,10 +7,10 @@ use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::metrics::MaskScores;
 use nerflabel::boxes::{read_boxes, write_labels, DepthSource, LabelOptions, Labeler, OutputOptions, DEFAULT_SOURCE};
 use nerflabel::evaluate::score_holdout;
-use nerflabel::synth::{synthesize, SynthOptions};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
 use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::scan::{load, LoadOptions};
+use nerflabel::synth::{synthesize, SynthOptions};
 use std::time::Instant;
 
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
@@ -21,7 +21,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     options.frames = Some(60);
     options.overwrite = true;
     let t = Instant::now();
-    let summary = generate(&scan_dir, &options).with_context(|| format!("cannot write the demo scan {}", scan_dir.display()))?;
+    let summary =
+        generate(&scan_dir, &options).with_context(|| format!("cannot write the demo scan {}", scan_dir.display()))?;
     println!(
         "1. fixture: {} frames {}x{} of the tabletop scene with {} objects (one without sensor depth) in {} ({:.1} s)",
         summary.frames,
@@ -32,12 +33,19 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         t.elapsed().as_secs_f64()
     );
 
-    let mut scan = load(&scan_dir, &LoadOptions::default()).with_context(|| format!("cannot read {}", scan_dir.display()))?;
-    let fit_options = FitOptions { time: Some(args.time), ..FitOptions::default() };
+    let mut scan =
+        load(&scan_dir, &LoadOptions::default()).with_context(|| format!("cannot read {}", scan_dir.display()))?;
+    let fit_options = FitOptions {
+        time: Some(args.time),
+        ..FitOptions::default()
+    };
     let stop = super::common::stop_flag();
     let bar = super::common::progress_bar(1000, "   fitting [{elapsed_precise}] [{bar:30}] {msg}");
     let outcome = fit(&mut scan, &fit_options, stop, &mut |event| {
-        if let FitEvent::Step { step, stats, progress, .. } = event {
+        if let FitEvent::Step {
+            step, stats, progress, ..
+        } = event
+        {
             bar.set_position((progress * 1000.0) as u64);
             bar.set_message(format!("step {step} loss {:.4}", stats.loss));
         }
@@ -67,7 +75,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let boxes_path = scan_dir.join("boxes.json");
     let boxes = read_boxes(&boxes_path)?;
     for source in [DepthSource::Sensor, DEFAULT_SOURCE] {
-        let options = LabelOptions { source, ..LabelOptions::default() };
+        let options = LabelOptions {
+            source,
+            ..LabelOptions::default()
+        };
         let mut labeler = Labeler::new(&boxes, Some(&outcome.model), options)?;
         labeler.exclude_supports(&scan)?;
         labeler.fuse_sensor_depth(&scan);
@@ -88,18 +99,46 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         );
     }
     let out = scan_dir.join("nerflabel").join("labels");
-    let info = CocoInfo { source: DEFAULT_SOURCE.name().into(), nerflabel_version: env!("CARGO_PKG_VERSION").into(), ..CocoInfo::default() };
+    let info = CocoInfo {
+        source: DEFAULT_SOURCE.name().into(),
+        nerflabel_version: env!("CARGO_PKG_VERSION").into(),
+        ..CocoInfo::default()
+    };
     let mut labeler = Labeler::new(&boxes, Some(&outcome.model), LabelOptions::default())?;
     labeler.exclude_supports(&scan)?;
     labeler.fuse_sensor_depth(&scan);
-    let summary = write_labels(&out, &scan, &boxes, &labeler, &OutputOptions { info, ..OutputOptions::default() }, &|_| {})?;
-    println!("   wrote masks and coco.json ({} annotations) to {}", summary.annotations, out.display());
+    let summary = write_labels(
+        &out,
+        &scan,
+        &boxes,
+        &labeler,
+        &OutputOptions {
+            info,
+            ..OutputOptions::default()
+        },
+        &|_| {},
+    )?;
+    println!(
+        "   wrote masks and coco.json ({} annotations) to {}",
+        summary.annotations,
+        out.display()
+    );
 
     // 4. Novel views to Parquet.
     let synth_out = scan_dir.join("nerflabel").join("synth.parquet");
-    let options = SynthOptions { n: 8, width: Some(160), height: Some(120), ..SynthOptions::default() };
+    let options = SynthOptions {
+        n: 8,
+        width: Some(160),
+        height: Some(120),
+        ..SynthOptions::default()
+    };
     let s = synthesize(&scan, &outcome.model, Some(&boxes), &options, &synth_out, &|_| {}, stop)?;
-    println!("4. synth: {} novel views (colour, depth, mask, 2D boxes) in {:.1} s -> {}", s.views, s.seconds, synth_out.display());
+    println!(
+        "4. synth: {} novel views (colour, depth, mask, 2D boxes) in {:.1} s -> {}",
+        s.views,
+        s.seconds,
+        synth_out.display()
+    );
     Ok(())
 }
 

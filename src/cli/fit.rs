@@ -34,14 +34,23 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
     // Held until the model, report and checkpoint are written.
     let _lock = lock_output(&model_path, "this model")?;
-    let from = if args.resume { Some(Checkpoint::load(&checkpoint)?) } else { None };
+    let from = if args.resume {
+        Some(Checkpoint::load(&checkpoint)?)
+    } else {
+        None
+    };
     let (time, steps) = match &from {
         Some(c) if args.time.is_none() && args.steps.is_none() => (c.header.identity.time, c.header.identity.steps),
         _ => (args.time, args.steps),
     };
     if let Some(c) = &from {
         let p = &c.header.progress;
-        eprintln!("resuming from step {} ({:.1} s trained) saved in {}", c.steps(), p.train_seconds, checkpoint.display());
+        eprintln!(
+            "resuming from step {} ({:.1} s trained) saved in {}",
+            c.steps(),
+            p.train_seconds,
+            checkpoint.display()
+        );
     }
     let budget = match (time, steps) {
         (Some(t), Some(s)) => format!("{t} s or {s} steps"),
@@ -49,12 +58,22 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         (None, Some(s)) => format!("{s} steps"),
         (None, None) => format!("{DEFAULT_TIME_S} s"),
     };
-    eprintln!("fitting {} frames of {} ({budget}, preset {})", scan.frames.len(), args.scan.scan.display(), args.settings.preset);
+    eprintln!(
+        "fitting {} frames of {} ({budget}, preset {})",
+        scan.frames.len(),
+        args.scan.scan.display(),
+        args.settings.preset
+    );
     let bar = progress_bar(1000, "{spinner} [{elapsed_precise}] [{bar:30}] {msg} (ETA {eta})");
     let stop = stop_flag();
     let mut last_eval = String::new();
     let mut on_event = |event: FitEvent| match event {
-        FitEvent::PosesScaled(r) => bar.suspend(|| eprintln!("warning: {}; camera positions multiplied by {:.4}", r.verdict, r.applied)),
+        FitEvent::PosesScaled(r) => bar.suspend(|| {
+            eprintln!(
+                "warning: {}; camera positions multiplied by {:.4}",
+                r.verdict, r.applied
+            )
+        }),
         FitEvent::PosesRefined(r) => {
             bar.suspend(|| eprintln!(
                 "aligned {} poses to the depth: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",
@@ -66,13 +85,20 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             ));
             bar.suspend(|| eprintln!("poses vs depth: {}", r.verdict));
         }
-        FitEvent::Prepared { train_views, holdout_views, param_count, occupied_fraction } => {
+        FitEvent::Prepared {
+            train_views,
+            holdout_views,
+            param_count,
+            occupied_fraction,
+        } => {
             bar.suspend(|| eprintln!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
                 occupied_fraction * 100.0
             ));
         }
-        FitEvent::Step { step, stats, progress, .. } => {
+        FitEvent::Step {
+            step, stats, progress, ..
+        } => {
             bar.set_position((progress * 1000.0) as u64);
             if step % 8 == 0 {
                 bar.set_message(format!("step {step}  loss {:.4}  {last_eval}", stats.loss));
@@ -82,7 +108,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             last_eval = format!(
                 "held-out PSNR {:.2} dB, depth MAE {}  {:.0} k samples/s",
                 p.psnr,
-                p.depth_mae_m.map(|d| format!("{:.1} mm", d * 1e3)).unwrap_or_else(|| "n/a".into()),
+                p.depth_mae_m
+                    .map(|d| format!("{:.1} mm", d * 1e3))
+                    .unwrap_or_else(|| "n/a".into()),
                 p.samples_per_s / 1e3
             );
         }
@@ -107,7 +135,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     }
     outcome.model.save(&model_path)?;
     let json = serde_json::to_vec_pretty(&outcome.report).context("cannot serialise the fit report")?;
-    nerflabel::atomic::write_file(&report_path, &json).with_context(|| format!("cannot write {}", report_path.display()))?;
+    nerflabel::atomic::write_file(&report_path, &json)
+        .with_context(|| format!("cannot write {}", report_path.display()))?;
     let r = &outcome.report;
     if r.interrupted {
         eprintln!("interrupted: saved the model trained so far (`nerflabel fit --resume` continues)");
@@ -124,7 +153,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             "held-out: PSNR {:.2} dB, SSIM {:.3}, depth MAE {}",
             p.psnr,
             p.ssim,
-            p.depth_mae_m.map(|d| format!("{:.1} mm", d * 1e3)).unwrap_or_else(|| "n/a".into())
+            p.depth_mae_m
+                .map(|d| format!("{:.1} mm", d * 1e3))
+                .unwrap_or_else(|| "n/a".into())
         );
     }
     println!("report: {}", report_path.display());

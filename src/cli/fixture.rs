@@ -26,9 +26,14 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
     }
     c.pose_noise |= args.pose_noise;
     if let Some(text) = &args.pose_error {
-        let parsed: Option<(f64, f64)> = text.split_once(',').and_then(|(mm, deg)| Some((mm.trim().parse().ok()?, deg.trim().parse().ok()?)));
-        let Some((mm, deg)) = parsed.filter(|(mm, deg)| mm.is_finite() && deg.is_finite() && *mm >= 0.0 && *deg >= 0.0) else {
-            anyhow::bail!("--pose-error {text}: expected millimetres and degrees as two non-negative numbers, e.g. 10,0.5");
+        let parsed: Option<(f64, f64)> = text
+            .split_once(',')
+            .and_then(|(mm, deg)| Some((mm.trim().parse().ok()?, deg.trim().parse().ok()?)));
+        let Some((mm, deg)) = parsed.filter(|(mm, deg)| mm.is_finite() && deg.is_finite() && *mm >= 0.0 && *deg >= 0.0)
+        else {
+            anyhow::bail!(
+                "--pose-error {text}: expected millimetres and degrees as two non-negative numbers, e.g. 10,0.5"
+            );
         };
         (c.pose_noise, c.pose_sigma_m, c.pose_sigma_deg) = (true, mm * 1e-3, deg);
     }

@@ -22,7 +22,8 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
     );
     let e = bounds.aabb.extent();
     println!("scene size:     {:.3} x {:.3} x {:.3} m", e.x, e.y, e.z);
-    let refinement = refine_poses(&scan, &RefineOptions::default()).context("cannot compare the poses with the depth")?;
+    let refinement =
+        refine_poses(&scan, &RefineOptions::default()).context("cannot compare the poses with the depth")?;
     match estimate_pose_scale(&scan).context("cannot compare the camera motion with the depth")? {
         Some(e) => println!("pose scale:     {}", e.verdict()),
         None => println!("pose scale:     fewer than two frames have depth; the scale cannot be checked"),

@@ -26,11 +26,19 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         check_model_scan(model, &model_path, &mut scan, args.force)?;
     }
     let _lock = lock_output(&out, "these labels")?;
-    let options = LabelOptions { source, full_depth: args.depth, exact_boxes: args.exact_boxes, overlap: args.overlap, ..LabelOptions::default() };
+    let options = LabelOptions {
+        source,
+        full_depth: args.depth,
+        exact_boxes: args.exact_boxes,
+        overlap: args.overlap,
+        ..LabelOptions::default()
+    };
     let mut labeler = Labeler::new(&boxes, model.as_ref(), options)?;
     let planes = labeler.exclude_supports(&scan)?;
     if planes > 0 {
-        eprintln!("excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)");
+        eprintln!(
+            "excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)"
+        );
     }
     labeler.fuse_sensor_depth(&scan);
     let info = CocoInfo {
@@ -45,10 +53,23 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         model_steps: model.as_ref().map(|m| m.header.steps),
         frames: args.frames.clone(),
     };
-    let output = OutputOptions { frames, yolo: args.yolo, info };
-    let total = scan.frames.iter().filter(|f| frames.is_none_or(|r| r.contains(f.id))).count();
-    let bar = progress_bar(total as u64, "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})");
-    let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|done| bar.set_position(done as u64))?;
+    let output = OutputOptions {
+        frames,
+        yolo: args.yolo,
+        info,
+    };
+    let total = scan
+        .frames
+        .iter()
+        .filter(|f| frames.is_none_or(|r| r.contains(f.id)))
+        .count();
+    let bar = progress_bar(
+        total as u64,
+        "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})",
+    );
+    let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|done| {
+        bar.set_position(done as u64)
+    })?;
     bar.finish_and_clear();
     for warning in &summary.warnings {
         eprintln!("warning: {warning}");
@@ -62,6 +83,12 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
             summary.box_pixel_fraction * 100.0
         ),
     };
-    println!("labelled {} frames with {} depth: {} annotations in {}; {work}", summary.frames, source, summary.annotations, summary.out.display());
+    println!(
+        "labelled {} frames with {} depth: {} annotations in {}; {work}",
+        summary.frames,
+        source,
+        summary.annotations,
+        summary.out.display()
+    );
     Ok(())
 }

@@ -12,9 +12,9 @@ mod synth;
 
 use clap::{Args, Parser, Subcommand};
 pub use common::interrupted_status;
-use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::boxes::{DepthSource, Overlap, DEFAULT_SOURCE};
 use nerflabel::fixture::{FixtureLayout, SceneKind};
+use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{Layout, LoadOptions};
 use std::path::PathBuf;
 

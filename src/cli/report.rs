@@ -9,28 +9,66 @@ use nerflabel::plot::{render_panels, write_png, Panel, Series};
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
     let model = model_path(&args.scan, args.model.as_ref());
     // Reports of earlier versions sit in `fit_report.json` beside the model.
-    let path = Some(report_path(&model)).filter(|p| p.exists()).unwrap_or_else(|| legacy_report_path(&model));
-    let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the fit report (run `nerflabel fit` first)", path.display()))?;
-    let report: FitReport = serde_json::from_slice(&bytes).with_context(|| format!("{}: not a valid fit report", path.display()))?;
-    println!("fit of {} ({} training frames, preset {:?}, seed {}, {} threads)", report.scan, report.train_frames, report.preset, report.seed, report.threads);
-    println!("{:>9} {:>7} {:>9} {:>7} {:>14} {:>12}", "wall s", "step", "PSNR dB", "SSIM", "depth MAE mm", "k samples/s");
+    let path = Some(report_path(&model))
+        .filter(|p| p.exists())
+        .unwrap_or_else(|| legacy_report_path(&model));
+    let bytes = std::fs::read(&path).with_context(|| {
+        format!(
+            "{}: cannot read the fit report (run `nerflabel fit` first)",
+            path.display()
+        )
+    })?;
+    let report: FitReport =
+        serde_json::from_slice(&bytes).with_context(|| format!("{}: not a valid fit report", path.display()))?;
+    println!(
+        "fit of {} ({} training frames, preset {:?}, seed {}, {} threads)",
+        report.scan, report.train_frames, report.preset, report.seed, report.threads
+    );
+    println!(
+        "{:>9} {:>7} {:>9} {:>7} {:>14} {:>12}",
+        "wall s", "step", "PSNR dB", "SSIM", "depth MAE mm", "k samples/s"
+    );
     for p in &report.curve {
-        let depth = p.depth_mae_m.map(|d| format!("{:.1}", d * 1e3)).unwrap_or_else(|| "n/a".into());
-        println!("{:>9.1} {:>7} {:>9.2} {:>7.3} {:>14} {:>12.0}", p.seconds, p.step, p.psnr, p.ssim, depth, p.samples_per_s / 1e3);
+        let depth = p
+            .depth_mae_m
+            .map(|d| format!("{:.1}", d * 1e3))
+            .unwrap_or_else(|| "n/a".into());
+        println!(
+            "{:>9.1} {:>7} {:>9.2} {:>7.3} {:>14} {:>12.0}",
+            p.seconds,
+            p.step,
+            p.psnr,
+            p.ssim,
+            depth,
+            p.samples_per_s / 1e3
+        );
     }
     if let Some(plot) = &args.plot {
         let points = |f: fn(&CurvePoint) -> Option<f64>| -> Vec<(f64, f64)> {
-            report.curve.iter().filter_map(|p| f(p).map(|v| (p.seconds, v))).collect()
+            report
+                .curve
+                .iter()
+                .filter_map(|p| f(p).map(|v| (p.seconds, v)))
+                .collect()
         };
         let panel = |title: &str, y: &str, points: Vec<(f64, f64)>, color: [u8; 3]| Panel {
             title: title.into(),
             x_label: "wall time of the fit (s)".into(),
             y_label: y.into(),
-            series: vec![Series { name: "held-out".into(), points, color }],
+            series: vec![Series {
+                name: "held-out".into(),
+                points,
+                color,
+            }],
         };
         let panels = [
             panel("Held-out PSNR", "PSNR (dB)", points(|p| Some(p.psnr)), [31, 119, 180]),
-            panel("Held-out depth error", "depth MAE (mm)", points(|p| p.depth_mae_m.map(|d| d * 1e3)), [44, 160, 44]),
+            panel(
+                "Held-out depth error",
+                "depth MAE (mm)",
+                points(|p| p.depth_mae_m.map(|d| d * 1e3)),
+                [44, 160, 44],
+            ),
         ];
         write_png(plot, &render_panels(&panels, 1000, 800))?;
         println!("plot: {}", plot.display());

@@ -1,6 +1,6 @@
 //! `nerflabel synth`: render novel views to one Parquet file.
 
-use super::common::{check_model_scan, load_scan, read_model, model_path, progress_bar, stop_flag, work_dir};
+use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, stop_flag, work_dir};
 use super::SynthArgs;
 use anyhow::bail;
 use nerflabel::boxes::read_boxes;
@@ -10,22 +10,34 @@ use nerflabel::synth::{read_poses, synthesize, SynthOptions, SynthProgress};
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
     let model_path = model_path(scan_dir, args.model.as_ref());
-    let out = args.out.clone().unwrap_or_else(|| work_dir(scan_dir).join("synth.parquet"));
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| work_dir(scan_dir).join("synth.parquet"));
     let outputs = [Output::file(&out, "the synthetic views")];
     check_outputs(&outputs, None)?;
     // Boxes: --boxes, else SCAN/boxes.json when present, else none (scene centre).
-    let boxes_path = args.boxes.clone().or_else(|| Some(scan_dir.join("boxes.json")).filter(|p| p.exists()));
+    let boxes_path = args
+        .boxes
+        .clone()
+        .or_else(|| Some(scan_dir.join("boxes.json")).filter(|p| p.exists()));
     let boxes = boxes_path.as_deref().map(read_boxes).transpose()?;
     let poses = args.poses.as_deref().map(read_poses).transpose()?;
     let (model, model_checksum) = read_model(&model_path)?;
     if boxes.is_none() {
-        eprintln!("warning: no boxes (no --boxes, no {}): every mask will be empty", scan_dir.join("boxes.json").display());
+        eprintln!(
+            "warning: no boxes (no --boxes, no {}): every mask will be empty",
+            scan_dir.join("boxes.json").display()
+        );
     }
     let mut scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
     check_model_scan(&model, &model_path, &mut scan, args.force)?;
     if out.exists() && !args.overwrite {
-        bail!("{}: exists; pass --overwrite to replace it, or choose another --out", out.display());
+        bail!(
+            "{}: exists; pass --overwrite to replace it, or choose another --out",
+            out.display()
+        );
     }
     let options = SynthOptions {
         n: args.n,
@@ -37,9 +49,16 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         model_checksum,
         ..SynthOptions::default()
     };
-    let bar = progress_bar(options.poses.as_ref().map_or(args.n, |p| p.len()) as u64, "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} views {msg} (ETA {eta})");
+    let bar = progress_bar(
+        options.poses.as_ref().map_or(args.n, |p| p.len()) as u64,
+        "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} views {msg} (ETA {eta})",
+    );
     let progress = |p: SynthProgress| match p {
-        SynthProgress::Prepared { views, clearance_m, cloud_points } => bar.suspend(|| {
+        SynthProgress::Prepared {
+            views,
+            clearance_m,
+            cloud_points,
+        } => bar.suspend(|| {
             let clearance = clearance_m.map(|c| format!(", clearance {c:.3} m")).unwrap_or_default();
             eprintln!("rendering {views} views ({cloud_points} cloud points{clearance})");
         }),
@@ -59,7 +78,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         summary.views_per_s
     );
     if summary.attempts > 0 {
-        println!("sampled {} candidates; rejected: {}", summary.attempts, summary.rejections);
+        println!(
+            "sampled {} candidates; rejected: {}",
+            summary.attempts, summary.rejections
+        );
     }
     Ok(())
 }

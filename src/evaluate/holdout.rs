@@ -2,9 +2,9 @@
 //! exact ground truth renders.
 
 use crate::fixture::{read_meta, trajectory, FixtureError};
-use crate::nerf::train::metrics::{depth_mae, psnr, ssim};
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
+use crate::nerf::train::metrics::{depth_mae, psnr, ssim};
 use crate::poses::GeometryError;
 use std::path::Path;
 
@@ -40,7 +40,10 @@ pub fn score_holdout(model: &Model, fixture: &Path) -> Result<HoldoutScore, Scor
     let scene = meta.build_scene();
     let path = trajectory(&scene, meta.frames, meta.holdout, meta.seed);
     let renderer = ViewRenderer::new(model)?;
-    let mut score = HoldoutScore { views: path.holdout.len(), ..Default::default() };
+    let mut score = HoldoutScore {
+        views: path.holdout.len(),
+        ..Default::default()
+    };
     let (mut depth_sum, mut depth_views, mut missing, mut surface) = (0.0, 0usize, 0usize, 0usize);
     for pose in &path.holdout {
         let truth = scene.render(pose, &meta.intrinsics, meta.width, meta.height);
@@ -63,7 +66,11 @@ pub fn score_holdout(model: &Model, fixture: &Path) -> Result<HoldoutScore, Scor
     let n = score.views as f64;
     score.psnr /= n;
     score.ssim /= n;
-    score.depth_mae_m = if depth_views > 0 { depth_sum / depth_views as f64 } else { f64::INFINITY };
+    score.depth_mae_m = if depth_views > 0 {
+        depth_sum / depth_views as f64
+    } else {
+        f64::INFINITY
+    };
     score.depth_missing = missing as f64 / surface.max(1) as f64;
     Ok(score)
 }

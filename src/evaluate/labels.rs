@@ -30,7 +30,11 @@ pub fn read_gray16(path: &Path) -> Result<Vec<u16>, String> {
     match image::open(path).map_err(|e| format!("{}: {e}", path.display()))? {
         image::DynamicImage::ImageLuma8(m) => Ok(m.into_raw().into_iter().map(u16::from).collect()),
         image::DynamicImage::ImageLuma16(m) => Ok(m.into_raw()),
-        other => Err(format!("{}: unexpected colour type {:?}", path.display(), other.color())),
+        other => Err(format!(
+            "{}: unexpected colour type {:?}",
+            path.display(),
+            other.color()
+        )),
     }
 }
 

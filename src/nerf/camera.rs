@@ -3,8 +3,8 @@
 
 use crate::poses::Aabb;
 use crate::scan::Intrinsics;
-use glam::Vec3;
 use glam::DMat4;
+use glam::Vec3;
 
 /// A pinhole camera in local coordinates (OpenCV axes).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,7 +55,13 @@ impl LocalCamera {
         for (a, out) in dir.iter_mut().enumerate() {
             *out = (r[a][0] * d[0] + r[a][1] * d[1] + r[a][2] * d[2]) / norm;
         }
-        (LocalRay { origin: self.origin, dir }, norm)
+        (
+            LocalRay {
+                origin: self.origin,
+                dir,
+            },
+            norm,
+        )
     }
 
     /// Number of pixels.
@@ -76,7 +82,11 @@ impl LocalRay {
     /// Point at distance `t`.
     #[inline]
     pub fn at(&self, t: f32) -> [f32; 3] {
-        [self.origin[0] + t * self.dir[0], self.origin[1] + t * self.dir[1], self.origin[2] + t * self.dir[2]]
+        [
+            self.origin[0] + t * self.dir[0],
+            self.origin[1] + t * self.dir[1],
+            self.origin[2] + t * self.dir[2],
+        ]
     }
 }
 

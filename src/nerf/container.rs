@@ -72,12 +72,18 @@ pub struct SectionBytes<'a>(&'a [u8]);
 impl SectionBytes<'_> {
     /// The values of a `SectionKind::F32` section.
     pub fn f32s(self) -> Vec<f32> {
-        self.0.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        self.0
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
     }
 
     /// The words of a `SectionKind::U64` section.
     pub fn u64s(self) -> Vec<u64> {
-        self.0.chunks_exact(8).map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect()
+        self.0
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+            .collect()
     }
 }
 
@@ -130,9 +136,16 @@ fn write_values<W: Write, T: Copy, const N: usize>(w: &mut W, values: &[T], to_l
 /// Write a whole container to `w`; `header_json` already records the
 /// section lengths.
 pub fn write<W: Write>(w: &mut W, format: &Format, header_json: &[u8], sections: &[Section]) -> io::Result<()> {
-    let header_len = u32::try_from(header_json.len())
-        .map_err(|_| io::Error::other(format!("a header of {} bytes does not fit the format", header_json.len())))?;
-    let mut body = CrcWriter { inner: w, crc: crc32fast::Hasher::new() };
+    let header_len = u32::try_from(header_json.len()).map_err(|_| {
+        io::Error::other(format!(
+            "a header of {} bytes does not fit the format",
+            header_json.len()
+        ))
+    })?;
+    let mut body = CrcWriter {
+        inner: w,
+        crc: crc32fast::Hasher::new(),
+    };
     body.write_all(format.magic)?;
     body.write_all(&format.version.to_le_bytes())?;
     body.write_all(&header_len.to_le_bytes())?;
@@ -156,7 +169,10 @@ pub fn save(path: &Path, format: &Format, header_json: &[u8], sections: &[Sectio
 pub fn read(path: &Path, format: &Format) -> Result<Vec<u8>, ContainerError> {
     let size = std::fs::metadata(path).map_err(ContainerError::Open)?.len();
     if size > format.max_file {
-        return Err(ContainerError::Damaged(format!("{size} bytes is larger than any {}", format.name)));
+        return Err(ContainerError::Damaged(format!(
+            "{size} bytes is larger than any {}",
+            format.name
+        )));
     }
     std::fs::read(path).map_err(ContainerError::Read)
 }
@@ -211,7 +227,11 @@ pub fn decode<'a, H: DeserializeOwned, const N: usize>(
         needed = needed.checked_add(*size).ok_or_else(overflow)?;
     }
     if needed != data.len() {
-        return Err(damaged(format!("expected {needed} bytes of {}, found {}", format.contents, data.len())));
+        return Err(damaged(format!(
+            "expected {needed} bytes of {}, found {}",
+            format.contents,
+            data.len()
+        )));
     }
     let mut sections = [SectionBytes(&[]); N];
     let mut rest = data;
@@ -250,7 +270,10 @@ mod tests {
         let words = vec![u64::MAX, 0, 0x0123_4567_89ab_cdef];
         let b = vec![f32::MIN_POSITIVE, -0.0, f32::INFINITY];
         let sections = [Section::F32(&a), Section::U64(&words), Section::F32(&b)];
-        let header = Header { note: "round trip".into(), sections: sections.map(|s| s.count()) };
+        let header = Header {
+            note: "round trip".into(),
+            sections: sections.map(|s| s.count()),
+        };
         let json = serde_json::to_vec(&header).unwrap();
         let mut bytes = Vec::new();
         write(&mut bytes, &TEST, &json, &sections).unwrap();
@@ -258,7 +281,10 @@ mod tests {
     }
 
     fn error(bytes: &[u8]) -> String {
-        decode(bytes, &TEST, &KINDS, |h: &Header| h.sections).err().map(|e| e.to_string()).unwrap_or_default()
+        decode(bytes, &TEST, &KINDS, |h: &Header| h.sections)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default()
     }
 
     #[test]
@@ -274,7 +300,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("f.test");
         let json = serde_json::to_vec(&header).unwrap();
-        save(&path, &TEST, &json, &[Section::F32(&a), Section::U64(&words), Section::F32(&b)]).unwrap();
+        save(
+            &path,
+            &TEST,
+            &json,
+            &[Section::F32(&a), Section::U64(&words), Section::F32(&b)],
+        )
+        .unwrap();
         assert_eq!(read(&path, &TEST).unwrap(), bytes, "saved file holds the same bytes");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temp file left");
     }
@@ -282,7 +314,18 @@ mod tests {
     #[test]
     fn truncation_bit_flips_and_foreign_files_are_errors() {
         let (_, _, _, bytes) = sample();
-        for cut in [0usize, 7, 8, 15, 19, 20, 100, bytes.len() / 2, bytes.len() - 4, bytes.len() - 1] {
+        for cut in [
+            0usize,
+            7,
+            8,
+            15,
+            19,
+            20,
+            100,
+            bytes.len() / 2,
+            bytes.len() - 4,
+            bytes.len() - 1,
+        ] {
             assert!(!error(&bytes[..cut]).is_empty(), "truncated to {cut} is accepted");
         }
         assert_eq!(error(&bytes[..7]), "wrong magic bytes");
@@ -312,15 +355,34 @@ mod tests {
             bytes.extend_from_slice(&crc.to_le_bytes());
             bytes
         };
-        let header = |sections: [usize; 3]| serde_json::to_vec(&Header { note: String::new(), sections }).unwrap();
+        let header = |sections: [usize; 3]| {
+            serde_json::to_vec(&Header {
+                note: String::new(),
+                sections,
+            })
+            .unwrap()
+        };
         assert_eq!(error(&resealed(&header([1, 1, 0]), &[0; 12])), "");
-        assert_eq!(error(&resealed(&header([1, 1, 1]), &[0; 12])), "expected 16 bytes of values, found 12");
-        assert_eq!(error(&resealed(&header([1, usize::MAX / 4, 0]), &[0; 12])), "section sizes overflow");
+        assert_eq!(
+            error(&resealed(&header([1, 1, 1]), &[0; 12])),
+            "expected 16 bytes of values, found 12"
+        );
+        assert_eq!(
+            error(&resealed(&header([1, usize::MAX / 4, 0]), &[0; 12])),
+            "section sizes overflow"
+        );
         assert!(error(&resealed(b"{", &[])).starts_with("header is not valid"));
-        assert_eq!(error(&resealed(&[b' '; 2000], &[])), "header length 2000 does not fit the file");
+        assert_eq!(
+            error(&resealed(&[b' '; 2000], &[])),
+            "header length 2000 does not fit the file"
+        );
         let mut long = resealed(&header([0; 3]), &[]);
         long[12..16].copy_from_slice(&1000u32.to_le_bytes());
-        assert_eq!(error(&long), "checksum mismatch", "the checksum is checked before the header length");
+        assert_eq!(
+            error(&long),
+            "checksum mismatch",
+            "the checksum is checked before the header length"
+        );
     }
 
     #[test]
@@ -329,7 +391,10 @@ mod tests {
         let path = dir.path().join("big.test");
         std::fs::write(&path, vec![0u8; 2048]).unwrap();
         let small = Format { max_file: 1024, ..TEST };
-        assert_eq!(read(&path, &small).unwrap_err().to_string(), "2048 bytes is larger than any test file");
+        assert_eq!(
+            read(&path, &small).unwrap_err().to_string(),
+            "2048 bytes is larger than any test file"
+        );
         match read(&dir.path().join("none.test"), &TEST) {
             Err(ContainerError::Open(e)) => assert_eq!(e.kind(), io::ErrorKind::NotFound),
             other => panic!("expected a missing file: {other:?}"),

@@ -8,8 +8,8 @@ use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::march::StepRule;
 use crate::nerf::render::rays::{RenderOptions, RENDER_MAX_SAMPLES_PER_RAY};
-use crate::poses::{GeometryError, SceneTransform};
 use crate::nerf::train::settings::TrainConfig;
+use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::fingerprint::scan_fingerprint;
 use crate::scan::Scan;
 use serde::{Deserialize, Serialize};
@@ -92,12 +92,10 @@ impl Model {
 
     /// The world-to-local scene transform stored in the model.
     pub fn scene_transform(&self) -> Result<SceneTransform, GeometryError> {
-        let values: [f64; SceneTransform::ARRAY_LEN] = self
-            .header
-            .scene_transform
-            .as_slice()
-            .try_into()
-            .map_err(|_| GeometryError::InvalidTransform("the model's scene transform has the wrong length".into()))?;
+        let values: [f64; SceneTransform::ARRAY_LEN] =
+            self.header.scene_transform.as_slice().try_into().map_err(|_| {
+                GeometryError::InvalidTransform("the model's scene transform has the wrong length".into())
+            })?;
         SceneTransform::from_array(&values)
     }
 }
@@ -137,9 +135,14 @@ impl Model {
             return ScanMatch::Unknown;
         };
         if frames != scan.frames.len() {
-            ScanMatch::Other(format!("fitted to {frames} frames, this scan has {}", scan.frames.len()))
+            ScanMatch::Other(format!(
+                "fitted to {frames} frames, this scan has {}",
+                scan.frames.len()
+            ))
         } else if fingerprint != scan_fingerprint(scan) {
-            ScanMatch::Other(format!("same {frames} frames, but other poses, intrinsics, image sizes or frame names"))
+            ScanMatch::Other(format!(
+                "same {frames} frames, but other poses, intrinsics, image sizes or frame names"
+            ))
         } else {
             ScanMatch::Same
         }
@@ -149,7 +152,9 @@ impl Model {
     /// was fitted with, so that what it renders lines up with the images.
     /// Returns how many frames changed.
     pub fn apply_fitted_poses(&self, scan: &mut Scan) -> usize {
-        let Some(poses) = &self.header.fitted_poses else { return 0 };
+        let Some(poses) = &self.header.fitted_poses else {
+            return 0;
+        };
         if poses.len() != scan.frames.len() {
             return 0;
         }
@@ -166,7 +171,9 @@ impl Model {
 
     /// Serialise to bytes (header sections filled in from the parameters).
     pub fn to_bytes(&self) -> Vec<u8> {
-        let (json, sections) = self.contents().unwrap_or_else(|e| panic!("a model header always serialises: {e}"));
+        let (json, sections) = self
+            .contents()
+            .unwrap_or_else(|e| panic!("a model header always serialises: {e}"));
         let mut bytes = Vec::new();
         container::write(&mut bytes, &FORMAT, &json, &sections)
             .unwrap_or_else(|e| panic!("a model always fits its file format: {e}"));
@@ -193,7 +200,10 @@ impl Model {
 
     /// Write atomically (temp file + rename).
     pub fn save(&self, path: &Path) -> Result<(), ModelError> {
-        let write_error = |source| ModelError::Write { path: path.to_path_buf(), source };
+        let write_error = |source| ModelError::Write {
+            path: path.to_path_buf(),
+            source,
+        };
         let (json, sections) = self
             .contents()
             .map_err(|e| write_error(std::io::Error::other(format!("cannot encode the model header: {e}"))))?;
@@ -217,7 +227,11 @@ impl Model {
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
         // A model's grid is for rendering: the saved estimates decide what is marched.
         occupancy.restrict_to_rendering();
-        Ok(Model { header, field, occupancy })
+        Ok(Model {
+            header,
+            field,
+            occupancy,
+        })
     }
 }
 
@@ -236,7 +250,10 @@ impl ModelError {
 }
 
 fn damaged(path: &Path, what: String) -> ModelError {
-    ModelError::Damaged { path: path.to_path_buf(), what }
+    ModelError::Damaged {
+        path: path.to_path_buf(),
+        what,
+    }
 }
 
 #[cfg(test)]
@@ -249,7 +266,14 @@ mod tests {
         let mut rng = crate::rng::Rng::new(3, 0);
         let field = Field::new(field_cfg.clone(), &mut rng);
         let mut occupancy = OccupancyGrid::full(16);
-        occupancy.seed_from_depth(&[crate::nerf::occupancy::DepthRay { origin: [0.53, 0.53, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 }; 3], &[]);
+        occupancy.seed_from_depth(
+            &[crate::nerf::occupancy::DepthRay {
+                origin: [0.53, 0.53, 0.0],
+                dir: [0.0, 0.0, 1.0],
+                t_hit: 0.9,
+            }; 3],
+            &[],
+        );
         let header = ModelHeader {
             nerflabel_version: "test".into(),
             field: field_cfg,
@@ -267,7 +291,11 @@ mod tests {
             fitted_poses: Some(vec![glam::DMat4::from_translation(glam::DVec3::X).to_cols_array(); 2]),
             sections: [0; 5],
         };
-        Model { header, field, occupancy }
+        Model {
+            header,
+            field,
+            occupancy,
+        }
     }
 
     #[test]
@@ -288,7 +316,12 @@ mod tests {
     fn corruption_truncation_and_wrong_magic_or_version_are_clear_errors() {
         let bytes = sample_model().to_bytes();
         let path = Path::new("dir/model.nlf");
-        let msg = |b: &[u8]| Model::from_bytes(b, path).err().map(|e| e.to_string()).unwrap_or_default();
+        let msg = |b: &[u8]| {
+            Model::from_bytes(b, path)
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default()
+        };
         // Every single-byte flip in the body is caught.
         for pos in [20usize, bytes.len() / 2, bytes.len() - 5] {
             let mut bad = bytes.clone();

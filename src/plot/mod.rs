@@ -103,10 +103,11 @@ pub fn render_panels(panels: &[Panel], width: u32, height: u32) -> RgbImage {
 
 /// Encode and write atomically with crate::atomic::write_file.
 pub fn write_png(path: &Path, img: &RgbImage) -> Result<(), PlotError> {
-    let bytes = crate::png_encode::encode_rgb(img.as_raw(), img.width(), img.height()).map_err(|source| PlotError::Encode {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes =
+        crate::png_encode::encode_rgb(img.as_raw(), img.width(), img.height()).map_err(|source| PlotError::Encode {
+            path: path.to_path_buf(),
+            source,
+        })?;
     crate::atomic::write_file(path, &bytes).map_err(|source| PlotError::Write {
         path: path.to_path_buf(),
         source,

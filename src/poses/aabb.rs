@@ -31,7 +31,10 @@ macro_rules! aabb_type {
             }
 
             /// The unit cube [0, 1]^3.
-            pub const UNIT: Self = Self { min: $vec::ZERO, max: $vec::ONE };
+            pub const UNIT: Self = Self {
+                min: $vec::ZERO,
+                max: $vec::ONE,
+            };
 
             /// Smallest box holding every finite point; `None` when there is none.
             pub fn from_points<I: IntoIterator<Item = $vec>>(points: I) -> Option<Self> {
@@ -132,7 +135,12 @@ macro_rules! aabb_type {
             pub fn line_crossing(&self, origin: $vec, dir: $vec) -> Option<SlabCrossing<$t>> {
                 let (o, d) = (origin.to_array(), dir.to_array());
                 let (lo, hi) = (self.min.to_array(), self.max.to_array());
-                let mut c = SlabCrossing { t_near: $t::NEG_INFINITY, t_far: $t::INFINITY, near_axis: 0, far_axis: 0 };
+                let mut c = SlabCrossing {
+                    t_near: $t::NEG_INFINITY,
+                    t_far: $t::INFINITY,
+                    near_axis: 0,
+                    far_axis: 0,
+                };
                 for a in 0..3 {
                     // One reciprocal per axis: this runs for every training ray.
                     let inv = 1.0 / d[a];
@@ -178,7 +186,12 @@ macro_rules! aabb_type {
 }
 
 aabb_type!(Aabb, Vec3, f32, "Axis-aligned box in f32 (renderer, local units).");
-aabb_type!(DAabb, DVec3, f64, "Axis-aligned box in f64 (scene geometry, metres or local units).");
+aabb_type!(
+    DAabb,
+    DVec3,
+    f64,
+    "Axis-aligned box in f64 (scene geometry, metres or local units)."
+);
 
 impl From<DAabb> for Aabb {
     fn from(b: DAabb) -> Self {
@@ -205,13 +218,17 @@ mod tests {
     fn ray_from_outside_enters_and_leaves_at_the_faces() {
         let (t0, t1) = unit().ray_interval(DVec3::new(-1.0, 0.5, 0.5), DVec3::X).unwrap();
         assert_eq!((t0, t1), (1.0, 2.0));
-        let (t0, t1) = unit().ray_interval(DVec3::new(2.0, 0.5, 0.5), DVec3::new(-2.0, 0.0, 0.0)).unwrap();
+        let (t0, t1) = unit()
+            .ray_interval(DVec3::new(2.0, 0.5, 0.5), DVec3::new(-2.0, 0.0, 0.0))
+            .unwrap();
         assert_eq!((t0, t1), (0.5, 1.0));
     }
 
     #[test]
     fn origin_inside_clamps_near_to_zero() {
-        let (t0, t1) = unit().ray_interval(DVec3::splat(0.5), DVec3::new(0.0, 0.0, 1.0)).unwrap();
+        let (t0, t1) = unit()
+            .ray_interval(DVec3::splat(0.5), DVec3::new(0.0, 0.0, 1.0))
+            .unwrap();
         assert_eq!(t0, 0.0);
         assert!(t0.is_sign_positive());
         assert_eq!(t1, 0.5);
@@ -273,11 +290,18 @@ mod tests {
         let b = Aabb::UNIT;
         // Origin on a face with a subnormal direction: 1/d would be inf; a
         // direction too small to move along any axis is a miss, like zero.
-        assert_eq!(b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)), None);
+        assert_eq!(
+            b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)),
+            None
+        );
         // With another axis moving, the subnormal one is parallel.
-        let (t0, t1) = b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 1.0)).unwrap();
+        let (t0, t1) = b
+            .ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 1.0))
+            .unwrap();
         assert_eq!((t0, t1), (0.0, 0.5));
-        let (t0, t1) = b.ray_interval(Vec3::new(-1.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)).map_or((0.0, 0.0), |x| x);
+        let (t0, t1) = b
+            .ray_interval(Vec3::new(-1.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0))
+            .map_or((0.0, 0.0), |x| x);
         assert!(!t0.is_nan() && !t1.is_nan());
         let far = Vec3::new(-f32::MAX, 0.5, 0.5);
         let hit = b.ray_interval(far, Vec3::X);
@@ -333,7 +357,10 @@ mod tests {
             match (got, got32) {
                 (Some((a, c)), Some((a32, c32))) => {
                     let tol = 1e-4 * (1.0 + c.abs());
-                    assert!((a - a32 as f64).abs() < tol && (c - c32 as f64).abs() < tol, "case {case}");
+                    assert!(
+                        (a - a32 as f64).abs() < tol && (c - c32 as f64).abs() < tol,
+                        "case {case}"
+                    );
                 }
                 (Some((a, c)), None) => assert!(c - a < 1e-4, "case {case}: f32 missed {got:?}"),
                 (None, Some((a, c))) => assert!(c - a < 1e-4, "case {case}: f32 hit {got32:?}"),

@@ -148,13 +148,21 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
     let (aabb, source) = if let Some(user) = scan.bounds {
         let b = DAabb::new(user.min, user.max);
         if !b.is_valid() || !b.min.cmplt(b.max).all() {
-            return Err(GeometryError::InvalidUserBounds { min: user.min, max: user.max });
+            return Err(GeometryError::InvalidUserBounds {
+                min: user.min,
+                max: user.max,
+            });
         }
         // Bounds holding (almost) none of the measured surface train nothing.
         let total = samples.points.len();
         let inside = samples.points.par_iter().filter(|p| b.contains(**p)).count();
         if total > 0 && inside * USER_BOUNDS_MIN_SHARE < total {
-            return Err(GeometryError::UserBoundsMissScene { min: user.min, max: user.max, inside, total });
+            return Err(GeometryError::UserBoundsMissScene {
+                min: user.min,
+                max: user.max,
+                inside,
+                total,
+            });
         }
         (b, BoundsSource::User)
     } else if let Some(b) = point_box {
@@ -166,7 +174,14 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
     if !(aabb.max_extent().is_finite() && aabb.max_extent() > 0.0) {
         return Err(GeometryError::NoScale { cameras: cameras.len() });
     }
-    Ok(SceneBounds { aabb, source, stats, samples: samples.points, cameras, options: options.clone() })
+    Ok(SceneBounds {
+        aabb,
+        source,
+        stats,
+        samples: samples.points,
+        cameras,
+        options: options.clone(),
+    })
 }
 
 /// Camera centres, failing on a non-finite pose.
@@ -218,10 +233,16 @@ pub fn sample_depth_points(scan: &Scan, max_points: usize) -> Result<DepthSample
 
 /// Sample one frame's depth from flat pixel index `phase` on, every `stride`.
 fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<DVec3>, Vec<f32>), GeometryError> {
-    let Some(depth) = &frame.depth else { return Ok((Vec::new(), Vec::new())) };
-    let Some(k) = depth_intrinsics(frame)? else { return Ok((Vec::new(), Vec::new())) };
+    let Some(depth) = &frame.depth else {
+        return Ok((Vec::new(), Vec::new()));
+    };
+    let Some(k) = depth_intrinsics(frame)? else {
+        return Ok((Vec::new(), Vec::new()));
+    };
     if !frame.camera_to_world.is_finite() {
-        return Err(GeometryError::BadPose { frame: frame.name.clone() });
+        return Err(GeometryError::BadPose {
+            frame: frame.name.clone(),
+        });
     }
     let w = u64::from(depth.width);
     let mut points = Vec::new();
@@ -259,7 +280,11 @@ pub(crate) fn depth_intrinsics(frame: &Frame) -> Result<Option<crate::scan::Intr
     }
     let rgb = frame.size();
     let grid = (depth.width, depth.height);
-    let k = if rgb == grid || rgb.0 == 0 || rgb.1 == 0 { frame.intrinsics } else { frame.intrinsics.scaled(rgb, grid) };
+    let k = if rgb == grid || rgb.0 == 0 || rgb.1 == 0 {
+        frame.intrinsics
+    } else {
+        frame.intrinsics.scaled(rgb, grid)
+    };
     Ok(Some(k))
 }
 
@@ -314,7 +339,9 @@ pub(crate) fn pad_relative(b: &DAabb, fraction: f64) -> DAabb {
 /// Union of the frusta truncated at `far` (module rule), padded.
 fn frusta_bounds(scan: &Scan, cameras: &[DVec3], options: &BoundsOptions) -> Result<DAabb, GeometryError> {
     let no_scale = GeometryError::NoScale { cameras: cameras.len() };
-    let Some(centres) = DAabb::from_points(cameras.iter().copied()) else { return Err(no_scale) };
+    let Some(centres) = DAabb::from_points(cameras.iter().copied()) else {
+        return Err(no_scale);
+    };
     let far = options.far_factor * centres.extent().length();
     if !(far.is_finite() && far > 0.0) {
         return Err(no_scale);
@@ -380,8 +407,16 @@ mod tests {
         let walls = room_box(&room);
         let pad = 0.05 * walls.max_extent();
         // Padding added on top of the exact walls, up to the discrete sampling.
-        assert!((b.aabb.min - (walls.min - pad)).abs().max_element() < 0.02, "{:?}", b.aabb);
-        assert!((b.aabb.max - (walls.max + pad)).abs().max_element() < 0.02, "{:?}", b.aabb);
+        assert!(
+            (b.aabb.min - (walls.min - pad)).abs().max_element() < 0.02,
+            "{:?}",
+            b.aabb
+        );
+        assert!(
+            (b.aabb.max - (walls.max + pad)).abs().max_element() < 0.02,
+            "{:?}",
+            b.aabb
+        );
         assert_eq!(b.stats.stride, 1);
         assert_eq!(b.stats.sampled, 24 * 64 * 48);
     }
@@ -409,12 +444,18 @@ mod tests {
     #[test]
     fn user_box_overrides_and_invalid_box_is_an_error() {
         let mut scan = Room::default().scan();
-        let user = Bounds { min: DVec3::new(-1.0, -1.0, -1.0), max: DVec3::new(1.0, 2.0, 3.0) };
+        let user = Bounds {
+            min: DVec3::new(-1.0, -1.0, -1.0),
+            max: DVec3::new(1.0, 2.0, 3.0),
+        };
         scan.bounds = Some(user);
         let b = scene_bounds(&scan, &BoundsOptions::default()).unwrap();
         assert_eq!(b.source, BoundsSource::User);
         assert_eq!((b.aabb.min, b.aabb.max), (user.min, user.max));
-        scan.bounds = Some(Bounds { min: DVec3::ONE, max: DVec3::new(2.0, 0.5, 2.0) });
+        scan.bounds = Some(Bounds {
+            min: DVec3::ONE,
+            max: DVec3::new(2.0, 0.5, 2.0),
+        });
         let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err();
         assert!(matches!(err, GeometryError::InvalidUserBounds { .. }), "{err}");
     }
@@ -431,7 +472,11 @@ mod tests {
 
     #[test]
     fn single_camera_without_depth_has_no_scale() {
-        let room = Room { with_depth: false, frames: 1, ..Room::default() };
+        let room = Room {
+            with_depth: false,
+            frames: 1,
+            ..Room::default()
+        };
         let err = scene_bounds(&room.scan(), &BoundsOptions::default()).unwrap_err();
         assert!(matches!(err, GeometryError::NoScale { cameras: 1 }), "{err}");
     }

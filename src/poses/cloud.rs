@@ -137,7 +137,9 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
     for frame in &scan.frames {
         depth_intrinsics(frame)?;
         if frame.depth.is_some() && !frame.camera_to_world.is_finite() {
-            return Err(GeometryError::BadPose { frame: frame.name.clone() });
+            return Err(GeometryError::BadPose {
+                frame: frame.name.clone(),
+            });
         }
     }
     let merged = scan
@@ -147,7 +149,11 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
         .reduce(VoxelMap::default, merge);
     let mut voxels: Vec<(u64, Acc)> = merged.into_iter().collect();
     voxels.sort_unstable_by_key(|(k, _)| *k);
-    let mut cloud = PointCloud { voxel_size: grid.voxel, bounds, ..PointCloud::default() };
+    let mut cloud = PointCloud {
+        voxel_size: grid.voxel,
+        bounds,
+        ..PointCloud::default()
+    };
     cloud.positions.reserve(voxels.len());
     cloud.colors.reserve(voxels.len());
     for (key, acc) in voxels {
@@ -157,7 +163,9 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
             DVec3::new(acc.offset[0] as f64, acc.offset[1] as f64, acc.offset[2] as f64) / (n * f64::from(FIXED_ONE));
         let p = grid.min + (index + frac) * grid.voxel;
         cloud.positions.push(p.as_vec3().to_array());
-        cloud.colors.push(acc.rgb.map(|c| ((c + acc.count / 2) / acc.count).min(255) as u8));
+        cloud
+            .colors
+            .push(acc.rgb.map(|c| ((c + acc.count / 2) / acc.count).min(255) as u8));
         cloud.fused_points += acc.count;
     }
     Ok(cloud)
@@ -175,7 +183,9 @@ fn merge(a: VoxelMap, b: VoxelMap) -> VoxelMap {
 /// Voxel grid over `bounds` with the requested or derived voxel size.
 fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryError> {
     let extent = bounds.max_extent();
-    let voxel = options.voxel_size.unwrap_or(extent / f64::from(options.voxels_per_extent.max(1)));
+    let voxel = options
+        .voxel_size
+        .unwrap_or(extent / f64::from(options.voxels_per_extent.max(1)));
     let bad = |reason: String| GeometryError::BadVoxelSize { voxel, extent, reason };
     if !(bounds.is_valid() && extent > 0.0) {
         return Err(bad(format!("the scene box {bounds:?} is empty")));
@@ -191,13 +201,19 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
         )));
     }
     let dims = [per_axis.x as u64, per_axis.y as u64, per_axis.z as u64];
-    Ok(Grid { min: bounds.min, voxel, dims })
+    Ok(Grid {
+        min: bounds.min,
+        voxel,
+        dims,
+    })
 }
 
 /// Voxel sums of one frame's valid depth pixels inside the grid.
 fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
     let mut map = VoxelMap::default();
-    let (Some(depth), Ok(Some(k))) = (&frame.depth, depth_intrinsics(frame)) else { return map };
+    let (Some(depth), Ok(Some(k))) = (&frame.depth, depth_intrinsics(frame)) else {
+        return map;
+    };
     let (w, h) = (depth.width as usize, depth.height as usize);
     let (rw, rh) = frame.size();
     if rw == 0 || rh == 0 {
@@ -208,8 +224,9 @@ fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
     let b: Vec3 = ((frame.camera_center() - grid.min) / grid.voxel).as_vec3();
     let dims = Vec3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
     // Nearest rgb pixel of each depth column / row (pixel centres aligned).
-    let rgb_col: Vec<u32> =
-        (0..w).map(|u| (((u as f64 + 0.5) * f64::from(rw) / w as f64) as u32).min(rw - 1)).collect();
+    let rgb_col: Vec<u32> = (0..w)
+        .map(|u| (((u as f64 + 0.5) * f64::from(rw) / w as f64) as u32).min(rw - 1))
+        .collect();
     let xs: Vec<Vec3> = (0..w).map(|u| a.x_axis * ((u as f64 - k.cx) / k.fx) as f32).collect();
     // Neighbouring pixels mostly share a voxel: sum runs locally first.
     let mut run: Option<(u64, Acc)> = None;
@@ -275,7 +292,10 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), GeometryError> {
         }
         Ok(())
     })
-    .map_err(|source| GeometryError::Io { path: path.to_path_buf(), source })
+    .map_err(|source| GeometryError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 #[cfg(test)]
@@ -290,9 +310,20 @@ mod tests {
         // A voxel size whose boundaries do not coincide with the walls, where
         // rounding would split one wall layer into two.
         let voxel = 0.0937;
-        let cloud = fuse_cloud(&scan, &CloudOptions { voxel_size: Some(voxel), ..CloudOptions::default() }).unwrap();
+        let cloud = fuse_cloud(
+            &scan,
+            &CloudOptions {
+                voxel_size: Some(voxel),
+                ..CloudOptions::default()
+            },
+        )
+        .unwrap();
         assert_eq!(cloud.positions.len(), cloud.colors.len());
-        assert_eq!(cloud.fused_points, 24 * 64 * 48, "every pixel lies inside the padded bounds");
+        assert_eq!(
+            cloud.fused_points,
+            24 * 64 * 48,
+            "every pixel lies inside the padded bounds"
+        );
         assert!(cloud.len() > 500, "{}", cloud.len());
         // Reference: distinct voxels of all pixels, back-projected in f64.
         let mut keys = std::collections::HashSet::new();
@@ -300,12 +331,19 @@ mod tests {
             let d = f.depth.as_ref().unwrap();
             for (i, z) in d.metres.iter().enumerate() {
                 let (u, v) = ((i % 64) as f64, (i / 64) as f64);
-                let p = f.camera_to_world.transform_point3(f.intrinsics.unproject(u, v) * *z as f64);
+                let p = f
+                    .camera_to_world
+                    .transform_point3(f.intrinsics.unproject(u, v) * *z as f64);
                 keys.insert(((p - cloud.bounds.min) / voxel).floor().as_i64vec3().to_array());
             }
         }
         let ratio = cloud.len() as f64 / keys.len() as f64;
-        assert!((ratio - 1.0).abs() < 0.005, "{} voxels, reference {}", cloud.len(), keys.len());
+        assert!(
+            (ratio - 1.0).abs() < 0.005,
+            "{} voxels, reference {}",
+            cloud.len(),
+            keys.len()
+        );
         for p in &cloud.positions {
             let p = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             // Distance to the nearest wall of the room: points are averages of
@@ -319,12 +357,19 @@ mod tests {
     fn fusion_is_deterministic_and_crops_to_the_bounds() {
         let scan = Room::default().scan();
         let box_ = DAabb::new(DVec3::new(0.0, -2.0, -2.0), DVec3::new(3.0, 2.0, 2.0));
-        let opts = CloudOptions { bounds: Some(box_), voxels_per_extent: 64, ..CloudOptions::default() };
+        let opts = CloudOptions {
+            bounds: Some(box_),
+            voxels_per_extent: 64,
+            ..CloudOptions::default()
+        };
         let a = fuse_cloud(&scan, &opts).unwrap();
         let b = fuse_cloud(&scan, &opts).unwrap();
         assert_eq!(a, b);
         assert!(!a.is_empty());
-        assert!(a.positions.iter().all(|p| p[0] >= 0.0), "points left of the box were kept");
+        assert!(
+            a.positions.iter().all(|p| p[0] >= 0.0),
+            "points left of the box were kept"
+        );
         assert!((a.voxel_size - 4.0 / 64.0).abs() < 1e-12);
     }
 
@@ -332,7 +377,14 @@ mod tests {
     fn absurd_voxel_sizes_are_errors() {
         let scan = Room::default().scan();
         for v in [0.0, -1.0, f64::NAN, 1e-9] {
-            let err = fuse_cloud(&scan, &CloudOptions { voxel_size: Some(v), ..CloudOptions::default() }).unwrap_err();
+            let err = fuse_cloud(
+                &scan,
+                &CloudOptions {
+                    voxel_size: Some(v),
+                    ..CloudOptions::default()
+                },
+            )
+            .unwrap_err();
             assert!(matches!(err, GeometryError::BadVoxelSize { .. }), "{v}: {err}");
         }
     }

@@ -11,7 +11,12 @@ pub enum GeometryError {
     #[error("frame {frame}: camera-to-world pose has non-finite entries")]
     BadPose { frame: String },
     #[error("frame {frame}: depth map has {found} values, expected {width}x{height}")]
-    BadDepthSize { frame: String, width: u32, height: u32, found: usize },
+    BadDepthSize {
+        frame: String,
+        width: u32,
+        height: u32,
+        found: usize,
+    },
     #[error(
         "scene bounds (bbox.txt) are invalid: min {min:?} max {max:?}; \
          expected finite values with min < max on every axis"
@@ -21,7 +26,12 @@ pub enum GeometryError {
         "scene bounds (bbox.txt) min {min:?} max {max:?} hold {inside} of {total} sampled depth points: \
          they miss the scene the depth shows; fix or delete bbox.txt"
     )]
-    UserBoundsMissScene { min: DVec3, max: DVec3, inside: usize, total: usize },
+    UserBoundsMissScene {
+        min: DVec3,
+        max: DVec3,
+        inside: usize,
+        total: usize,
+    },
     #[error(
         "cannot size the scene: no usable depth and all {cameras} camera centres \
          coincide, so nothing gives the scene a scale"

@@ -19,6 +19,6 @@ pub use bounds::{
 };
 pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
 pub use error::GeometryError;
-pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};
-pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
+pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
+pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};

@@ -46,7 +46,10 @@ pub struct NormalizeOptions {
 
 impl Default for NormalizeOptions {
     fn default() -> Self {
-        NormalizeOptions { margin: 0.05, orientation: Orientation::Auto }
+        NormalizeOptions {
+            margin: 0.05,
+            orientation: Orientation::Auto,
+        }
     }
 }
 
@@ -77,8 +80,11 @@ impl SceneTransform {
     pub const ARRAY_LEN: usize = 8;
 
     /// The identity mapping.
-    pub const IDENTITY: SceneTransform =
-        SceneTransform { rotation: DQuat::IDENTITY, translation: DVec3::ZERO, scale: 1.0 };
+    pub const IDENTITY: SceneTransform = SceneTransform {
+        rotation: DQuat::IDENTITY,
+        translation: DVec3::ZERO,
+        scale: 1.0,
+    };
 
     /// Map that rotates by `rotation` and places `rotated_box` (a box in
     /// rotated world coordinates, metres) centred in [0, 1]^3, its longest
@@ -86,14 +92,22 @@ impl SceneTransform {
     pub fn fit(rotation: DQuat, rotated_box: &DAabb, margin: f64) -> Result<SceneTransform, GeometryError> {
         let extent = rotated_box.max_extent();
         if !(rotated_box.is_valid() && extent > 0.0) {
-            return Err(GeometryError::InvalidTransform(format!("cannot fit a box with corners {rotated_box:?}")));
+            return Err(GeometryError::InvalidTransform(format!(
+                "cannot fit a box with corners {rotated_box:?}"
+            )));
         }
         if !(0.0..0.5).contains(&margin) {
-            return Err(GeometryError::InvalidTransform(format!("margin {margin} is outside [0, 0.5)")));
+            return Err(GeometryError::InvalidTransform(format!(
+                "margin {margin} is outside [0, 0.5)"
+            )));
         }
         let scale = (1.0 - 2.0 * margin) / extent;
         let translation = DVec3::splat(0.5) - rotated_box.center() * scale;
-        Ok(SceneTransform { rotation: rotation.normalize(), translation, scale })
+        Ok(SceneTransform {
+            rotation: rotation.normalize(),
+            translation,
+            scale,
+        })
     }
 
     /// World point (metres) to local coordinates.
@@ -151,7 +165,11 @@ impl SceneTransform {
     pub fn inverse(&self) -> SceneTransform {
         let rotation = self.rotation.inverse();
         let scale = 1.0 / self.scale;
-        SceneTransform { rotation, translation: -(rotation * self.translation) * scale, scale }
+        SceneTransform {
+            rotation,
+            translation: -(rotation * self.translation) * scale,
+            scale,
+        }
     }
 
     /// Apply `self`, then `next`.
@@ -178,14 +196,28 @@ impl SceneTransform {
         }
         let q = DQuat::from_xyzw(a[0], a[1], a[2], a[3]);
         if (q.length() - 1.0).abs() > 1e-6 {
-            return Err(GeometryError::InvalidTransform(format!("rotation quaternion has length {}", q.length())));
+            return Err(GeometryError::InvalidTransform(format!(
+                "rotation quaternion has length {}",
+                q.length()
+            )));
         }
         if a[7] <= 0.0 {
-            return Err(GeometryError::InvalidTransform(format!("scale {} is not positive", a[7])));
+            return Err(GeometryError::InvalidTransform(format!(
+                "scale {} is not positive",
+                a[7]
+            )));
         }
         // Keep an already unit quaternion bit for bit, so save/load/save is exact.
-        let rotation = if (q.length_squared() - 1.0).abs() < 1e-14 { q } else { q.normalize() };
-        Ok(SceneTransform { rotation, translation: DVec3::new(a[4], a[5], a[6]), scale: a[7] })
+        let rotation = if (q.length_squared() - 1.0).abs() < 1e-14 {
+            q
+        } else {
+            q.normalize()
+        };
+        Ok(SceneTransform {
+            rotation,
+            translation: DVec3::new(a[4], a[5], a[6]),
+            scale: a[7],
+        })
     }
 }
 
@@ -204,7 +236,12 @@ impl Mul for SceneTransform {
 
 /// Rigid 4x4 from a rotation and a translation.
 fn pose(r: DMat3, t: DVec3) -> DMat4 {
-    DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0))
+    DMat4::from_cols(
+        r.x_axis.extend(0.0),
+        r.y_axis.extend(0.0),
+        r.z_axis.extend(0.0),
+        t.extend(1.0),
+    )
 }
 
 /// Fit the world-to-local similarity of a scene (module doc for the rule).
@@ -213,7 +250,12 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
     let mut chosen = (DQuat::IDENTITY, world_box, false);
     let point_box = bounds.stats.point_box.filter(|_| bounds.source == BoundsSource::Depth);
     if let (Some(point_box), true) = (point_box, options.orientation != Orientation::Identity) {
-        let inliers: Vec<DVec3> = bounds.samples.iter().copied().filter(|p| point_box.contains(*p)).collect();
+        let inliers: Vec<DVec3> = bounds
+            .samples
+            .iter()
+            .copied()
+            .filter(|p| point_box.contains(*p))
+            .collect();
         let cells = cell_centroids(&inliers, &point_box);
         if cells.len() >= 2 {
             let mut best = min_volume_rotation(&cells, DQuat::IDENTITY);
@@ -225,7 +267,12 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
             }
             let rotation = best.0;
             let opts = &bounds.options;
-            let rotated = robust_box(&bounds.samples, |p| rotation * p, opts.low_percentile, opts.high_percentile);
+            let rotated = robust_box(
+                &bounds.samples,
+                |p| rotation * p,
+                opts.low_percentile,
+                opts.high_percentile,
+            );
             if let Some(b) = rotated {
                 let b = bounds.cameras.iter().fold(b, |b, c| b.including(rotation * *c));
                 let b = pad_relative(&b, opts.padding);
@@ -239,9 +286,15 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
     let (rotation, rotated_box, rotated) = chosen;
     let transform = SceneTransform::fit(rotation, &rotated_box, options.margin)?;
     let s = transform.scale;
-    let local_aabb =
-        DAabb::new(rotated_box.min * s + transform.translation, rotated_box.max * s + transform.translation);
-    Ok(Normalization { transform, local_aabb, rotated })
+    let local_aabb = DAabb::new(
+        rotated_box.min * s + transform.translation,
+        rotated_box.max * s + transform.translation,
+    );
+    Ok(Normalization {
+        transform,
+        local_aabb,
+        rotated,
+    })
 }
 
 /// Mean point of every occupied cell of a `ORIENT_CELLS`^3 grid over `b`, in
@@ -271,7 +324,11 @@ mod tests {
     fn random_transform(rng: &mut Rng) -> SceneTransform {
         let q = DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize();
         let t = DVec3::new(rng.normal(), rng.normal(), rng.normal());
-        SceneTransform { rotation: q, translation: t, scale: rng.range(0.01, 100.0) }
+        SceneTransform {
+            rotation: q,
+            translation: t,
+            scale: rng.range(0.01, 100.0),
+        }
     }
 
     #[test]
@@ -297,7 +354,10 @@ mod tests {
     #[test]
     fn array_round_trip_and_invalid_arrays() {
         let t = random_transform(&mut Rng::new(4, 0));
-        assert_eq!(SceneTransform::from_array(&t.to_array()).unwrap().to_array(), t.to_array());
+        assert_eq!(
+            SceneTransform::from_array(&t.to_array()).unwrap().to_array(),
+            t.to_array()
+        );
         let mut bad = t.to_array();
         bad[7] = 0.0;
         assert!(SceneTransform::from_array(&bad).is_err());
@@ -325,7 +385,10 @@ mod tests {
     fn rotated_room_is_aligned_with_its_walls() {
         use crate::poses::test_scene::Room;
         use crate::poses::{scene_bounds, BoundsOptions};
-        let room = Room { rotation: DQuat::from_rotation_z(0.5) * DQuat::from_rotation_x(0.2), ..Room::default() };
+        let room = Room {
+            rotation: DQuat::from_rotation_z(0.5) * DQuat::from_rotation_x(0.2),
+            ..Room::default()
+        };
         let bounds = scene_bounds(&room.scan(), &BoundsOptions::default()).unwrap();
         let n = normalize(&bounds, &NormalizeOptions::default()).unwrap();
         assert!(n.rotated);
@@ -353,7 +416,10 @@ mod tests {
         SceneBounds {
             aabb: pad_relative(&b, options.padding),
             source: BoundsSource::Depth,
-            stats: PointStats { point_box, ..PointStats::default() },
+            stats: PointStats {
+                point_box,
+                ..PointStats::default()
+            },
             samples,
             cameras,
             options,
@@ -365,7 +431,9 @@ mod tests {
         // A tilted plane, cameras in it too: no thickness at all.
         let mut rng = Rng::new(8, 0);
         let plane = |x: f64, y: f64| DVec3::new(x, y, 0.3 * x - 0.2 * y);
-        let samples: Vec<DVec3> = (0..20_000).map(|_| plane(rng.range(-2.0, 2.0), rng.range(-1.0, 1.0))).collect();
+        let samples: Vec<DVec3> = (0..20_000)
+            .map(|_| plane(rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)))
+            .collect();
         let cameras = vec![plane(-0.5, 0.0), plane(0.5, 0.2)];
         let b = bounds_from(samples.clone(), cameras);
         let n = normalize(&b, &NormalizeOptions::default()).unwrap();
@@ -373,9 +441,13 @@ mod tests {
         assert!(DAabb::UNIT.contains_box(&n.local_aabb));
         let e = n.local_aabb.extent();
         assert!(e.min_element() < 0.2 * e.max_element(), "{e}");
-        assert!(samples.iter().all(|p| n.local_aabb.padded(1e-9).contains(n.transform.world_to_local_point(*p))));
+        assert!(samples
+            .iter()
+            .all(|p| n.local_aabb.padded(1e-9).contains(n.transform.world_to_local_point(*p))));
         // A line of points: still a valid similarity.
-        let line: Vec<DVec3> = (0..1000).map(|i| DVec3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0)).collect();
+        let line: Vec<DVec3> = (0..1000)
+            .map(|i| DVec3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0))
+            .collect();
         let n = normalize(&bounds_from(line, vec![DVec3::ZERO]), &NormalizeOptions::default()).unwrap();
         assert!(n.transform.scale.is_finite() && n.transform.scale > 0.0);
         assert!(DAabb::UNIT.contains_box(&n.local_aabb));

@@ -95,7 +95,11 @@ pub(crate) fn closest_to_identity(basis: DMat3) -> DMat3 {
     for perm in PERMS {
         for signs in 0..8u32 {
             let sign = |i: usize| if signs & (1 << i) == 0 { 1.0 } else { -1.0 };
-            let m = DMat3::from_cols(cols[perm[0]] * sign(0), cols[perm[1]] * sign(1), cols[perm[2]] * sign(2));
+            let m = DMat3::from_cols(
+                cols[perm[0]] * sign(0),
+                cols[perm[1]] * sign(1),
+                cols[perm[2]] * sign(2),
+            );
             if m.determinant() <= 0.0 {
                 continue;
             }
@@ -171,7 +175,11 @@ mod tests {
                 assert!((m * v - v * values[i]).length() < 1e-12, "{m:?}");
                 assert!((v.length() - 1.0).abs() < 1e-12);
             }
-            assert!((vectors.transpose() * vectors - DMat3::IDENTITY).abs().to_cols_array().iter().all(|x| *x < 1e-12));
+            assert!((vectors.transpose() * vectors - DMat3::IDENTITY)
+                .abs()
+                .to_cols_array()
+                .iter()
+                .all(|x| *x < 1e-12));
         }
     }
 
@@ -192,7 +200,9 @@ mod tests {
 
     #[test]
     fn planar_and_collinear_clouds_still_give_rotations() {
-        let planar: Vec<DVec3> = (0..100).map(|i| DVec3::new((i % 10) as f64, (i / 10) as f64 * 0.5, 0.0)).collect();
+        let planar: Vec<DVec3> = (0..100)
+            .map(|i| DVec3::new((i % 10) as f64, (i / 10) as f64 * 0.5, 0.0))
+            .collect();
         let axes = principal_axes(&planar).unwrap();
         assert!((axes.determinant() - 1.0).abs() < 1e-12);
         assert!(axes.z_axis.z.abs() > 1.0 - 1e-12, "normal of a z-plane is z: {axes:?}");

@@ -31,7 +31,11 @@ pub struct RefineOptions {
 
 impl Default for RefineOptions {
     fn default() -> Self {
-        RefineOptions { points_per_frame: 1500, rounds: 6, plane_neighbours: 12 }
+        RefineOptions {
+            points_per_frame: 1500,
+            rounds: 6,
+            plane_neighbours: 12,
+        }
     }
 }
 
@@ -95,7 +99,12 @@ impl PoseRefinement {
             while i < self.frames.len() && bad(&self.frames[i]) {
                 i += 1;
             }
-            let level = median(self.frames[start..i].iter().filter_map(|f| f.residual_before_m).collect());
+            let level = median(
+                self.frames[start..i]
+                    .iter()
+                    .filter_map(|f| f.residual_before_m)
+                    .collect(),
+            );
             runs.push((start, i - 1, level));
         }
         runs
@@ -122,22 +131,32 @@ impl PoseRefinement {
                     format!("{names} with the other frames' depth by ~{}", mm(level))
                 })
                 .collect();
-            let more = if runs.len() > 5 { format!(" (and {} more runs)", runs.len() - 5) } else { String::new() };
+            let more = if runs.len() > 5 {
+                format!(" (and {} more runs)", runs.len() - 5)
+            } else {
+                String::new()
+            };
             return format!("{}{more}; the rest agree to {}", listed.join("; "), mm(before));
         }
         if before > 1.5 * after {
-            format!("poses agree with the depth to {}; aligned to it, to {} (`fit` aligns them unless --no-pose-refine)", mm(before), mm(after))
+            format!(
+                "poses agree with the depth to {}; aligned to it, to {} (`fit` aligns them unless --no-pose-refine)",
+                mm(before),
+                mm(after)
+            )
         } else {
-            format!("poses look consistent with the depth (median disagreement {})", mm(before))
+            format!(
+                "poses look consistent with the depth (median disagreement {})",
+                mm(before)
+            )
         }
     }
 
     /// Largest camera displacement and rotation among kept refinements.
     pub fn largest_correction(&self) -> (f64, f64) {
-        self.frames
-            .iter()
-            .filter(|f| f.refined)
-            .fold((0.0, 0.0), |(t, r), f| (f64::max(t, f.translation_m), f64::max(r, f.rotation_deg)))
+        self.frames.iter().filter(|f| f.refined).fold((0.0, 0.0), |(t, r), f| {
+            (f64::max(t, f.translation_m), f64::max(r, f.rotation_deg))
+        })
     }
 }
 
@@ -196,7 +215,13 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
     for pose in &mut poses {
         *pose = gauge * *pose;
     }
-    Ok(Some(keep_what_fits(scan, &samples, &captured, poses, opts.plane_neighbours)))
+    Ok(Some(keep_what_fits(
+        scan,
+        &samples,
+        &captured,
+        poses,
+        opts.plane_neighbours,
+    )))
 }
 
 /// Compare each frame's captured and refined pose against the refined
@@ -231,7 +256,10 @@ fn keep_what_fits(
             refined: refined_better,
         });
     }
-    PoseRefinement { camera_to_world: poses, frames }
+    PoseRefinement {
+        camera_to_world: poses,
+        frames,
+    }
 }
 
 /// Camera displacement (metres) and rotation angle (degrees) from `a` to `b`.
@@ -245,14 +273,20 @@ pub fn pose_difference(a: &DMat4, b: &DMat4) -> (f64, f64) {
 /// Camera-frame points of a frame's depth on a regular pixel grid, skipping
 /// pixels beside a depth edge (mixed foreground and background returns).
 pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Result<Vec<DVec3>, GeometryError> {
-    let Some(depth) = &frame.depth else { return Ok(Vec::new()) };
-    let Some(k) = super::bounds::depth_intrinsics(frame)? else { return Ok(Vec::new()) };
+    let Some(depth) = &frame.depth else {
+        return Ok(Vec::new());
+    };
+    let Some(k) = super::bounds::depth_intrinsics(frame)? else {
+        return Ok(Vec::new());
+    };
     let (w, h) = (depth.width, depth.height);
     // Depth stored coarser than colour is repeated on the colour grid: a
     // neighbour one stored pixel away is this many grid pixels away.
     let stored = frame.depth_size.unwrap_or((w, h));
     let reach = (w as f64 / stored.0.max(1) as f64).ceil().max(1.0) as u32;
-    let stride = ((f64::from(w) * f64::from(h) / wanted.max(1) as f64).sqrt().floor() as u32).max(reach).max(1);
+    let stride = ((f64::from(w) * f64::from(h) / wanted.max(1) as f64).sqrt().floor() as u32)
+        .max(reach)
+        .max(1);
     let offset = crate::rng::Rng::new(phase_seed, 0).below(u64::from(stride)) as u32;
     let mut points = Vec::new();
     let mut y = offset.min(h.saturating_sub(1));
@@ -324,7 +358,12 @@ impl Cloud {
             .zip(poses)
             .enumerate()
             .map(|(i, (s, pose))| {
-                let mut m = FrameMatches { centre: DVec3::ZERO, points: Vec::new(), normals: Vec::new(), residuals: Vec::new() };
+                let mut m = FrameMatches {
+                    centre: DVec3::ZERO,
+                    points: Vec::new(),
+                    normals: Vec::new(),
+                    residuals: Vec::new(),
+                };
                 let world: Vec<DVec3> = s.iter().map(|p| pose.transform_point3(*p)).collect();
                 m.centre = world.iter().copied().sum::<DVec3>() / world.len().max(1) as f64;
                 for x in world {
@@ -342,7 +381,11 @@ impl Cloud {
     /// Distance from `x` to the nearest point another frame measured.
     pub(super) fn nearest_other(&self, x: DVec3, own_frame: u32) -> Option<f64> {
         let wanted = NonZeroUsize::new(8)?;
-        let found = self.tree.query(&x.to_array()).nearest_n::<SquaredEuclidean<f64>>(wanted).execute();
+        let found = self
+            .tree
+            .query(&x.to_array())
+            .nearest_n::<SquaredEuclidean<f64>>(wanted)
+            .execute();
         found
             .iter()
             .find(|r| self.frame_of.get(r.item as usize).is_some_and(|&f| f != own_frame))
@@ -355,7 +398,11 @@ impl Cloud {
         // Own points are a sampling stride apart, other frames' much denser:
         // a few extra candidates make up for the own ones dropped.
         let wanted = NonZeroUsize::new(neighbours + neighbours / 2)?;
-        let found = self.tree.query(&x.to_array()).nearest_n::<SquaredEuclidean<f64>>(wanted).execute();
+        let found = self
+            .tree
+            .query(&x.to_array())
+            .nearest_n::<SquaredEuclidean<f64>>(wanted)
+            .execute();
         let near: Vec<DVec3> = found
             .iter()
             .map(|r| r.item as usize)
@@ -389,7 +436,10 @@ impl Cloud {
 /// Robust residual scale over all frames: the median absolute residual as
 /// a Gaussian sigma.
 fn robust_scale(matches: &[FrameMatches]) -> f64 {
-    let all: Vec<f64> = matches.iter().flat_map(|m| m.residuals.iter().map(|r| r.abs())).collect();
+    let all: Vec<f64> = matches
+        .iter()
+        .flat_map(|m| m.residuals.iter().map(|r| r.abs()))
+        .collect();
     MAD_TO_SIGMA * median(all)
 }
 
@@ -402,9 +452,8 @@ fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<DMat4> {
     let cutoff = TUKEY_C * scale;
     // Rotations are measured as the motion they cause at the frame's typical
     // point distance, so that all six directions are in metres.
-    let lever_length = (m.points.iter().map(|x| (*x - m.centre).length_squared()).sum::<f64>()
-        / m.points.len().max(1) as f64)
-        .sqrt();
+    let lever_length =
+        (m.points.iter().map(|x| (*x - m.centre).length_squared()).sum::<f64>() / m.points.len().max(1) as f64).sqrt();
     if !(lever_length > 0.0) {
         return None;
     }
@@ -471,8 +520,14 @@ fn best_rigid_fit(samples: &[Vec<DVec3>], moved: &[DMat4], reference: &[DMat4]) 
 /// each camera's centre and points `reach` ahead of it along its axes.
 pub fn trajectory_alignment(moved: &[DMat4], reference: &[DMat4], reach: f64) -> DMat4 {
     let probes = [DVec3::ZERO, DVec3::X * reach, DVec3::Y * reach, DVec3::Z * reach];
-    let from: Vec<DVec3> = moved.iter().flat_map(|m| probes.map(|p| m.transform_point3(p))).collect();
-    let to: Vec<DVec3> = reference.iter().flat_map(|m| probes.map(|p| m.transform_point3(p))).collect();
+    let from: Vec<DVec3> = moved
+        .iter()
+        .flat_map(|m| probes.map(|p| m.transform_point3(p)))
+        .collect();
+    let to: Vec<DVec3> = reference
+        .iter()
+        .flat_map(|m| probes.map(|p| m.transform_point3(p)))
+        .collect();
     rigid_fit(&from, &to)
 }
 
@@ -482,14 +537,19 @@ fn rigid_fit(from: &[DVec3], to: &[DVec3]) -> DMat4 {
         return DMat4::IDENTITY;
     }
     let n = from.len() as f64;
-    let (ca, cb) = (from.iter().copied().sum::<DVec3>() / n, to.iter().copied().sum::<DVec3>() / n);
+    let (ca, cb) = (
+        from.iter().copied().sum::<DVec3>() / n,
+        to.iter().copied().sum::<DVec3>() / n,
+    );
     let mut cov = Matrix3::<f64>::zeros();
     for (a, b) in from.iter().zip(to) {
         let (a, b) = (*a - ca, *b - cb);
         cov += Vector3::new(b.x, b.y, b.z) * Vector3::new(a.x, a.y, a.z).transpose();
     }
     let svd = cov.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else { return DMat4::IDENTITY };
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return DMat4::IDENTITY;
+    };
     let mut fix = Matrix3::<f64>::identity();
     if (u * v_t).determinant() < 0.0 {
         fix[(2, 2)] = -1.0;
@@ -529,7 +589,11 @@ mod tests {
     /// (`tests/pose_refine.rs` checks recovery on a scene with objects.)
     #[test]
     fn refinement_does_not_slide_frames_along_planes() {
-        let truth = test_scene::Room { frames: 24, ..Default::default() }.scan();
+        let truth = test_scene::Room {
+            frames: 24,
+            ..Default::default()
+        }
+        .scan();
         let mut scan = truth.clone();
         let mut rng = crate::rng::Rng::new(7, 0);
         for f in &mut scan.frames {
@@ -537,7 +601,9 @@ mod tests {
             let angle = 0.3f64.to_radians() * rng.normal();
             let shift = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
             let centre = f.camera_center();
-            let perturb = DMat4::from_translation(centre + shift) * DMat4::from_axis_angle(axis, angle) * DMat4::from_translation(-centre);
+            let perturb = DMat4::from_translation(centre + shift)
+                * DMat4::from_axis_angle(axis, angle)
+                * DMat4::from_translation(-centre);
             f.camera_to_world = perturb * f.camera_to_world;
         }
         let error = |poses: &[DMat4]| {
@@ -551,27 +617,53 @@ mod tests {
         };
         let perturbed = scan.poses();
         let (t0, r0) = error(&perturbed);
-        let refined = refine_poses(&scan, &RefineOptions::default()).unwrap().expect("the scan has depth");
+        let refined = refine_poses(&scan, &RefineOptions::default())
+            .unwrap()
+            .expect("the scan has depth");
         let (t1, r1) = error(&refined.camera_to_world);
-        assert!(t1 < 1.15 * t0, "camera RMS error {:.2} mm -> {:.2} mm", t0 * 1e3, t1 * 1e3);
+        assert!(
+            t1 < 1.15 * t0,
+            "camera RMS error {:.2} mm -> {:.2} mm",
+            t0 * 1e3,
+            t1 * 1e3
+        );
         assert!(r1 < r0, "rotation RMS error {r0:.3} deg -> {r1:.3} deg");
-        assert!(refined.refined_count() >= scan.frames.len() * 3 / 4, "{} frames refined", refined.refined_count());
+        assert!(
+            refined.refined_count() >= scan.frames.len() * 3 / 4,
+            "{} frames refined",
+            refined.refined_count()
+        );
         let (before, after) = refined.median_residuals();
-        assert!(after < 0.2 * before, "median residual {:.2} mm -> {:.2} mm", before * 1e3, after * 1e3);
+        assert!(
+            after < 0.2 * before,
+            "median residual {:.2} mm -> {:.2} mm",
+            before * 1e3,
+            after * 1e3
+        );
     }
 
     /// Exact poses stay (nearly) exact: refinement must not invent motion.
     #[test]
     fn exact_poses_stay_put() {
-        let scan = test_scene::Room { frames: 16, ..Default::default() }.scan();
-        let refined = refine_poses(&scan, &RefineOptions::default()).unwrap().expect("the scan has depth");
+        let scan = test_scene::Room {
+            frames: 16,
+            ..Default::default()
+        }
+        .scan();
+        let refined = refine_poses(&scan, &RefineOptions::default())
+            .unwrap()
+            .expect("the scan has depth");
         let (t, r) = refined.largest_correction();
         assert!(t < 2e-4 && r < 0.02, "largest correction {:.3} mm, {r:.4} deg", t * 1e3);
     }
 
     #[test]
     fn scans_without_depth_are_left_alone() {
-        let mut scan = test_scene::Room { frames: 6, ..Default::default() }.scan();
+        let mut scan = test_scene::Room {
+            frames: 6,
+            ..Default::default()
+        }
+        .scan();
         for f in &mut scan.frames {
             f.depth = None;
         }

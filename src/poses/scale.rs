@@ -108,19 +108,35 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     let cost = |scale: f64| disagreement(&samples, &scale_poses(&poses, scale), true);
     let at = |k: usize| RANGE.powf(2.0 * k as f64 / (COARSE_STEPS - 1) as f64 - 1.0);
     let coarse: Vec<f64> = (0..COARSE_STEPS).into_par_iter().map(|k| coarse_cost(at(k))).collect();
-    let best = (0..COARSE_STEPS).min_by(|&a, &b| coarse[a].total_cmp(&coarse[b])).unwrap_or(COARSE_STEPS / 2);
-    let rough = golden_section(at(best.saturating_sub(1)), at((best + 1).min(COARSE_STEPS - 1)), 0.01, &coarse_cost);
+    let best = (0..COARSE_STEPS)
+        .min_by(|&a, &b| coarse[a].total_cmp(&coarse[b]))
+        .unwrap_or(COARSE_STEPS / 2);
+    let rough = golden_section(
+        at(best.saturating_sub(1)),
+        at((best + 1).min(COARSE_STEPS - 1)),
+        0.01,
+        &coarse_cost,
+    );
     let fine = golden_section(rough / NEAR, rough * NEAR, TOLERANCE, &cost);
     // Frames that disagree by more than their planes' size (poses off by
     // centimetres) find too few planes: the rough estimate stands.
-    let (scale, cost): (f64, &dyn Fn(f64) -> f64) = if cost(fine).is_finite() { (fine, &cost) } else { (rough, &coarse_cost) };
+    let (scale, cost): (f64, &dyn Fn(f64) -> f64) = if cost(fine).is_finite() {
+        (fine, &cost)
+    } else {
+        (rough, &coarse_cost)
+    };
     let cost_at_scale = cost(scale);
     let sharpness = if cost_at_scale.is_finite() {
         0.5 * (cost(scale * 1.05) + cost(scale / 1.05)) / cost_at_scale.max(f64::MIN_POSITIVE) - 1.0
     } else {
         0.0
     };
-    Ok(Some(ScaleEstimate { scale, cost_at_scale, cost_at_one: cost(1.0), sharpness }))
+    Ok(Some(ScaleEstimate {
+        scale,
+        cost_at_scale,
+        cost_at_one: cost(1.0),
+        sharpness,
+    }))
 }
 
 /// Minimum of `cost` over scales in [lo, hi] (logarithmic golden section),
@@ -158,7 +174,9 @@ fn disagreement(samples: &[Vec<DVec3>], poses: &[DMat4], to_planes: bool) -> f64
             s.iter().map(move |p| {
                 let x = pose.transform_point3(*p);
                 let d = if to_planes {
-                    cloud.plane_near(x, i as u32, PLANE_NEIGHBOURS).map(|(c, n)| n.dot(x - c).abs())
+                    cloud
+                        .plane_near(x, i as u32, PLANE_NEIGHBOURS)
+                        .map(|(c, n)| n.dot(x - c).abs())
                 } else {
                     cloud.nearest_other(x, i as u32)
                 };
@@ -190,12 +208,20 @@ mod tests {
     /// factor: the estimate finds its inverse within 1 %.
     #[test]
     fn the_scale_of_scaled_poses_is_found() {
-        let scan = test_scene::Room { frames: 24, ..Default::default() }.scan();
+        let scan = test_scene::Room {
+            frames: 24,
+            ..Default::default()
+        }
+        .scan();
         for factor in [0.4, 2.5] {
             let mut scaled = scan.clone();
             scaled.set_poses(&scale_poses(&scan.poses(), factor));
             let e = estimate_pose_scale(&scaled).unwrap().expect("the scan has depth");
-            assert!((e.scale * factor - 1.0).abs() < 0.01, "x{factor}: estimated {}", e.scale);
+            assert!(
+                (e.scale * factor - 1.0).abs() < 0.01,
+                "x{factor}: estimated {}",
+                e.scale
+            );
             assert!(!e.looks_metric() && e.is_determined(), "x{factor}: {e:?}");
         }
         let e = estimate_pose_scale(&scan).unwrap().unwrap();

@@ -53,12 +53,20 @@ impl Room {
     /// Camera-to-world pose of frame `k` in the room frame (unscaled).
     fn room_pose(&self, k: usize) -> DMat4 {
         let yaw = TAU * k as f64 / self.frames as f64;
-        let eye =
-            DVec3::new(0.35 * self.half.x * yaw.cos(), 0.35 * self.half.y * yaw.sin(), 0.1 * self.half.z * yaw.sin());
+        let eye = DVec3::new(
+            0.35 * self.half.x * yaw.cos(),
+            0.35 * self.half.y * yaw.sin(),
+            0.1 * self.half.z * yaw.sin(),
+        );
         let forward = DVec3::new((yaw + 0.3).cos(), (yaw + 0.3).sin(), 0.4 * (3.0 * yaw).sin()).normalize();
         let right = forward.cross(DVec3::Z).normalize();
         let down = forward.cross(right);
-        DMat4::from_cols(right.extend(0.0), down.extend(0.0), forward.extend(0.0), eye.extend(1.0))
+        DMat4::from_cols(
+            right.extend(0.0),
+            down.extend(0.0),
+            forward.extend(0.0),
+            eye.extend(1.0),
+        )
     }
 
     /// Build the scan.
@@ -98,14 +106,25 @@ impl Room {
                     id: i as u64,
                     name: format!("{i:06}"),
                     rgb,
-                    depth: self.with_depth.then_some(DepthMap { width: w, height: h, metres }),
+                    depth: self.with_depth.then_some(DepthMap {
+                        width: w,
+                        height: h,
+                        metres,
+                    }),
                     camera_to_world: c2w,
                     intrinsics: k,
                     depth_size: None,
                 }
             })
             .collect();
-        Scan { root: "synthetic".into(), layout: Layout::Native, frames, bounds: None, warnings: Vec::new(), inputs: Vec::new() }
+        Scan {
+            root: "synthetic".into(),
+            layout: Layout::Native,
+            frames,
+            bounds: None,
+            warnings: Vec::new(),
+            inputs: Vec::new(),
+        }
     }
 }
 
@@ -115,7 +134,11 @@ fn exit(o: DVec3, d: DVec3, half: DVec3) -> (f64, usize) {
     let mut best = (f64::INFINITY, 0);
     for a in 0..3 {
         if d[a] != 0.0 {
-            let (wall, id) = if d[a] > 0.0 { (half[a], 2 * a) } else { (-half[a], 2 * a + 1) };
+            let (wall, id) = if d[a] > 0.0 {
+                (half[a], 2 * a)
+            } else {
+                (-half[a], 2 * a + 1)
+            };
             let t = (wall - o[a]) / d[a];
             if t < best.0 {
                 best = (t, id);

@@ -161,11 +161,15 @@ const BYTES_PER_PIXEL: u64 = 32;
 /// Refuse a scan whose pixels cannot fit in this machine's available memory,
 /// from the first frame's header, before anything is decoded.
 fn check_pixel_budget(listing: &Listing) -> Result<(), ScanError> {
-    let Some(first) = listing.frames.first() else { return Ok(()) };
+    let Some(first) = listing.frames.first() else {
+        return Ok(());
+    };
     let (w, h) = dimensions(&first.rgb)?;
     let pixels = (w as u64 * h as u64).saturating_mul(listing.frames.len() as u64);
     let needed = pixels.saturating_mul(BYTES_PER_PIXEL);
-    let Some(available) = available_memory() else { return Ok(()) };
+    let Some(available) = available_memory() else {
+        return Ok(());
+    };
     if needed > available {
         return Err(ScanError::Invalid(
             listing.root.clone(),
@@ -192,7 +196,10 @@ fn available_memory() -> Option<u64> {
 /// Every depth image has one size, and the colour images' aspect ratio
 /// (rescaling depth of another shape would stretch it silently).
 fn check_depth_sizes(frames: &[Frame], listing: &Listing) -> Result<(), ScanError> {
-    let with_depth = frames.iter().zip(&listing.frames).filter_map(|(f, spec)| Some((f.depth_size?, f.size(), spec.depth.as_ref()?)));
+    let with_depth = frames
+        .iter()
+        .zip(&listing.frames)
+        .filter_map(|(f, spec)| Some((f.depth_size?, f.size(), spec.depth.as_ref()?)));
     let mut first: Option<((u32, u32), &PathBuf)> = None;
     for (size, rgb, path) in with_depth {
         match first {
@@ -216,7 +223,11 @@ fn check_depth_sizes(frames: &[Frame], listing: &Listing) -> Result<(), ScanErro
                     path: path.clone(),
                     reason: format!(
                         "depth image is {}x{}, other depth images are {}x{} ({})",
-                        size.0, size.1, want.0, want.1, first_path.display()
+                        size.0,
+                        size.1,
+                        want.0,
+                        want.1,
+                        first_path.display()
                     ),
                 });
             }

@@ -68,32 +68,51 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let mut images = parse_images(&read_text(&images_path)?).map_err(|e| ScanError::parse(&images_path, e))?;
     check_frame_count(&images_path, images.len())?;
     if images.is_empty() {
-        return Err(ScanError::NoFrames(root.to_path_buf(), format!("{} lists no image", images_path.display())));
+        return Err(ScanError::NoFrames(
+            root.to_path_buf(),
+            format!("{} lists no image", images_path.display()),
+        ));
     }
     // Frames numbered in name order, whatever order images.txt lists them in.
     images.sort_by(|a, b| a.name.cmp(&b.name));
-    let image_dir = if root.join("images").is_dir() { root.join("images") } else { root.to_path_buf() };
+    let image_dir = if root.join("images").is_dir() {
+        root.join("images")
+    } else {
+        root.to_path_buf()
+    };
     let depth_dir = root.join("depth");
     let mut listing = Listing::new(root, Layout::Colmap, PoseKind::WorldToCamera, cameras_path.clone());
     listing.inputs.push(images_path.clone());
     if depth_dir.is_dir() {
         listing.inputs.push(depth_dir.clone());
     } else {
-        listing.warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        listing.warnings.push(format!(
+            "{}: no depth folder, frames have no depth supervision",
+            depth_dir.display()
+        ));
     }
     let mut missing_depth = 0;
     for (id, image) in images.iter().enumerate() {
         let camera = cameras.get(&image.camera_id).ok_or_else(|| ScanError::Parse {
             path: images_path.clone(),
             line: image.line,
-            reason: format!("image {} uses camera {}, which cameras.txt does not list", image.name, image.camera_id),
+            reason: format!(
+                "image {} uses camera {}, which cameras.txt does not list",
+                image.name, image.camera_id
+            ),
         })?;
         let rgb = image_dir.join(&image.name);
         if !rgb.is_file() {
-            return Err(ScanError::MissingFile { path: rgb, what: format!("colour image of {} (images.txt line {})", image.name, image.line) });
+            return Err(ScanError::MissingFile {
+                path: rgb,
+                what: format!("colour image of {} (images.txt line {})", image.name, image.line),
+            });
         }
         let name = stem(&rgb);
-        let depth = depth_dir.is_dir().then(|| depth_dir.join(format!("{name}.png"))).filter(|d| d.is_file());
+        let depth = depth_dir
+            .is_dir()
+            .then(|| depth_dir.join(format!("{name}.png")))
+            .filter(|d| d.is_file());
         missing_depth += usize::from(depth.is_none() && depth_dir.is_dir());
         listing.frames.push(FrameSpec {
             id: id as u64,
@@ -115,7 +134,10 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     }
     let mut names = std::collections::HashSet::new();
     if let Some(f) = listing.frames.iter().find(|f| !names.insert(f.name.as_str())) {
-        return Err(ScanError::Invalid(images_path, format!("two images share the stem '{}' (frames are named by stem)", f.name)));
+        return Err(ScanError::Invalid(
+            images_path,
+            format!("two images share the stem '{}' (frames are named by stem)", f.name),
+        ));
     }
     Ok(listing)
 }
@@ -127,17 +149,37 @@ fn parse_cameras(text: &str) -> Result<BTreeMap<u64, Camera>, TextError> {
         let t: Vec<&str> = body.split_whitespace().collect();
         let err = |reason: String| TextError { line, reason };
         if t.len() < 4 {
-            return Err(err(format!("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., found {} fields", t.len())));
+            return Err(err(format!(
+                "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., found {} fields",
+                t.len()
+            )));
         }
-        let id: u64 = t[0].parse().map_err(|_| err(format!("camera id '{}' is not a whole number", t[0])))?;
+        let id: u64 = t[0]
+            .parse()
+            .map_err(|_| err(format!("camera id '{}' is not a whole number", t[0])))?;
         let size = |s: &str| s.parse::<u32>().ok().filter(|&v| v > 0);
         let (Some(w), Some(h)) = (size(t[2]), size(t[3])) else {
-            return Err(err(format!("image size '{} {}' is not two positive whole numbers", t[2], t[3])));
+            return Err(err(format!(
+                "image size '{} {}' is not two positive whole numbers",
+                t[2], t[3]
+            )));
         };
-        let p = t[4..].iter().map(|s| super::text::number(s, line)).collect::<Result<Vec<f64>, _>>()?;
+        let p = t[4..]
+            .iter()
+            .map(|s| super::text::number(s, line))
+            .collect::<Result<Vec<f64>, _>>()?;
         let model = t[1].to_ascii_uppercase();
         // (fx, fy, cx, cy, radial k1, k2, tangential p1, p2)
-        let expect = |n: usize| if p.len() == n { Ok(()) } else { Err(err(format!("camera model {model} has {n} parameters, found {}", p.len()))) };
+        let expect = |n: usize| {
+            if p.len() == n {
+                Ok(())
+            } else {
+                Err(err(format!(
+                    "camera model {model} has {n} parameters, found {}",
+                    p.len()
+                )))
+            }
+        };
         let (fx, fy, cx, cy, k1, k2, p1, p2) = match model.as_str() {
             "SIMPLE_PINHOLE" => expect(3).map(|_| (p[0], p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0))?,
             "PINHOLE" => expect(4).map(|_| (p[0], p[1], p[2], p[3], 0.0, 0.0, 0.0, 0.0))?,
@@ -153,10 +195,15 @@ fn parse_cameras(text: &str) -> Result<BTreeMap<u64, Camera>, TextError> {
         // Written so that NaN fails too.
         let positive = fx > 0.0 && fy > 0.0;
         if !positive || ![cx, cy, k1, k2, p1, p2].iter().all(|v| v.is_finite()) {
-            return Err(err(format!("camera {id}: focal lengths must be positive and all parameters finite")));
+            return Err(err(format!(
+                "camera {id}: focal lengths must be positive and all parameters finite"
+            )));
         }
         // Displacement at the farthest image corner, in pixels.
-        let (x, y) = ((w as f64 - cx).abs().max(cx.abs()) / fx, (h as f64 - cy).abs().max(cy.abs()) / fy);
+        let (x, y) = (
+            (w as f64 - cx).abs().max(cx.abs()) / fx,
+            (h as f64 - cy).abs().max(cy.abs()) / fy,
+        );
         let r2 = x * x + y * y;
         let radial = (k1 * r2 + k2 * r2 * r2).abs() * r2.sqrt();
         let tangential = 2.0 * (p1.abs() + p2.abs()) * r2;
@@ -166,12 +213,24 @@ fn parse_cameras(text: &str) -> Result<BTreeMap<u64, Camera>, TextError> {
                 "camera {id} ({model}) distorts the image corners by {shift:.1} px; nerflabel needs undistorted images: run `colmap image_undistorter` and use its PINHOLE model"
             )));
         }
-        if cameras.insert(id, Camera { intrinsics: Intrinsics { fx, fy, cx, cy }, size: (w, h) }).is_some() {
+        if cameras
+            .insert(
+                id,
+                Camera {
+                    intrinsics: Intrinsics { fx, fy, cx, cy },
+                    size: (w, h),
+                },
+            )
+            .is_some()
+        {
             return Err(err(format!("camera {id} is listed twice")));
         }
     }
     if cameras.is_empty() {
-        return Err(TextError { line: 0, reason: "no camera listed".into() });
+        return Err(TextError {
+            line: 0,
+            reason: "no camera listed".into(),
+        });
     }
     Ok(cameras)
 }
@@ -188,15 +247,32 @@ fn parse_images(text: &str) -> Result<Vec<Image>, TextError> {
         let err = |reason: String| TextError { line, reason };
         let t: Vec<&str> = body.split_whitespace().collect();
         if t.len() < 10 {
-            return Err(err(format!("expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, found {} fields", t.len())));
+            return Err(err(format!(
+                "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, found {} fields",
+                t.len()
+            )));
         }
-        let v = t[1..8].iter().map(|s| super::text::number(s, line)).collect::<Result<Vec<f64>, _>>()?;
-        let camera_id: u64 = t[8].parse().map_err(|_| err(format!("camera id '{}' is not a whole number", t[8])))?;
+        let v = t[1..8]
+            .iter()
+            .map(|s| super::text::number(s, line))
+            .collect::<Result<Vec<f64>, _>>()?;
+        let camera_id: u64 = t[8]
+            .parse()
+            .map_err(|_| err(format!("camera id '{}' is not a whole number", t[8])))?;
         // Names may hold spaces: everything after the camera id.
         let name = t[9..].join(" ");
         let world_to_camera = pose_from_translation_quaternion([v[4], v[5], v[6]], [v[1], v[2], v[3], v[0]])
-            .ok_or_else(|| err(format!("image {name}: the quaternion or translation is not finite or has zero length")))?;
-        images.push(Image { world_to_camera, camera_id, name, line });
+            .ok_or_else(|| {
+                err(format!(
+                    "image {name}: the quaternion or translation is not finite or has zero length"
+                ))
+            })?;
+        images.push(Image {
+            world_to_camera,
+            camera_id,
+            name,
+            line,
+        });
         // The image's 2D points (possibly an empty line).
         lines.next();
     }
@@ -211,13 +287,24 @@ mod tests {
     fn cameras_parse_and_distortion_is_checked() {
         let text = "# Camera list\n1 PINHOLE 640 480 500 502 320 240\n2 SIMPLE_RADIAL 640 480 500 320 240 0.00001\n";
         let cams = parse_cameras(text).unwrap();
-        assert_eq!(cams[&1].intrinsics, Intrinsics { fx: 500.0, fy: 502.0, cx: 320.0, cy: 240.0 });
+        assert_eq!(
+            cams[&1].intrinsics,
+            Intrinsics {
+                fx: 500.0,
+                fy: 502.0,
+                cx: 320.0,
+                cy: 240.0
+            }
+        );
         assert_eq!(cams[&2].size, (640, 480));
         let bad = parse_cameras("1 SIMPLE_RADIAL 640 480 500 320 240 0.05\n").unwrap_err();
         assert!(bad.reason.contains("image_undistorter") && bad.line == 1, "{bad:?}");
         let fisheye = parse_cameras("1 OPENCV_FISHEYE 640 480 500 500 320 240 0 0 0 0\n").unwrap_err();
         assert!(fisheye.reason.contains("not supported"), "{fisheye:?}");
-        assert!(parse_cameras("1 PINHOLE 640 480 500 320 240\n").unwrap_err().reason.contains("4 parameters"));
+        assert!(parse_cameras("1 PINHOLE 640 480 500 320 240\n")
+            .unwrap_err()
+            .reason
+            .contains("4 parameters"));
         assert!(parse_cameras("1 PINHOLE 640 0 500 500 320 240\n").is_err());
     }
 
@@ -230,13 +317,25 @@ mod tests {
             \n";
         let images = parse_images(text).unwrap();
         assert_eq!(images.len(), 2);
-        assert_eq!((images[0].name.as_str(), images[0].camera_id, images[0].line), ("b.jpg", 1, 3));
-        assert_eq!(images[0].world_to_camera.w_axis.truncate(), glam::DVec3::new(0.5, 0.0, 0.0));
+        assert_eq!(
+            (images[0].name.as_str(), images[0].camera_id, images[0].line),
+            ("b.jpg", 1, 3)
+        );
+        assert_eq!(
+            images[0].world_to_camera.w_axis.truncate(),
+            glam::DVec3::new(0.5, 0.0, 0.0)
+        );
         assert_eq!(images[1].name, "a name.jpg");
         // 90 degrees about y: the world x axis becomes the camera's -z.
         let x = images[1].world_to_camera.transform_vector3(glam::DVec3::X);
         assert!((x - glam::DVec3::new(0.0, 0.0, -1.0)).length() < 1e-12, "{x}");
-        assert!(parse_images("1 1 0 0 0 0 0 0 1\n").unwrap_err().reason.contains("found 9 fields"));
-        assert!(parse_images("1 0 0 0 0 0 0 0 1 z.jpg\n\n").unwrap_err().reason.contains("quaternion"));
+        assert!(parse_images("1 1 0 0 0 0 0 0 1\n")
+            .unwrap_err()
+            .reason
+            .contains("found 9 fields"));
+        assert!(parse_images("1 0 0 0 0 0 0 0 1 z.jpg\n\n")
+            .unwrap_err()
+            .reason
+            .contains("quaternion"));
     }
 }

@@ -112,7 +112,11 @@ mod tests {
             assert_eq!(layout.to_string(), layout.name());
         }
         assert_eq!("TUM".parse::<Layout>(), Ok(Layout::Tum));
-        assert!("meshroom".parse::<Layout>().unwrap_err().to_string().contains("meshroom"));
+        assert!("meshroom"
+            .parse::<Layout>()
+            .unwrap_err()
+            .to_string()
+            .contains("meshroom"));
     }
 
     #[test]

@@ -28,12 +28,18 @@ pub(crate) fn rel(root: &Path, path: &Path) -> String {
 
 /// Depth PNGs of `root/depth` by frame number; a missing folder means no
 /// depth supervision (warned about), not an error.
-pub(crate) fn optional_depth_files(root: &Path, warnings: &mut Vec<String>) -> Result<BTreeMap<u64, PathBuf>, ScanError> {
+pub(crate) fn optional_depth_files(
+    root: &Path,
+    warnings: &mut Vec<String>,
+) -> Result<BTreeMap<u64, PathBuf>, ScanError> {
     let depth_dir = root.join("depth");
     if depth_dir.is_dir() {
         files_by_id(&depth_dir, &["png"], warnings)
     } else {
-        warnings.push(format!("{}: no depth folder, frames have no depth supervision", depth_dir.display()));
+        warnings.push(format!(
+            "{}: no depth folder, frames have no depth supervision",
+            depth_dir.display()
+        ));
         Ok(BTreeMap::new())
     }
 }
@@ -63,10 +69,16 @@ pub(crate) fn files_by_id(
         // frame file is a mistake worth naming, not a missing frame.
         let meta = std::fs::metadata(&path).map_err(|e| ScanError::io(&path, e))?;
         if meta.is_dir() {
-            return Err(ScanError::Invalid(path, format!("is a directory, expected a .{} file", exts.join("/."))));
+            return Err(ScanError::Invalid(
+                path,
+                format!("is a directory, expected a .{} file", exts.join("/.")),
+            ));
         }
         if !meta.is_file() {
-            return Err(ScanError::Invalid(path, "is not a regular file (a pipe, socket or device); refusing to read it".into()));
+            return Err(ScanError::Invalid(
+                path,
+                "is not a regular file (a pipe, socket or device); refusing to read it".into(),
+            ));
         }
         let Some(id) = stem_id(&path) else {
             skipped.push(

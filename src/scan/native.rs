@@ -3,7 +3,7 @@
 //! optional `bbox.txt`. Frames pair by the integer value of the file stem.
 
 use super::assemble::{check_frame_count, FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, id_list, rel, stem, optional_depth_files};
+use super::files::{files_by_id, id_list, optional_depth_files, rel, stem};
 use super::image_io::RGB_EXTENSIONS;
 use super::text::{self, read_text};
 use super::{Layout, ScanError};

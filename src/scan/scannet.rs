@@ -6,7 +6,7 @@
 //! colour grid; `intrinsic_depth.txt` is only compared for a warning.
 
 use super::assemble::{FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, id_list, stem, optional_depth_files};
+use super::files::{files_by_id, id_list, optional_depth_files, stem};
 use super::image_io::RGB_EXTENSIONS;
 use super::native::{pair_parts, require_dir, require_file};
 use super::text::{self, read_text};

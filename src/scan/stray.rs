@@ -5,7 +5,7 @@
 //! scaled here to the extracted image size). `confidence/` is ignored.
 
 use super::assemble::{check_frame_count, FrameSpec, Listing, PoseKind};
-use super::files::{files_by_id, stem, optional_depth_files};
+use super::files::{files_by_id, optional_depth_files, stem};
 use super::image_io::RGB_EXTENSIONS;
 use super::native::require_file;
 use super::rigid::pose_from_translation_quaternion;

@@ -294,7 +294,10 @@ mod tests {
         // Regression: K[0][1] was dropped silently.
         let err = intrinsics("500 2.5 320\n0 510 240\n0 0 1\n").unwrap_err().reason;
         assert!(err.contains("skew 2.5"), "{err}");
-        assert!(intrinsics("500 0.00001 320\n0 510 240\n0 0 1\n").is_ok(), "rounding noise is accepted");
+        assert!(
+            intrinsics("500 0.00001 320\n0 510 240\n0 0 1\n").is_ok(),
+            "rounding noise is accepted"
+        );
     }
 
     #[test]

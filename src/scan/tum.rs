@@ -69,7 +69,9 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
     let mut listing = Listing::new(root, Layout::Tum, PoseKind::CameraToWorld, k_source);
     listing.depth_metres_per_unit = 1.0 / DEPTH_UNITS_PER_METRE;
     listing.warnings = warnings;
-    listing.inputs.extend([rgb_txt.clone(), depth_txt.clone(), gt_txt.clone()]);
+    listing
+        .inputs
+        .extend([rgb_txt.clone(), depth_txt.clone(), gt_txt.clone()]);
 
     let rgb_all = read_image_list(&rgb_txt)?;
     check_frame_count(&rgb_txt, rgb_all.len())?;

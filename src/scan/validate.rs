@@ -216,7 +216,10 @@ pub(crate) fn exclude_outlier_poses(scan: &mut Scan) -> Result<(), ScanError> {
     if outliers.is_empty() {
         return Ok(());
     }
-    let names: Vec<String> = outliers.iter().map(|&i| format!("{} ({:.3e} m)", scan.frames[i].name, distances[i])).collect();
+    let names: Vec<String> = outliers
+        .iter()
+        .map(|&i| format!("{} ({:.3e} m)", scan.frames[i].name, distances[i]))
+        .collect();
     if outliers.len() as f64 > MAX_OUTLIER_SHARE * n as f64 {
         return Err(ScanError::Invalid(
             scan.root.clone(),
@@ -283,7 +286,9 @@ mod tests {
         assert!(warnings[0].contains("re-orthonormalised"));
         // Regression: a rotation scaled x2 is a wrong matrix, not rounding.
         let doubled = DMat4::from_scale(DVec3::splat(2.0));
-        let err = accept_pose(doubled, "pose/000001.txt", true, &mut warnings).unwrap_err().to_string();
+        let err = accept_pose(doubled, "pose/000001.txt", true, &mut warnings)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("too far from a rotation for --fix-poses"), "{err}");
         // A reflection is never "fixed".
         let mirror = DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0));
@@ -312,6 +317,18 @@ mod tests {
         let err = check_intrinsics(&Intrinsics { fx: 1e-300, ..k }, 640, 480).unwrap_err();
         assert!(err.contains("field of view"), "{err}");
         assert!(check_intrinsics(&Intrinsics { fy: 1e9, ..k }, 640, 480).is_err());
-        assert!(check_intrinsics(&Intrinsics { fx: 30.0, fy: 30.0, ..k }, 640, 480).is_ok(), "a 169-degree wide angle is fine");
+        assert!(
+            check_intrinsics(
+                &Intrinsics {
+                    fx: 30.0,
+                    fy: 30.0,
+                    ..k
+                },
+                640,
+                480
+            )
+            .is_ok(),
+            "a 169-degree wide angle is fine"
+        );
     }
 }

@@ -46,7 +46,12 @@ pub enum PosesFileError {
     File { path: PathBuf, problem: String },
     /// One field of one view is wrong.
     #[error("{path}: view {view}: `{field}`: {problem}")]
-    View { path: PathBuf, view: usize, field: &'static str, problem: String },
+    View {
+        path: PathBuf,
+        view: usize,
+        field: &'static str,
+        problem: String,
+    },
 }
 
 /// Why `synthesize` failed.
@@ -68,7 +73,12 @@ pub enum SynthError {
         "gave up after {attempts} viewpoint candidates with only {accepted} of {wanted} views accepted \
          (rejected: {rejections}); try a smaller --clearance, fewer views or --poses"
     )]
-    GaveUp { attempts: u64, accepted: usize, wanted: usize, rejections: Rejections },
+    GaveUp {
+        attempts: u64,
+        accepted: usize,
+        wanted: usize,
+        rejections: Rejections,
+    },
     #[error("view {view}: cannot encode the {what} PNG: {source}")]
     Png {
         view: usize,

@@ -7,14 +7,14 @@
 mod error;
 pub mod parquet;
 pub mod poses_file;
-pub mod triplet;
 pub mod sampling;
+pub mod triplet;
 
 pub use error::{PosesFileError, Rejections, SynthError};
 pub use parquet::{synth_schema, SynthWriter};
 pub use poses_file::{parse_poses, read_poses, ViewSpec};
-pub use triplet::{Box2d, Instances, SynthView};
 pub use sampling::{Candidate, Cloud, PoseSampler, Target};
+pub use triplet::{Box2d, Instances, SynthView};
 pub mod synthesize;
 pub mod viewpoints;
 

@@ -71,14 +71,20 @@ pub struct SynthWriter {
 
 /// Temporary path beside `out` (same pattern as [`crate::atomic`]).
 fn temp_path(out: &Path) -> PathBuf {
-    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = out
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     out.with_file_name(format!(".{name}.tmp{}", std::process::id()))
 }
 
 impl SynthWriter {
     /// Start writing `out` (through a temp file) with key-value `metadata`.
     pub fn create(out: &Path, metadata: &[(&str, String)]) -> Result<SynthWriter, SynthError> {
-        let io = |source| SynthError::Io { path: out.to_path_buf(), source };
+        let io = |source| SynthError::Io {
+            path: out.to_path_buf(),
+            source,
+        };
         if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(io)?;
         }
@@ -86,7 +92,12 @@ impl SynthWriter {
         let file = File::create(&tmp).map_err(io)?;
         let mut props = WriterProperties::builder()
             .set_compression(Compression::SNAPPY)
-            .set_key_value_metadata(Some(metadata.iter().map(|(k, v)| KeyValue::new(k.to_string(), v.clone())).collect()));
+            .set_key_value_metadata(Some(
+                metadata
+                    .iter()
+                    .map(|(k, v)| KeyValue::new(k.to_string(), v.clone()))
+                    .collect(),
+            ));
         for col in BLOB_COLUMNS {
             let path = ColumnPath::from(col);
             props = props
@@ -94,15 +105,23 @@ impl SynthWriter {
                 .set_column_dictionary_enabled(path, false);
         }
         let schema = Arc::new(synth_schema());
-        let mut this =
-            SynthWriter { writer: None, schema: schema.clone(), tmp, out: out.to_path_buf(), rows: 0 };
+        let mut this = SynthWriter {
+            writer: None,
+            schema: schema.clone(),
+            tmp,
+            out: out.to_path_buf(),
+            rows: 0,
+        };
         let writer = ArrowWriter::try_new(file, schema, Some(props.build())).map_err(|e| this.parquet_error(e))?;
         this.writer = Some(writer);
         Ok(this)
     }
 
     fn parquet_error(&self, source: parquet::errors::ParquetError) -> SynthError {
-        SynthError::Parquet { path: self.out.clone(), source }
+        SynthError::Parquet {
+            path: self.out.clone(),
+            source,
+        }
     }
 
     /// Views written so far.
@@ -137,7 +156,10 @@ impl SynthWriter {
         let Some(writer) = self.writer.take() else {
             return Err(SynthError::Options("the Parquet writer is already finished".into()));
         };
-        let io = |source| SynthError::Io { path: self.out.clone(), source };
+        let io = |source| SynthError::Io {
+            path: self.out.clone(),
+            source,
+        };
         let result = (|| {
             let file = writer.into_inner().map_err(|e| self.parquet_error(e))?;
             file.sync_all().map_err(io)?;
@@ -158,7 +180,8 @@ impl SynthWriter {
                 .iter()
                 .enumerate()
                 .map(|(i, v)| {
-                    i32::try_from(f(i, v)).map_err(|_| SynthError::Options("a value does not fit the int32 column".into()))
+                    i32::try_from(f(i, v))
+                        .map_err(|_| SynthError::Options("a value does not fit the int32 column".into()))
                 })
                 .collect::<Result<Vec<i32>, _>>()?;
             Ok(Arc::new(Int32Array::from(values)))
@@ -175,15 +198,17 @@ impl SynthWriter {
             })
             .collect();
         // glam's to_cols_array of the transpose is the row-major order.
-        let poses: Vec<f64> = views.iter().flat_map(|v| v.spec.camera_to_world.transpose().to_cols_array()).collect();
+        let poses: Vec<f64> = views
+            .iter()
+            .flat_map(|v| v.spec.camera_to_world.transpose().to_cols_array())
+            .collect();
         let fixed = |values: Vec<f64>, size: i32| -> Result<ArrayRef, SynthError> {
             let list = FixedSizeListArray::try_new(f64_item(), size, Arc::new(Float64Array::from(values)), None)
                 .map_err(|e| SynthError::Options(format!("internal: cannot build a fixed-size list: {e}")))?;
             Ok(Arc::new(list))
         };
-        let blob = |f: fn(&SynthView) -> &[u8]| -> ArrayRef {
-            Arc::new(BinaryArray::from_iter_values(views.iter().map(f)))
-        };
+        let blob =
+            |f: fn(&SynthView) -> &[u8]| -> ArrayRef { Arc::new(BinaryArray::from_iter_values(views.iter().map(f))) };
         let columns: Vec<ArrayRef> = vec![
             view_id,
             width,
@@ -207,7 +232,8 @@ fn boxes_column(views: &[SynthView]) -> Result<ArrayRef, SynthError> {
         .map(|b| i32::try_from(b.instance_id))
         .collect::<Result<Vec<i32>, _>>()
         .map_err(|_| SynthError::Options("an instance id does not fit the int32 column".into()))?;
-    let coord = |f: fn(&super::triplet::Box2d) -> f32| -> ArrayRef { Arc::new(Float32Array::from_iter_values(all().map(f))) };
+    let coord =
+        |f: fn(&super::triplet::Box2d) -> f32| -> ArrayRef { Arc::new(Float32Array::from_iter_values(all().map(f))) };
     let children: Vec<ArrayRef> = vec![
         Arc::new(Int32Array::from(ids)),
         Arc::new(StringArray::from_iter_values(all().map(|b| b.label.as_str()))),
@@ -251,7 +277,12 @@ mod tests {
         SynthView {
             spec: ViewSpec {
                 camera_to_world: DMat4::from_translation(DVec3::new(i as f64, 2.0, 3.0)),
-                intrinsics: Intrinsics { fx: 100.0, fy: 101.0, cx: 50.0 + i as f64, cy: 40.0 },
+                intrinsics: Intrinsics {
+                    fx: 100.0,
+                    fy: 101.0,
+                    cx: 50.0 + i as f64,
+                    cy: 40.0,
+                },
                 width: 100,
                 height: 80,
             },
@@ -259,7 +290,14 @@ mod tests {
             depth_png: vec![4; i + 1],
             mask_png: vec![],
             boxes: (0..i % 3)
-                .map(|b| Box2d { instance_id: b as u32 + 1, label: format!("obj{b}"), x0: 1.0, y0: 2.0, x1: 3.5, y1: 4.0 + i as f32 })
+                .map(|b| Box2d {
+                    instance_id: b as u32 + 1,
+                    label: format!("obj{b}"),
+                    x0: 1.0,
+                    y0: 2.0,
+                    x1: 3.5,
+                    y1: 4.0 + i as f32,
+                })
                 .collect(),
         }
     }
@@ -276,7 +314,11 @@ mod tests {
         assert!(!out.exists(), "nothing at the output path before finishing");
         let bytes = w.finish().unwrap();
         assert_eq!(bytes, std::fs::metadata(&out).unwrap().len());
-        assert_eq!(std::fs::read_dir(out.parent().unwrap()).unwrap().count(), 1, "temp file left behind");
+        assert_eq!(
+            std::fs::read_dir(out.parent().unwrap()).unwrap().count(),
+            1,
+            "temp file left behind"
+        );
 
         let builder = ParquetRecordBatchReaderBuilder::try_new(File::open(&out).unwrap()).unwrap();
         let meta = builder.metadata().clone();
@@ -294,10 +336,20 @@ mod tests {
             assert_eq!(batch.width[i], 100);
             assert_eq!(batch.k[i], vec![100.0, 101.0, 50.0 + i as f64, 40.0]);
             let t = &batch.pose[i];
-            assert_eq!((t[3], t[7], t[11], t[15]), (i as f64, 2.0, 3.0, 1.0), "row-major translation column");
+            assert_eq!(
+                (t[3], t[7], t[11], t[15]),
+                (i as f64, 2.0, 3.0, 1.0),
+                "row-major translation column"
+            );
             assert_eq!(batch.rgb[i], v.rgb_png);
             assert_eq!(batch.depth[i], v.depth_png);
-            assert_eq!(batch.boxes[i], v.boxes.iter().map(|b| (b.instance_id as i32, b.label.clone(), [b.x0, b.y0, b.x1, b.y1])).collect::<Vec<_>>());
+            assert_eq!(
+                batch.boxes[i],
+                v.boxes
+                    .iter()
+                    .map(|b| (b.instance_id as i32, b.label.clone(), [b.x0, b.y0, b.x1, b.y1]))
+                    .collect::<Vec<_>>()
+            );
         }
     }
 
@@ -323,8 +375,10 @@ mod tests {
         let mut rows = Rows::default();
         for b in batches {
             let col = |name: &str| b.column_by_name(name).unwrap().clone();
-            rows.view_id.extend(col("view_id").as_primitive::<Int32Type>().values().iter());
-            rows.width.extend(col("width").as_primitive::<Int32Type>().values().iter());
+            rows.view_id
+                .extend(col("view_id").as_primitive::<Int32Type>().values().iter());
+            rows.width
+                .extend(col("width").as_primitive::<Int32Type>().values().iter());
             for (name, out) in [("intrinsics", &mut rows.k), ("camera_to_world", &mut rows.pose)] {
                 let list = col(name);
                 let list = list.as_fixed_size_list();
@@ -346,7 +400,9 @@ mod tests {
                 let ids = s.column(0).as_primitive::<Int32Type>().values().to_vec();
                 let labels = s.column(1).as_string::<i32>();
                 rows.boxes.push(
-                    (0..s.len()).map(|j| (ids[j], labels.value(j).to_string(), [x0[j], y0[j], x1[j], y1[j]])).collect(),
+                    (0..s.len())
+                        .map(|j| (ids[j], labels.value(j).to_string(), [x0[j], y0[j], x1[j], y1[j]]))
+                        .collect(),
                 );
             }
         }

@@ -26,7 +26,10 @@ pub struct ViewSpec {
 
 /// Read and check a poses file.
 pub fn read_poses(path: &Path) -> Result<Vec<ViewSpec>, PosesFileError> {
-    let io = |source| PosesFileError::Io { path: path.to_path_buf(), source };
+    let io = |source| PosesFileError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let len = std::fs::metadata(path).map_err(io)?.len();
     if len > MAX_POSES_FILE_BYTES {
         return Err(PosesFileError::File {
@@ -40,7 +43,10 @@ pub fn read_poses(path: &Path) -> Result<Vec<ViewSpec>, PosesFileError> {
 
 /// Parse and check the text of a poses file; `path` names it in errors.
 pub fn parse_poses(text: &str, path: &Path) -> Result<Vec<ViewSpec>, PosesFileError> {
-    let file_err = |problem: String| PosesFileError::File { path: path.to_path_buf(), problem };
+    let file_err = |problem: String| PosesFileError::File {
+        path: path.to_path_buf(),
+        problem,
+    };
     let root: Value = serde_json::from_str(text).map_err(|e| file_err(format!("not valid JSON: {e}")))?;
     let views = root
         .get("views")
@@ -51,9 +57,16 @@ pub fn parse_poses(text: &str, path: &Path) -> Result<Vec<ViewSpec>, PosesFileEr
         return Err(file_err("`views` is empty".into()));
     }
     if views.len() > MAX_VIEWS {
-        return Err(file_err(format!("{} views, at most {MAX_VIEWS} are accepted", views.len())));
+        return Err(file_err(format!(
+            "{} views, at most {MAX_VIEWS} are accepted",
+            views.len()
+        )));
     }
-    views.iter().enumerate().map(|(i, v)| parse_view(v, ViewCtx { path, view: i })).collect()
+    views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| parse_view(v, ViewCtx { path, view: i }))
+        .collect()
 }
 
 /// Where a value sits, for error messages.
@@ -65,7 +78,12 @@ struct ViewCtx<'a> {
 
 impl ViewCtx<'_> {
     fn err(&self, field: &'static str, problem: impl Into<String>) -> PosesFileError {
-        PosesFileError::View { path: PathBuf::from(self.path), view: self.view, field, problem: problem.into() }
+        PosesFileError::View {
+            path: PathBuf::from(self.path),
+            view: self.view,
+            field,
+            problem: problem.into(),
+        }
     }
 
     fn field<'v>(&self, v: &'v Value, field: &'static str) -> Result<&'v Value, PosesFileError> {
@@ -74,7 +92,9 @@ impl ViewCtx<'_> {
 
     /// A list of exactly `n` finite numbers.
     fn numbers(&self, v: &Value, field: &'static str, n: usize, what: &str) -> Result<Vec<f64>, PosesFileError> {
-        let list = v.as_array().ok_or_else(|| self.err(field, format!("expected a list of {n} numbers {what}")))?;
+        let list = v
+            .as_array()
+            .ok_or_else(|| self.err(field, format!("expected a list of {n} numbers {what}")))?;
         if list.len() != n {
             return Err(self.err(field, format!("expected {n} numbers {what}, found {}", list.len())));
         }
@@ -105,7 +125,10 @@ fn parse_view(v: &Value, ctx: ViewCtx) -> Result<ViewSpec, PosesFileError> {
     let width = ctx.side(v, "width")?;
     let height = ctx.side(v, "height")?;
     if u64::from(width) * u64::from(height) > MAX_VIEW_PIXELS {
-        return Err(ctx.err("width", format!("{width}x{height} has more than {MAX_VIEW_PIXELS} pixels")));
+        return Err(ctx.err(
+            "width",
+            format!("{width}x{height} has more than {MAX_VIEW_PIXELS} pixels"),
+        ));
     }
 
     let field = "camera_to_world";
@@ -129,9 +152,19 @@ fn parse_view(v: &Value, ctx: ViewCtx) -> Result<ViewSpec, PosesFileError> {
 
     let field = "intrinsics";
     let k = ctx.numbers(ctx.field(v, field)?, field, 4, "[fx, fy, cx, cy]")?;
-    let intrinsics = Intrinsics { fx: k[0], fy: k[1], cx: k[2], cy: k[3] };
+    let intrinsics = Intrinsics {
+        fx: k[0],
+        fy: k[1],
+        cx: k[2],
+        cy: k[3],
+    };
     check_intrinsics(&intrinsics, width, height).map_err(|problem| ctx.err(field, problem))?;
-    Ok(ViewSpec { camera_to_world, intrinsics, width, height })
+    Ok(ViewSpec {
+        camera_to_world,
+        intrinsics,
+        width,
+        height,
+    })
 }
 
 #[cfg(test)]
@@ -159,10 +192,21 @@ mod tests {
         assert_eq!(views.len(), 2);
         let v = views[0];
         assert_eq!((v.width, v.height), (640, 480));
-        assert_eq!(v.intrinsics, Intrinsics { fx: 500.0, fy: 510.0, cx: 320.0, cy: 240.0 });
+        assert_eq!(
+            v.intrinsics,
+            Intrinsics {
+                fx: 500.0,
+                fy: 510.0,
+                cx: 320.0,
+                cy: 240.0
+            }
+        );
         assert_eq!(v.camera_to_world.w_axis.truncate(), DVec3::new(0.5, -0.25, 1.5));
         // Row 0 is (0, -1, 0): the camera's y axis maps to world -x.
-        assert_eq!(v.camera_to_world.transform_vector3(DVec3::Y), DVec3::new(-1.0, 0.0, 0.0));
+        assert_eq!(
+            v.camera_to_world.transform_vector3(DVec3::Y),
+            DVec3::new(-1.0, 0.0, 0.0)
+        );
         assert!((DMat3::from_mat4(v.camera_to_world).determinant() - 1.0).abs() < 1e-12);
     }
 
@@ -193,13 +237,41 @@ mod tests {
             ("height", Some(json!(100_000)), "not an integer"),
             ("camera_to_world", None, "missing"),
             ("camera_to_world", Some(json!("identity")), "4 rows"),
-            ("camera_to_world", Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])), "expected 4 rows"),
-            ("camera_to_world", Some(json!([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]])), "expected 4 numbers in row 0"),
-            ("camera_to_world", Some(json!([[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])), "entry 3"),
-            ("camera_to_world", Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]])), "last row"),
-            ("camera_to_world", Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])), "reflection"),
-            ("camera_to_world", Some(json!([[1.01, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])), "orthonormal"),
-            ("camera_to_world", Some(json!([[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]])), "orthonormal"),
+            (
+                "camera_to_world",
+                Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])),
+                "expected 4 rows",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]])),
+                "expected 4 numbers in row 0",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
+                "entry 3",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]])),
+                "last row",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]])),
+                "reflection",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[1.01, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
+                "orthonormal",
+            ),
+            (
+                "camera_to_world",
+                Some(json!([[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]])),
+                "orthonormal",
+            ),
             ("intrinsics", None, "missing"),
             ("intrinsics", Some(json!([500, 500, 320])), "found 3"),
             ("intrinsics", Some(json!({"fx": 500})), "list of 4 numbers"),

@@ -85,7 +85,11 @@ impl Cloud {
     /// far the operator kept the camera (0.15 m on the tabletop fixture, whose
     /// cameras keep a median 0.76 m). `None` without points.
     pub fn default_clearance(&self, cameras: &[DVec3]) -> Option<f64> {
-        let mut d: Vec<f64> = cameras.iter().map(|&c| self.distance(c)).filter(|d| d.is_finite()).collect();
+        let mut d: Vec<f64> = cameras
+            .iter()
+            .map(|&c| self.distance(c))
+            .filter(|d| d.is_finite())
+            .collect();
         if d.is_empty() {
             return None;
         }
@@ -113,19 +117,27 @@ impl<'a> PoseSampler<'a> {
             return Err(SynthError::Options("no target to look at".into()));
         }
         if !(clearance.is_finite() && clearance >= 0.0) {
-            return Err(SynthError::Options(format!("clearance {clearance} m must be a finite number >= 0")));
+            return Err(SynthError::Options(format!(
+                "clearance {clearance} m must be a finite number >= 0"
+            )));
         }
         let regions = targets
             .iter()
             .map(|&target| {
                 let to_local = |p: DVec3| target.rotation.transpose() * (p - target.center);
-                let (min, max) = cameras.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &c| {
-                    (lo.min(to_local(c)), hi.max(to_local(c)))
-                });
+                let (min, max) = cameras
+                    .iter()
+                    .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &c| {
+                        (lo.min(to_local(c)), hi.max(to_local(c)))
+                    });
                 Region { target, min, max }
             })
             .collect();
-        Ok(PoseSampler { regions, cloud, clearance })
+        Ok(PoseSampler {
+            regions,
+            cloud,
+            clearance,
+        })
     }
 
     /// Clearance in metres.
@@ -137,7 +149,9 @@ impl<'a> PoseSampler<'a> {
     pub fn candidate(&self, seed: u64, index: u64) -> Candidate {
         let mut rng = Rng::new(seed, index);
         let which = rng.below(self.regions.len() as u64) as usize;
-        let Some(region) = self.regions.get(which) else { return Candidate::TooClose };
+        let Some(region) = self.regions.get(which) else {
+            return Candidate::TooClose;
+        };
         let local = DVec3::new(
             rng.range(region.min.x, region.max.x),
             rng.range(region.min.y, region.max.y),
@@ -147,18 +161,24 @@ impl<'a> PoseSampler<'a> {
         let tilt_x = rng.range(-MAX_TILT, MAX_TILT);
         let tilt_y = rng.range(-MAX_TILT, MAX_TILT);
         let roll = rng.range(-PI, PI);
-        let Some(look) = look_at(eye, region.target.center) else { return Candidate::TooClose };
+        let Some(look) = look_at(eye, region.target.center) else {
+            return Candidate::TooClose;
+        };
         if self.clearance > 0.0 && self.cloud.distance(eye) < self.clearance {
             return Candidate::TooClose;
         }
-        let rotation = look * DMat3::from_rotation_x(tilt_x) * DMat3::from_rotation_y(tilt_y) * DMat3::from_rotation_z(roll);
+        let rotation =
+            look * DMat3::from_rotation_x(tilt_x) * DMat3::from_rotation_y(tilt_y) * DMat3::from_rotation_z(roll);
         let camera_to_world = DMat4::from_cols(
             rotation.x_axis.extend(0.0),
             rotation.y_axis.extend(0.0),
             rotation.z_axis.extend(0.0),
             eye.extend(1.0),
         );
-        Candidate::Pose { camera_to_world, target: which }
+        Candidate::Pose {
+            camera_to_world,
+            target: which,
+        }
     }
 }
 
@@ -212,8 +232,14 @@ mod tests {
 
     fn targets() -> Vec<Target> {
         vec![
-            Target { center: DVec3::new(0.3, 0.0, 0.3), rotation: DMat3::IDENTITY },
-            Target { center: DVec3::new(-0.4, 0.2, 0.05), rotation: DMat3::from_rotation_z(0.7) },
+            Target {
+                center: DVec3::new(0.3, 0.0, 0.3),
+                rotation: DMat3::IDENTITY,
+            },
+            Target {
+                center: DVec3::new(-0.4, 0.2, 0.05),
+                rotation: DMat3::from_rotation_z(0.7),
+            },
         ]
     }
 
@@ -258,7 +284,11 @@ mod tests {
         let mut n = 0;
         for seed in 0..10 {
             for i in 0..200 {
-                let Candidate::Pose { camera_to_world, target } = sampler.candidate(seed, i) else {
+                let Candidate::Pose {
+                    camera_to_world,
+                    target,
+                } = sampler.candidate(seed, i)
+                else {
                     panic!("no clearance, no refusal")
                 };
                 n += 1;
@@ -286,7 +316,10 @@ mod tests {
         assert!(tilt_range.0 < -0.75 && tilt_range.1 > 0.75, "{tilt_range:?}");
         assert!(roll_range.0 < -3.0 && roll_range.1 > 3.0, "{roll_range:?}");
         for (k, &count) in roll_bins.iter().enumerate() {
-            assert!((count as f64 - n as f64 / 8.0).abs() < 0.25 * n as f64 / 8.0, "roll bin {k}: {count} of {n}");
+            assert!(
+                (count as f64 - n as f64 / 8.0).abs() < 0.25 * n as f64 / 8.0,
+                "roll bin {k}: {count} of {n}"
+            );
         }
     }
 
@@ -294,15 +327,25 @@ mod tests {
     fn positions_fill_the_camera_box_in_the_target_frame() {
         let cloud = Cloud::new(&[]).unwrap();
         let cams = cameras();
-        let t = Target { center: DVec3::new(-0.4, 0.2, 0.05), rotation: DMat3::from_rotation_z(0.7) };
+        let t = Target {
+            center: DVec3::new(-0.4, 0.2, 0.05),
+            rotation: DMat3::from_rotation_z(0.7),
+        };
         let sampler = PoseSampler::new(&cams, &[t], &cloud, 0.0).unwrap();
         let local = |p: DVec3| t.rotation.transpose() * (p - t.center);
-        let (lo, hi) = cams.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &c| (a.min(local(c)), b.max(local(c))));
+        let (lo, hi) = cams.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &c| {
+            (a.min(local(c)), b.max(local(c)))
+        });
         let (mut seen_lo, mut seen_hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
         for i in 0..2000 {
-            let Candidate::Pose { camera_to_world, .. } = sampler.candidate(3, i) else { panic!() };
+            let Candidate::Pose { camera_to_world, .. } = sampler.candidate(3, i) else {
+                panic!()
+            };
             let p = local(camera_to_world.w_axis.truncate());
-            assert!(p.cmpge(lo - 1e-9).all() && p.cmple(hi + 1e-9).all(), "{p} outside {lo}..{hi}");
+            assert!(
+                p.cmpge(lo - 1e-9).all() && p.cmple(hi + 1e-9).all(),
+                "{p} outside {lo}..{hi}"
+            );
             seen_lo = seen_lo.min(p);
             seen_hi = seen_hi.max(p);
         }
@@ -338,7 +381,10 @@ mod tests {
     #[test]
     fn bad_inputs_are_errors() {
         let cloud = Cloud::new(&[]).unwrap();
-        assert!(matches!(PoseSampler::new(&[], &targets(), &cloud, 0.1), Err(SynthError::NoFrames)));
+        assert!(matches!(
+            PoseSampler::new(&[], &targets(), &cloud, 0.1),
+            Err(SynthError::NoFrames)
+        ));
         assert!(PoseSampler::new(&cameras(), &[], &cloud, 0.1).is_err());
         for c in [-0.1, f64::NAN, f64::INFINITY] {
             assert!(PoseSampler::new(&cameras(), &targets(), &cloud, c).is_err(), "{c}");

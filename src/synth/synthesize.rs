@@ -5,8 +5,8 @@
 use super::error::{Rejections, SynthError};
 use super::parquet::SynthWriter;
 use super::poses_file::{ViewSpec, MAX_VIEWS};
-use super::triplet::{render_view, Instances, SynthView};
 use super::sampling::{Cloud, PoseSampler, Target};
+use super::triplet::{render_view, Instances, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet};
 use crate::nerf::model_file::Model;
@@ -66,7 +66,11 @@ impl Default for SynthOptions {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum SynthProgress {
     /// Set-up done: views to write, the clearance used and the cloud's size.
-    Prepared { views: usize, clearance_m: Option<f64>, cloud_points: usize },
+    Prepared {
+        views: usize,
+        clearance_m: Option<f64>,
+        cloud_points: usize,
+    },
     /// `done` of `total` views written after `seconds`.
     Views { done: usize, total: usize, seconds: f64 },
 }
@@ -115,11 +119,20 @@ impl Sampling {
             None => cloud.default_clearance(&cameras).unwrap_or(0.0),
         };
         let targets = if objects.targets.is_empty() {
-            vec![Target { center: fused.bounds.center(), rotation: glam::DMat3::IDENTITY }]
+            vec![Target {
+                center: fused.bounds.center(),
+                rotation: glam::DMat3::IDENTITY,
+            }]
         } else {
             objects.targets.clone()
         };
-        Ok(Sampling { cloud, cameras, clearance, targets, points: fused.len() })
+        Ok(Sampling {
+            cloud,
+            cameras,
+            clearance,
+            targets,
+            points: fused.len(),
+        })
     }
 }
 
@@ -143,7 +156,10 @@ pub fn synthesize(
     stop: &AtomicBool,
 ) -> Result<SynthSummary, SynthError> {
     let Some(set) = boxes.filter(|b| !b.boxes.is_empty()) else {
-        let objects = Objects { targets: Vec::new(), instances: Instances::none() };
+        let objects = Objects {
+            targets: Vec::new(),
+            instances: Instances::none(),
+        };
         return synthesize_objects(scan, model, &objects, options, out, progress, stop);
     };
     let classifier = BoxClassifier::new(set);
@@ -156,8 +172,18 @@ pub fn synthesize(
         }
     }
     let objects = Objects {
-        targets: set.boxes.iter().map(|b| Target { center: b.center, rotation: b.rotation }).collect(),
-        instances: Instances { classify: &classify, labels },
+        targets: set
+            .boxes
+            .iter()
+            .map(|b| Target {
+                center: b.center,
+                rotation: b.rotation,
+            })
+            .collect(),
+        instances: Instances {
+            classify: &classify,
+            labels,
+        },
     };
     synthesize_objects(scan, model, &objects, options, out, progress, stop)
 }
@@ -177,17 +203,25 @@ pub fn synthesize_objects(
     let renderer = ViewRenderer::pruned(model)?;
     let first = scan.frames.first().ok_or(SynthError::NoFrames)?;
     let (total, group) = match &options.poses {
-        Some(p) => (p.len(), group_views(p.iter().map(|v| pixels(v.width, v.height)).max().unwrap_or(1))),
+        Some(p) => (
+            p.len(),
+            group_views(p.iter().map(|v| pixels(v.width, v.height)).max().unwrap_or(1)),
+        ),
         None => {
             let (w, h) = view_size(scan.size(), options.width, options.height)?;
             (options.n, group_views(pixels(w, h)))
         }
     };
     if total == 0 || total > MAX_VIEWS {
-        return Err(SynthError::Options(format!("asked for {total} views; give 1 to {MAX_VIEWS}")));
+        return Err(SynthError::Options(format!(
+            "asked for {total} views; give 1 to {MAX_VIEWS}"
+        )));
     }
     if !(0.0..=1.0).contains(&options.min_observed) {
-        return Err(SynthError::Options(format!("min_observed {} must be in [0, 1]", options.min_observed)));
+        return Err(SynthError::Options(format!(
+            "min_observed {} must be in [0, 1]",
+            options.min_observed
+        )));
     }
 
     // Sampling needs the scanned cloud (clearance, scene centre); a poses file does not.
@@ -227,11 +261,25 @@ pub fn synthesize_objects(
         ("seed", options.seed.to_string()),
         ("scan", scan.root.display().to_string()),
         ("model_crc32", format!("{:08x}", options.model_checksum)),
-        ("source", if options.poses.is_some() { "poses file" } else { "sampled" }.to_string()),
-        ("clearance_m", clearance_m.map_or_else(|| "none".into(), |c| format!("{c:.6}"))),
+        (
+            "source",
+            if options.poses.is_some() {
+                "poses file"
+            } else {
+                "sampled"
+            }
+            .to_string(),
+        ),
+        (
+            "clearance_m",
+            clearance_m.map_or_else(|| "none".into(), |c| format!("{c:.6}")),
+        ),
     ];
     let mut writer = SynthWriter::create(out, &metadata)?;
-    let interrupted = |views| SynthError::Interrupted { path: out.to_path_buf(), views };
+    let interrupted = |views| SynthError::Interrupted {
+        path: out.to_path_buf(),
+        views,
+    };
     while writer.rows() < total {
         if stop.load(Ordering::Relaxed) {
             return Err(interrupted(writer.rows()));
@@ -245,7 +293,9 @@ pub fn synthesize_objects(
             },
         };
         if specs.is_empty() {
-            return Err(SynthError::Options(format!("internal: no view left after {done} of {total}")));
+            return Err(SynthError::Options(format!(
+                "internal: no view left after {done} of {total}"
+            )));
         }
         let views = specs
             .par_iter()
@@ -258,7 +308,11 @@ pub fn synthesize_objects(
             })
             .collect::<Result<Vec<SynthView>, SynthError>>()?;
         writer.write_group(&views)?;
-        progress(SynthProgress::Views { done: writer.rows(), total, seconds: start.elapsed().as_secs_f64() });
+        progress(SynthProgress::Views {
+            done: writer.rows(),
+            total,
+            seconds: start.elapsed().as_secs_f64(),
+        });
     }
 
     let (attempts, rejections) = match &source {

@@ -4,11 +4,11 @@
 //! visible instance, and the three PNG blobs.
 
 use super::error::SynthError;
+use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
-use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
-use super::poses_file::ViewSpec;
 use crate::nerf::render::view::ViewRenderer;
+use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
 use glam::{DMat4, DVec3};
 
@@ -23,7 +23,10 @@ pub struct Instances<'a> {
 impl Instances<'_> {
     /// No boxes: every pixel is background.
     pub fn none() -> Instances<'static> {
-        Instances { classify: &|_| 0, labels: Vec::new() }
+        Instances {
+            classify: &|_| 0,
+            labels: Vec::new(),
+        }
     }
 
     /// Largest instance id.
@@ -33,7 +36,10 @@ impl Instances<'_> {
 
     /// Label of an instance id, empty for unknown ids.
     pub fn label(&self, id: u32) -> &str {
-        (id as usize).checked_sub(1).and_then(|i| self.labels.get(i)).map_or("", String::as_str)
+        (id as usize)
+            .checked_sub(1)
+            .and_then(|i| self.labels.get(i))
+            .map_or("", String::as_str)
     }
 }
 
@@ -105,7 +111,9 @@ pub fn tight_boxes(mask: &[u16], width: u32, instances: &Instances) -> Vec<Box2d
     // (min x, min y, max x, max y) per id; ids beyond the labels are ignored.
     let mut extent: Vec<Option<[usize; 4]>> = vec![None; max_id + 1];
     for (i, &id) in mask.iter().enumerate() {
-        let Some(slot) = extent.get_mut(id as usize).filter(|_| id > 0) else { continue };
+        let Some(slot) = extent.get_mut(id as usize).filter(|_| id > 0) else {
+            continue;
+        };
         let (x, y) = (i % w, i / w);
         let e = slot.get_or_insert([x, y, x, y]);
         *e = [e[0].min(x), e[1].min(y), e[2].max(x), e[3].max(y)];
@@ -137,9 +145,21 @@ pub fn render_view(
 ) -> Result<SynthView, SynthError> {
     let (w, h) = (spec.width, spec.height);
     let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, w, h, true);
-    let mut mask = instance_mask(&view.depth_m, &spec.camera_to_world, &spec.intrinsics, w, instances.classify);
+    let mut mask = instance_mask(
+        &view.depth_m,
+        &spec.camera_to_world,
+        &spec.intrinsics,
+        w,
+        instances.classify,
+    );
     clean_instances(&mut mask, w, h);
-    let png = |what| move |source| SynthError::Png { view: index, what, source };
+    let png = |what| {
+        move |source| SynthError::Png {
+            view: index,
+            what,
+            source,
+        }
+    };
     Ok(SynthView {
         spec: *spec,
         rgb_png: encode_rgb(&view.rgb, w, h).map_err(png("colour"))?,
@@ -162,7 +182,12 @@ mod tests {
             glam::DVec4::new(1.0, 0.0, 0.0, 0.0),
             glam::DVec4::new(0.0, 0.0, 0.0, 1.0),
         );
-        let k = Intrinsics { fx: 4.0, fy: 4.0, cx: 1.0, cy: 1.0 };
+        let k = Intrinsics {
+            fx: 4.0,
+            fy: 4.0,
+            cx: 1.0,
+            cy: 1.0,
+        };
         // Box 1: world x in [1.5, 2.5] (depth 2 m hits it, depth 1 m does not).
         let classify = |p: DVec3| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
         let depth = [2.0, 2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, f32::NAN];
@@ -191,7 +216,10 @@ mod tests {
 
     #[test]
     fn tight_boxes_cover_exactly_the_instance_pixels() {
-        let instances = Instances { classify: &|_| 0, labels: vec!["mug".into(), "box".into(), "can".into()] };
+        let instances = Instances {
+            classify: &|_| 0,
+            labels: vec!["mug".into(), "box".into(), "can".into()],
+        };
         #[rustfmt::skip]
         let mask = [
             0, 0, 0, 0, 0,
@@ -203,8 +231,22 @@ mod tests {
         assert_eq!(
             boxes,
             vec![
-                Box2d { instance_id: 1, label: "mug".into(), x0: 0.0, y0: 3.0, x1: 1.0, y1: 4.0 },
-                Box2d { instance_id: 2, label: "box".into(), x0: 1.0, y0: 1.0, x1: 3.0, y1: 3.0 },
+                Box2d {
+                    instance_id: 1,
+                    label: "mug".into(),
+                    x0: 0.0,
+                    y0: 3.0,
+                    x1: 1.0,
+                    y1: 4.0
+                },
+                Box2d {
+                    instance_id: 2,
+                    label: "box".into(),
+                    x0: 1.0,
+                    y0: 1.0,
+                    x1: 3.0,
+                    y1: 3.0
+                },
             ],
             "id 3 is absent and id 9 has no label"
         );

@@ -11,8 +11,8 @@
 
 use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
-use super::triplet::Instances;
 use super::sampling::{Candidate, PoseSampler};
+use super::triplet::Instances;
 use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
@@ -71,9 +71,17 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         ((f64::from(spec.height) * f64::from(pw) / f64::from(spec.width)).round() as u32).clamp(1, spec.height.max(1));
     let k = spec.intrinsics.scaled((spec.width, spec.height), (pw, ph));
     let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
-    let pixels: Vec<(f32, f32)> = (0..ph).flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32))).collect();
+    let pixels: Vec<(f32, f32)> = (0..ph)
+        .flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32)))
+        .collect();
     let model = renderer.model;
-    let out = render_pixels(&model.field, renderer.grid(), &model.render_options(false), &camera, &pixels);
+    let out = render_pixels(
+        &model.field,
+        renderer.grid(),
+        &model.render_options(false),
+        &camera,
+        &pixels,
+    );
     // Observed space is what the sensor saw free: the model's own grid.
     let grid = &model.occupancy;
     // Without any carved cell (a scan without depth) opacity is all there is to go by.
@@ -84,7 +92,9 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         .zip(&pixels)
         .filter(|(o, &(u, v))| {
             o.opacity > 0.5
-                && (!carved || o.depth_median.is_some_and(|t| free_space_before(grid, &camera.ray(u, v).0, t, margin)))
+                && (!carved
+                    || o.depth_median
+                        .is_some_and(|t| free_space_before(grid, &camera.ray(u, v).0, t, margin)))
         })
         .count();
     if (observed as f64) < min_observed * pixels.len() as f64 {
@@ -96,7 +106,8 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
             .iter()
             .zip(&pixels)
             .map(|(o, &(u, v))| {
-                o.depth_median.map_or(0.0, |t| (f64::from(t / camera.ray(u, v).1) * metres_per_unit) as f32)
+                o.depth_median
+                    .map_or(0.0, |t| (f64::from(t / camera.ray(u, v).1) * metres_per_unit) as f32)
             })
             .collect();
         if !sees_object(&depth, &spec.camera_to_world, &k, &pixels, instances) {
@@ -181,7 +192,12 @@ impl<'a> ViewStream<'a> {
 
     /// The view of an accepted pose.
     fn spec(&self, camera_to_world: DMat4) -> ViewSpec {
-        ViewSpec { camera_to_world, intrinsics: self.intrinsics, width: self.width, height: self.height }
+        ViewSpec {
+            camera_to_world,
+            intrinsics: self.intrinsics,
+            width: self.width,
+            height: self.height,
+        }
     }
 
     /// Evaluate the next chunk of candidates in parallel.
@@ -191,9 +207,12 @@ impl<'a> ViewStream<'a> {
             .into_par_iter()
             .map(|i| match self.sampler.candidate(self.seed, i) {
                 Candidate::TooClose => Verdict::TooClose,
-                Candidate::Pose { camera_to_world, .. } => {
-                    probe(self.renderer, &self.spec(camera_to_world), self.instances, self.min_observed)
-                }
+                Candidate::Pose { camera_to_world, .. } => probe(
+                    self.renderer,
+                    &self.spec(camera_to_world),
+                    self.instances,
+                    self.min_observed,
+                ),
             })
             .collect();
         self.queue.extend(verdicts);

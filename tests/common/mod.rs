@@ -33,7 +33,10 @@ pub fn small_scan(dir: &Path) -> PathBuf {
 
 /// Run the binary with `args`.
 pub fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_nerflabel")).args(args).output().expect("the binary runs")
+    Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
 }
 
 pub fn stderr(o: &Output) -> String {
@@ -47,7 +50,12 @@ pub fn s(p: &Path) -> &str {
 /// A `--poses` file with one 16x12 view from the identity pose (a model of
 /// a few steps has no geometry to sample views around).
 pub fn one_view_poses(path: &Path) {
-    let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+    let identity = [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
     let view = serde_json::json!({"views": [{"camera_to_world": identity, "intrinsics": [20.0, 20.0, 7.5, 5.5], "width": 16, "height": 12}]});
     std::fs::write(path, view.to_string()).unwrap();
 }

@@ -85,16 +85,28 @@ impl HashGridConfig {
             return bad(format!("levels must be in 1..={MAX_LEVELS}, got {}", self.levels));
         }
         if ![1, 2, 4, 8].contains(&self.features_per_level) {
-            return bad(format!("features_per_level must be 1, 2, 4 or 8, got {}", self.features_per_level));
+            return bad(format!(
+                "features_per_level must be 1, 2, 4 or 8, got {}",
+                self.features_per_level
+            ));
         }
         if self.log2_table_size == 0 || self.log2_table_size > MAX_LOG2_TABLE_SIZE {
-            return bad(format!("log2_table_size must be in 1..={MAX_LOG2_TABLE_SIZE}, got {}", self.log2_table_size));
+            return bad(format!(
+                "log2_table_size must be in 1..={MAX_LOG2_TABLE_SIZE}, got {}",
+                self.log2_table_size
+            ));
         }
         if self.base_resolution == 0 || self.finest_resolution > MAX_RESOLUTION {
-            return bad(format!("resolutions must be in 1..={MAX_RESOLUTION}, got base {} finest {}", self.base_resolution, self.finest_resolution));
+            return bad(format!(
+                "resolutions must be in 1..={MAX_RESOLUTION}, got base {} finest {}",
+                self.base_resolution, self.finest_resolution
+            ));
         }
         if self.finest_resolution < self.base_resolution {
-            return bad(format!("finest resolution {} is below base resolution {}", self.finest_resolution, self.base_resolution));
+            return bad(format!(
+                "finest resolution {} is below base resolution {}",
+                self.finest_resolution, self.base_resolution
+            ));
         }
         Ok(())
     }
@@ -187,7 +199,11 @@ impl GridLevel {
         let mut w = [0f32; 8];
         for c in 0..8 {
             let (i, j, k) = (c & 1, (c >> 1) & 1, c >> 2);
-            idx[c] = if self.dense { xs[i] + ys[j] + zs[k] } else { (xs[i] ^ ys[j] ^ zs[k]) & self.mask };
+            idx[c] = if self.dense {
+                xs[i] + ys[j] + zs[k]
+            } else {
+                (xs[i] ^ ys[j] ^ zs[k]) & self.mask
+            };
             w[c] = wx[i] * wy[j] * wz[k];
         }
         (idx, w)
@@ -231,7 +247,12 @@ struct Block {
 
 impl Block {
     fn new() -> Block {
-        Block { x: [0.0; BLOCK], y: [0.0; BLOCK], z: [0.0; BLOCK], len: 0 }
+        Block {
+            x: [0.0; BLOCK],
+            y: [0.0; BLOCK],
+            z: [0.0; BLOCK],
+            len: 0,
+        }
     }
 
     /// Loads up to BLOCK positions; lanes past the end are 0 so SIMD reads stay defined.
@@ -272,12 +293,19 @@ impl HashGrid {
         config.validate()?;
         let expected = config.param_count();
         if params.len() != expected {
-            return Err(GridError::ParamCount { expected, found: params.len() });
+            return Err(GridError::ParamCount {
+                expected,
+                found: params.len(),
+            });
         }
         if let Some((index, &value)) = params.iter().enumerate().find(|(_, v)| !v.is_finite()) {
             return Err(GridError::NonFinite { index, value });
         }
-        Ok(HashGrid { levels: config.level_layout(), config, params })
+        Ok(HashGrid {
+            levels: config.level_layout(),
+            config,
+            params,
+        })
     }
 
     /// Number of f32 parameters.
@@ -317,8 +345,15 @@ impl HashGrid {
     fn encode_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32], allow_simd: bool) {
         let n = positions.len();
         let fpl = self.config.features_per_level;
-        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::encode: bad level range {levels:?}");
-        assert_eq!(out.len(), n * levels.len() * fpl, "HashGrid::encode: out has the wrong length");
+        assert!(
+            levels.start <= levels.end && levels.end <= self.levels.len(),
+            "HashGrid::encode: bad level range {levels:?}"
+        );
+        assert_eq!(
+            out.len(),
+            n * levels.len() * fpl,
+            "HashGrid::encode: out has the wrong length"
+        );
         let use_simd = allow_simd && fpl == 2 && simd::available();
         let mut block = Block::new();
         for (row, level) in self.levels[levels].iter().enumerate() {
@@ -373,12 +408,30 @@ impl HashGrid {
         self.backward_impl(positions, 0..self.levels.len(), d_out, grad, allow_simd);
     }
 
-    fn backward_impl(&self, positions: &[[f32; 3]], levels: Range<usize>, d_rows: &[f32], grad: &mut GridGrad, allow_simd: bool) {
+    fn backward_impl(
+        &self,
+        positions: &[[f32; 3]],
+        levels: Range<usize>,
+        d_rows: &[f32],
+        grad: &mut GridGrad,
+        allow_simd: bool,
+    ) {
         let n = positions.len();
         let fpl = self.config.features_per_level;
-        assert!(levels.start <= levels.end && levels.end <= self.levels.len(), "HashGrid::backward: bad level range {levels:?}");
-        assert_eq!(d_rows.len(), n * levels.len() * fpl, "HashGrid::backward: d_out has the wrong length");
-        assert_eq!(grad.values.len(), self.params.len(), "HashGrid::backward: gradient buffer of another grid");
+        assert!(
+            levels.start <= levels.end && levels.end <= self.levels.len(),
+            "HashGrid::backward: bad level range {levels:?}"
+        );
+        assert_eq!(
+            d_rows.len(),
+            n * levels.len() * fpl,
+            "HashGrid::backward: d_out has the wrong length"
+        );
+        assert_eq!(
+            grad.values.len(),
+            self.params.len(),
+            "HashGrid::backward: gradient buffer of another grid"
+        );
         let use_simd = allow_simd && simd::available();
         let mut block = Block::new();
         for (row, level) in self.levels[levels].iter().enumerate() {
@@ -394,7 +447,14 @@ impl HashGrid {
 }
 
 /// Scalar encode of one block on one level: `out[first + f*n + i]`.
-fn encode_level_scalar<const F: usize>(level: &GridLevel, table: &[f32], block: &Block, out: &mut [f32], first: usize, n: usize) {
+fn encode_level_scalar<const F: usize>(
+    level: &GridLevel,
+    table: &[f32],
+    block: &Block,
+    out: &mut [f32],
+    first: usize,
+    n: usize,
+) {
     for i in 0..block.len {
         let (idx, w) = level.corners([block.x[i], block.y[i], block.z[i]]);
         let mut acc = [0f32; F];

@@ -13,8 +13,8 @@
 
 use thiserror::Error;
 
-use crate::nerf::field::simd::mlp_tile::{self, Epilogue, COL_BLOCK, LANES};
 pub use crate::nerf::field::simd::mlp_tile::MlpKernel;
+use crate::nerf::field::simd::mlp_tile::{self, Epilogue, COL_BLOCK, LANES};
 use crate::rng::Rng;
 
 /// Samples per tile (a multiple of the kernels' column block).
@@ -49,7 +49,11 @@ pub enum MlpError {
     TooManyLayers { count: usize },
     /// The parameter vector's length does not fit the widths.
     #[error("MLP parameter vector has {found} values, expected {expected} for widths {widths:?}")]
-    ParamCount { expected: usize, found: usize, widths: Vec<usize> },
+    ParamCount {
+        expected: usize,
+        found: usize,
+        widths: Vec<usize>,
+    },
     /// A parameter is NaN or infinite.
     #[error("MLP parameter {index} is not finite ({value})")]
     NonFinite { index: usize, value: f32 },
@@ -68,7 +72,9 @@ impl MlpConfig {
     /// Checks the widths and returns the number of parameters.
     pub fn param_count(&self) -> Result<usize, MlpError> {
         if self.hidden.len() > MAX_HIDDEN_LAYERS {
-            return Err(MlpError::TooManyLayers { count: self.hidden.len() });
+            return Err(MlpError::TooManyLayers {
+                count: self.hidden.len(),
+            });
         }
         let widths = self.widths();
         for (layer, &width) in widths.iter().enumerate() {
@@ -137,7 +143,11 @@ impl Mlp {
     pub fn from_params(config: MlpConfig, params: Vec<f32>) -> Result<Mlp, MlpError> {
         let expected = config.param_count()?;
         if params.len() != expected {
-            return Err(MlpError::ParamCount { expected, found: params.len(), widths: config.widths() });
+            return Err(MlpError::ParamCount {
+                expected,
+                found: params.len(),
+                widths: config.widths(),
+            });
         }
         if let Some((index, &value)) = params.iter().enumerate().find(|(_, v)| !v.is_finite()) {
             return Err(MlpError::NonFinite { index, value });
@@ -149,7 +159,14 @@ impl Mlp {
         let layers = layout(&config);
         let act_rows = layers.iter().map(|l| l.inp).sum();
         let max_width = config.widths().into_iter().max().unwrap_or(1);
-        Mlp { config, params, layers, act_rows, max_width, kernel: MlpKernel::best() }
+        Mlp {
+            config,
+            params,
+            layers,
+            act_rows,
+            max_width,
+            kernel: MlpKernel::best(),
+        }
     }
 
     /// Number of weights and biases.
@@ -219,7 +236,11 @@ impl Mlp {
             for (k, l) in self.layers.iter().enumerate() {
                 let (before, after) = tile_acts.split_at_mut((l.act_row + l.inp) * TILE);
                 let src = &before[l.act_row * TILE..];
-                let dst = if k + 1 < self.layers.len() { after } else { &mut *out_tile };
+                let dst = if k + 1 < self.layers.len() {
+                    after
+                } else {
+                    &mut *out_tile
+                };
                 self.layer_forward(l, src, cols, dst);
             }
             scatter(out_tile, self.config.output, t0, valid, output, n);
@@ -229,16 +250,29 @@ impl Mlp {
     /// Backward of the last [`Mlp::forward_train`] on `ws` (same `n`):
     /// `d_output[o * n + b]`; ADDS the parameter gradients into `grad`
     /// (length [`Mlp::param_count`]) and, if given, WRITES `d_input[i * n + b]`.
-    pub fn backward(&self, ws: &mut MlpWorkspace, d_output: &[f32], n: usize, grad: &mut [f32], d_input: Option<&mut [f32]>) {
+    pub fn backward(
+        &self,
+        ws: &mut MlpWorkspace,
+        d_output: &[f32],
+        n: usize,
+        grad: &mut [f32],
+        d_input: Option<&mut [f32]>,
+    ) {
         assert!(
             ws.trained == Some(self.shape_key(n)),
             "Mlp::backward: the workspace holds no forward_train of this network with n = {n}"
         );
-        assert!(d_output.len() >= self.config.output * n, "Mlp::backward: d_output shorter than output * n");
+        assert!(
+            d_output.len() >= self.config.output * n,
+            "Mlp::backward: d_output shorter than output * n"
+        );
         let count = self.param_count();
         assert_eq!(grad.len(), count, "Mlp::backward: grad length must equal param_count");
         if let Some(d) = &d_input {
-            assert!(d.len() >= self.config.input * n, "Mlp::backward: d_input shorter than input * n");
+            assert!(
+                d.len() >= self.config.input * n,
+                "Mlp::backward: d_input shorter than input * n"
+            );
         }
         let mut d_input = d_input;
         let tile_len = self.max_width * TILE;
@@ -265,10 +299,38 @@ impl Mlp {
                 if k > 0 {
                     // dz_prev = (W^T dz) where the layer's input was positive.
                     let epi = Epilogue::MaskPositive { mask: x, ld: TILE };
-                    mlp_tile::gemm_tile(self.kernel, w, 1, l.inp, None, l.out, dz, TILE, l.inp, cols, epi, dx, TILE);
+                    mlp_tile::gemm_tile(
+                        self.kernel,
+                        w,
+                        1,
+                        l.inp,
+                        None,
+                        l.out,
+                        dz,
+                        TILE,
+                        l.inp,
+                        cols,
+                        epi,
+                        dx,
+                        TILE,
+                    );
                     std::mem::swap(&mut dz, &mut dx);
                 } else if let Some(d_in) = d_input.as_deref_mut() {
-                    mlp_tile::gemm_tile(self.kernel, w, 1, l.inp, None, l.out, dz, TILE, l.inp, cols, Epilogue::Linear, dx, TILE);
+                    mlp_tile::gemm_tile(
+                        self.kernel,
+                        w,
+                        1,
+                        l.inp,
+                        None,
+                        l.out,
+                        dz,
+                        TILE,
+                        l.inp,
+                        cols,
+                        Epilogue::Linear,
+                        dx,
+                        TILE,
+                    );
                     scatter(dx, l.inp, t0, valid, d_in, n);
                 }
             }
@@ -281,13 +343,30 @@ impl Mlp {
         let w = &self.params[l.w..l.w + l.inp * l.out];
         let b = &self.params[l.b..l.b + l.out];
         let epi = if l.relu { Epilogue::Relu } else { Epilogue::Linear };
-        mlp_tile::gemm_tile(self.kernel, w, l.inp, 1, Some(b), l.inp, src, TILE, l.out, cols, epi, dst, TILE);
+        mlp_tile::gemm_tile(
+            self.kernel,
+            w,
+            l.inp,
+            1,
+            Some(b),
+            l.inp,
+            src,
+            TILE,
+            l.out,
+            cols,
+            epi,
+            dst,
+            TILE,
+        );
     }
 
     fn check_io(&self, input_len: usize, output_len: usize, n: usize) {
         assert_eq!(self.params.len(), self.param_count(), "Mlp: params length changed");
         assert!(input_len >= self.config.input * n, "Mlp: input shorter than input * n");
-        assert!(output_len >= self.config.output * n, "Mlp: output shorter than output * n");
+        assert!(
+            output_len >= self.config.output * n,
+            "Mlp: output shorter than output * n"
+        );
     }
 
     /// Identifies a forward_train so backward can refuse a mismatched one.
@@ -304,7 +383,14 @@ fn layout(config: &MlpConfig) -> Vec<Layer> {
     for (k, p) in widths.windows(2).enumerate() {
         let (inp, out) = (p[0], p[1]);
         let relu = k + 2 < widths.len();
-        layers.push(Layer { inp, out, w: offset, b: offset + inp * out, relu, act_row });
+        layers.push(Layer {
+            inp,
+            out,
+            w: offset,
+            b: offset + inp * out,
+            relu,
+            act_row,
+        });
         offset += (inp + 1) * out;
         act_row += inp;
     }
@@ -355,7 +441,10 @@ impl MlpWorkspace {
 
     /// Floats currently allocated (constant once warmed up for a batch size).
     pub fn capacity_floats(&self) -> usize {
-        [&self.acts, &self.tile_a, &self.tile_b, &self.partials].iter().map(|b| b.data.capacity()).sum()
+        [&self.acts, &self.tile_a, &self.tile_b, &self.partials]
+            .iter()
+            .map(|b| b.data.capacity())
+            .sum()
     }
 }
 
@@ -395,7 +484,11 @@ mod tests {
     use super::*;
 
     fn cfg(input: usize, hidden: &[usize], output: usize) -> MlpConfig {
-        MlpConfig { input, hidden: hidden.to_vec(), output }
+        MlpConfig {
+            input,
+            hidden: hidden.to_vec(),
+            output,
+        }
     }
 
     fn random(len: usize, rng: &mut Rng) -> Vec<f32> {
@@ -429,7 +522,11 @@ mod tests {
                 let y: Vec<f64> = (0..l.out)
                     .map(|o| {
                         let s = p[l.b + o] + (0..l.inp).map(|i| p[l.w + o * l.inp + i] * x[i]).sum::<f64>();
-                        if l.relu { s.max(0.0) } else { s }
+                        if l.relu {
+                            s.max(0.0)
+                        } else {
+                            s
+                        }
                     })
                     .collect();
                 acts.push(y);
@@ -467,7 +564,10 @@ mod tests {
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-30);
         for (i, (&g, &w)) in got.iter().zip(want).enumerate() {
             let err = (g as f64 - w).abs();
-            assert!(err <= rel * (scale + w.abs()), "{what}[{i}]: got {g}, want {w} (scale {scale})");
+            assert!(
+                err <= rel * (scale + w.abs()),
+                "{what}[{i}]: got {g}, want {w} (scale {scale})"
+            );
         }
     }
 
@@ -581,7 +681,11 @@ mod tests {
                 let mut ws = MlpWorkspace::new();
                 let fd = (loss(plus, in_p, n, &c, &mut ws) - loss(minus, in_m, n, &c, &mut ws)) / (2.0 * eps as f64);
                 let err = (fd - analytic as f64).abs();
-                assert!(err <= 1e-3 * gmax, "{what} ({}): analytic {analytic}, finite difference {fd}", kernel.name());
+                assert!(
+                    err <= 1e-3 * gmax,
+                    "{what} ({}): analytic {analytic}, finite difference {fd}",
+                    kernel.name()
+                );
                 checked += 1;
             };
             for j in 0..mlp.param_count() {
@@ -596,7 +700,10 @@ mod tests {
                 in_m[j] -= eps;
                 check(format!("input {j}"), d_in[j], &mlp, &mlp, &in_p, &in_m);
             }
-            assert!(skipped * 10 <= checked, "too many kinks: {skipped} skipped, {checked} checked");
+            assert!(
+                skipped * 10 <= checked,
+                "too many kinks: {skipped} skipped, {checked} checked"
+            );
             assert!(gmax > 0.1, "degenerate test network: largest gradient {gmax}");
         }
     }
@@ -645,7 +752,12 @@ mod tests {
         let fresh = run(&mut MlpWorkspace::new(), n, &input, &d_out);
         let mut used = MlpWorkspace::new();
         let big = 1000;
-        run(&mut used, big, &random(config.input * big, &mut rng), &random(config.output * big, &mut rng));
+        run(
+            &mut used,
+            big,
+            &random(config.input * big, &mut rng),
+            &random(config.output * big, &mut rng),
+        );
         assert_eq!(fresh, run(&mut used, n, &input, &d_out));
     }
 
@@ -666,7 +778,10 @@ mod tests {
         mlp.backward(&mut ws, &d_out, n, &mut grad, Some(&mut d_in));
         mlp.forward(&input, n, &mut ws, &mut out);
         let warm = ws.capacity_floats();
-        assert!(warm >= (config.input + 128) * n, "activations must be kept: {warm} floats");
+        assert!(
+            warm >= (config.input + 128) * n,
+            "activations must be kept: {warm} floats"
+        );
         for m in [n, 999, 1, 513] {
             mlp.forward_train(&input[..config.input * m], m, &mut ws, &mut out[..config.output * m]);
             mlp.backward(&mut ws, &d_out[..config.output * m], m, &mut grad, None);
@@ -691,13 +806,26 @@ mod tests {
         assert_eq!(a, b);
         assert!(matches!(
             Mlp::from_params(config.clone(), vec![0.0; 5]),
-            Err(MlpError::ParamCount { expected: 44, found: 5, .. })
+            Err(MlpError::ParamCount {
+                expected: 44,
+                found: 5,
+                ..
+            })
         ));
         let mut bad = mlp.params.clone();
         bad[7] = f32::NAN;
-        assert!(matches!(Mlp::from_params(config.clone(), bad), Err(MlpError::NonFinite { index: 7, .. })));
-        assert_eq!(Mlp::from_params(cfg(4, &[0], 2), vec![]).unwrap_err(), MlpError::ZeroWidth { layer: 1 });
-        assert!(matches!(Mlp::from_params(cfg(MAX_WIDTH + 1, &[], 1), vec![]), Err(MlpError::TooWide { layer: 0, .. })));
+        assert!(matches!(
+            Mlp::from_params(config.clone(), bad),
+            Err(MlpError::NonFinite { index: 7, .. })
+        ));
+        assert_eq!(
+            Mlp::from_params(cfg(4, &[0], 2), vec![]).unwrap_err(),
+            MlpError::ZeroWidth { layer: 1 }
+        );
+        assert!(matches!(
+            Mlp::from_params(cfg(MAX_WIDTH + 1, &[], 1), vec![]),
+            Err(MlpError::TooWide { layer: 0, .. })
+        ));
     }
 
     #[test]

@@ -8,11 +8,11 @@ pub mod mlp;
 pub mod sh;
 pub mod simd;
 
+use crate::rng::Rng;
 use hash_grid::{GridGrad, HashGrid, HashGridConfig};
 use mlp::{Mlp, MlpConfig, MlpWorkspace};
-use sh::SH_COEFFS;
-use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
+use sh::SH_COEFFS;
 
 /// Outputs of the density network: raw log-density plus geometry features.
 pub const DENSITY_OUTPUTS: usize = 16;
@@ -66,11 +66,19 @@ impl From<&HashGridConfig> for GridSpec {
 impl FieldConfig {
     fn density_mlp(&self) -> MlpConfig {
         let grid: HashGridConfig = self.grid.into();
-        MlpConfig { input: grid.output_dim(), hidden: self.density_hidden.clone(), output: DENSITY_OUTPUTS }
+        MlpConfig {
+            input: grid.output_dim(),
+            hidden: self.density_hidden.clone(),
+            output: DENSITY_OUTPUTS,
+        }
     }
 
     fn color_mlp(&self) -> MlpConfig {
-        MlpConfig { input: DENSITY_OUTPUTS + SH_COEFFS, hidden: self.color_hidden.clone(), output: 3 }
+        MlpConfig {
+            input: DENSITY_OUTPUTS + SH_COEFFS,
+            hidden: self.color_hidden.clone(),
+            output: 3,
+        }
     }
 }
 
@@ -172,7 +180,12 @@ impl Field {
         let grid = HashGrid::new(config.grid.into(), rng);
         let density = Mlp::new(config.density_mlp(), rng);
         let color = Mlp::new(config.color_mlp(), rng);
-        Field { config, grid, density, color }
+        Field {
+            config,
+            grid,
+            density,
+            color,
+        }
     }
 
     /// Rebuild from saved parameters; `None` when the lengths do not fit.
@@ -180,7 +193,12 @@ impl Field {
         let grid = HashGrid::from_params(config.grid.into(), grid).ok()?;
         let density = Mlp::from_params(config.density_mlp(), density).ok()?;
         let color = Mlp::from_params(config.color_mlp(), color).ok()?;
-        Some(Field { config, grid, density, color })
+        Some(Field {
+            config,
+            grid,
+            density,
+            color,
+        })
     }
 
     /// Total trainable parameters.
@@ -267,7 +285,14 @@ impl Field {
 
     /// Backward of the last training forward: `d_sigma[n]` and
     /// `d_rgb` (feature-major [3][n]) accumulate into `grad`.
-    pub fn backward(&self, positions: &[[f32; 3]], ws: &mut FieldWorkspace, d_sigma: &[f32], d_rgb: &[f32], grad: &mut FieldGrad) {
+    pub fn backward(
+        &self,
+        positions: &[[f32; 3]],
+        ws: &mut FieldWorkspace,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        grad: &mut FieldGrad,
+    ) {
         let n = ws.n;
         if n == 0 {
             return;
@@ -281,7 +306,13 @@ impl Field {
         sized(&mut ws.d_color_in, color_dim * n);
         {
             let mlp_ws = ws.color_ws.get_or_insert_with(MlpWorkspace::new);
-            self.color.backward(mlp_ws, &ws.d_color_out[..3 * n], n, &mut grad.color, Some(&mut ws.d_color_in[..color_dim * n]));
+            self.color.backward(
+                mlp_ws,
+                &ws.d_color_out[..3 * n],
+                n,
+                &mut grad.color,
+                Some(&mut ws.d_color_in[..color_dim * n]),
+            );
         }
         let d_density_out = sized(&mut ws.d_density_out, DENSITY_OUTPUTS * n);
         d_density_out.copy_from_slice(&ws.d_color_in[..DENSITY_OUTPUTS * n]);
@@ -292,9 +323,16 @@ impl Field {
         sized(&mut ws.d_encoded, enc_dim * n);
         {
             let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
-            self.density.backward(mlp_ws, &ws.d_density_out[..DENSITY_OUTPUTS * n], n, &mut grad.density, Some(&mut ws.d_encoded[..enc_dim * n]));
+            self.density.backward(
+                mlp_ws,
+                &ws.d_density_out[..DENSITY_OUTPUTS * n],
+                n,
+                &mut grad.density,
+                Some(&mut ws.d_encoded[..enc_dim * n]),
+            );
         }
-        self.grid.backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
+        self.grid
+            .backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
     }
 }
 
@@ -320,7 +358,11 @@ mod tests {
     fn field_backward_matches_finite_differences() {
         let mut rng = Rng::new(9, 0);
         let grid = HashGridConfig::for_scene(1.0, 1.0 / 32.0);
-        let config = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![16], color_hidden: vec![16] };
+        let config = FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![16],
+            color_hidden: vec![16],
+        };
         let mut field = Field::new(config, &mut rng);
         // Larger grid values so the encoding matters for the check.
         for p in field.grid.params.iter_mut() {
@@ -343,7 +385,10 @@ mod tests {
         field.backward(&pos, &mut ws, &a, &c, &mut grad);
 
         let check = |analytic: f32, numeric: f64, what: &str| {
-            assert!((analytic as f64 - numeric).abs() < 2e-2 * (1.0 + numeric.abs()), "{what}: analytic {analytic} numeric {numeric}");
+            assert!(
+                (analytic as f64 - numeric).abs() < 2e-2 * (1.0 + numeric.abs()),
+                "{what}: analytic {analytic} numeric {numeric}"
+            );
         };
         let eps = 1e-2f32;
         for k in (0..field.density.params.len()).step_by(37) {
@@ -352,7 +397,11 @@ mod tests {
             let up = loss(&f, &pos, &dirs, &a, &c);
             f.density.params[k] -= 2.0 * eps;
             let down = loss(&f, &pos, &dirs, &a, &c);
-            check(grad.density[k], (up - down) / (2.0 * eps as f64), &format!("density param {k}"));
+            check(
+                grad.density[k],
+                (up - down) / (2.0 * eps as f64),
+                &format!("density param {k}"),
+            );
         }
         for k in (0..field.color.params.len()).step_by(23) {
             let mut f = field.clone();
@@ -360,7 +409,11 @@ mod tests {
             let up = loss(&f, &pos, &dirs, &a, &c);
             f.color.params[k] -= 2.0 * eps;
             let down = loss(&f, &pos, &dirs, &a, &c);
-            check(grad.color[k], (up - down) / (2.0 * eps as f64), &format!("colour param {k}"));
+            check(
+                grad.color[k],
+                (up - down) / (2.0 * eps as f64),
+                &format!("colour param {k}"),
+            );
         }
         let touched: Vec<usize> = grad.grid.touched().collect();
         assert!(!touched.is_empty());
@@ -370,7 +423,11 @@ mod tests {
             let up = loss(&f, &pos, &dirs, &a, &c);
             f.grid.params[k] -= 2.0 * eps;
             let down = loss(&f, &pos, &dirs, &a, &c);
-            check(grad.grid.values[k], (up - down) / (2.0 * eps as f64), &format!("grid param {k}"));
+            check(
+                grad.grid.values[k],
+                (up - down) / (2.0 * eps as f64),
+                &format!("grid param {k}"),
+            );
         }
     }
 }

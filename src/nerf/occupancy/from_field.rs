@@ -97,8 +97,8 @@ fn cell_peaks(field: &Field, res: usize, steps: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::field::{FieldConfig, GridSpec};
     use crate::nerf::field::hash_grid::HashGridConfig;
+    use crate::nerf::field::{FieldConfig, GridSpec};
     use crate::rng::Rng;
 
     fn random_field(seed: u64) -> Field {

@@ -21,7 +21,10 @@ impl MeasuredSurfaces {
     /// Cells hit by `rays` at `res` cells per axis (clamped to 4..=[`MAX_RESOLUTION`]), dilated by one cell.
     pub fn from_depth_rays(rays: &[DepthRay], res: usize) -> Self {
         let res = res.clamp(4, MAX_RESOLUTION);
-        let mut grid = MeasuredSurfaces { res, bits: vec![0; (res * res * res).div_ceil(64)] };
+        let mut grid = MeasuredSurfaces {
+            res,
+            bits: vec![0; (res * res * res).div_ceil(64)],
+        };
         for ray in rays {
             let hit = [0, 1, 2].map(|a| ray.origin[a] + ray.t_hit * ray.dir[a]);
             if let Some(c) = grid.cell_of(hit) {
@@ -35,7 +38,8 @@ impl MeasuredSurfaces {
     /// Whether `p` (local coordinates) lies in a measured cell (false outside the cube).
     #[inline]
     pub fn contains(&self, p: [f32; 3]) -> bool {
-        self.cell_of(p).is_some_and(|c| (self.bits[c >> 6] >> (c & 63)) & 1 == 1)
+        self.cell_of(p)
+            .is_some_and(|c| (self.bits[c >> 6] >> (c & 63)) & 1 == 1)
     }
 
     /// Fraction of cells marked.
@@ -79,7 +83,11 @@ mod tests {
         // Hits on the plane z = 0.5 over x, y in [0.25, 0.75).
         let rays: Vec<DepthRay> = (0..50)
             .flat_map(|i| (0..50).map(move |j| (i, j)))
-            .map(|(i, j)| DepthRay { origin: [0.25 + i as f32 * 0.01, 0.25 + j as f32 * 0.01, 0.1], dir: [0.0, 0.0, 1.0], t_hit: 0.4 })
+            .map(|(i, j)| DepthRay {
+                origin: [0.25 + i as f32 * 0.01, 0.25 + j as f32 * 0.01, 0.1],
+                dir: [0.0, 0.0, 1.0],
+                t_hit: 0.4,
+            })
             .collect();
         let grid = MeasuredSurfaces::from_depth_rays(&rays, 64);
         let cell = 1.0 / 64.0;
@@ -91,6 +99,10 @@ mod tests {
         assert!(!grid.contains([f32::NAN, 0.5, 0.5]) && !grid.contains([1.5, 0.5, 0.5]));
         // Plane 33 x 33 cells (x, y in cells 16..=47, grown by one) times 3 layers.
         let want = 34.0 * 34.0 * 3.0 / 64f64.powi(3);
-        assert!((grid.marked_fraction() - want).abs() < 2.0 * 34.0 * 3.0 / 64f64.powi(3), "{} vs {want}", grid.marked_fraction());
+        assert!(
+            (grid.marked_fraction() - want).abs() < 2.0 * 34.0 * 3.0 / 64f64.powi(3),
+            "{} vs {want}",
+            grid.marked_fraction()
+        );
     }
 }

@@ -184,7 +184,9 @@ impl OccupancyGrid {
             if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
                 continue;
             }
-            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
+            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
+                continue;
+            };
             let t_end = (ray.t_hit - margin).min(t1);
             let mut t = t0;
             let mut last = usize::MAX;
@@ -236,7 +238,9 @@ impl OccupancyGrid {
         let res = self.res;
         let mut votes = vec![0u16; res * res * res];
         for ray in rays.iter().filter(|r| r.t_hit.is_finite() && r.t_hit > 0.0) {
-            let Some(c) = self.cell_of(along(ray.origin, ray.dir, ray.t_hit)) else { continue };
+            let Some(c) = self.cell_of(along(ray.origin, ray.dir, ray.t_hit)) else {
+                continue;
+            };
             let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
             let span = |v: usize| v.saturating_sub(1)..=(v + 1).min(res - 1);
             for nz in span(z) {
@@ -271,8 +275,12 @@ impl OccupancyGrid {
         let step = 0.25 / self.res as f32;
         // A depth ray belongs to the camera it starts from (same origin bits).
         for ray in rays {
-            let Some(&reach) = free_distance.get(&key(ray.origin)) else { continue };
-            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else { continue };
+            let Some(&reach) = free_distance.get(&key(ray.origin)) else {
+                continue;
+            };
+            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
+                continue;
+            };
             let mut t = t0;
             while t < reach.min(t1) {
                 if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
@@ -300,7 +308,12 @@ impl OccupancyGrid {
         let seen: Vec<bool> = (0..res * res * res)
             .into_par_iter()
             .map(|i| {
-                let centre = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|c| c * cell);
+                let centre = [
+                    (i % res) as f32 + 0.5,
+                    ((i / res) % res) as f32 + 0.5,
+                    (i / (res * res)) as f32 + 0.5,
+                ]
+                .map(|c| c * cell);
                 frusta.iter().any(|f| f.may_hold_sphere(centre, radius))
             })
             .collect();
@@ -313,8 +326,14 @@ impl OccupancyGrid {
     /// Re-estimate density in one interleaved subset of the cells from the
     /// model (`density_at` fills sigma for a batch of local points), decaying
     /// the old estimate, and rebuild the bits.
-    pub fn refresh<F>(&mut self, decay: f32, rng: &mut Rng, positions: &mut Vec<[f32; 3]>, sigmas: &mut Vec<f32>, mut density_at: F)
-    where
+    pub fn refresh<F>(
+        &mut self,
+        decay: f32,
+        rng: &mut Rng,
+        positions: &mut Vec<[f32; 3]>,
+        sigmas: &mut Vec<f32>,
+        mut density_at: F,
+    ) where
         F: FnMut(&[[f32; 3]], &mut [f32]),
     {
         let res = self.res;
@@ -326,7 +345,11 @@ impl OccupancyGrid {
         let mut cell = phase;
         while cell < cells {
             let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
-            positions.push([(x as f32 + rng.f32()) * inv, (y as f32 + rng.f32()) * inv, (z as f32 + rng.f32()) * inv]);
+            positions.push([
+                (x as f32 + rng.f32()) * inv,
+                (y as f32 + rng.f32()) * inv,
+                (z as f32 + rng.f32()) * inv,
+            ]);
             cell += REFRESH_PARTS;
         }
         sigmas.clear();
@@ -379,8 +402,13 @@ impl OccupancyGrid {
     /// a single sample misses survive), then cells whose estimated optical
     /// depth is negligible dropped. Untrained haze behind surfaces and in
     /// space no camera saw is never marched; carved space stays empty.
-    pub fn prune_for_rendering<F>(&mut self, rng: &mut Rng, positions: &mut Vec<[f32; 3]>, sigmas: &mut Vec<f32>, mut density_at: F)
-    where
+    pub fn prune_for_rendering<F>(
+        &mut self,
+        rng: &mut Rng,
+        positions: &mut Vec<[f32; 3]>,
+        sigmas: &mut Vec<f32>,
+        mut density_at: F,
+    ) where
         F: FnMut(&[[f32; 3]], &mut [f32]),
     {
         for _ in 0..REFRESH_PARTS {
@@ -396,7 +424,9 @@ impl OccupancyGrid {
         let min_density = RENDER_MIN_CELL_OPTICAL_DEPTH * self.res as f32;
         let cells = self.density.len();
         let min_occupied = ((cells as f64 * MIN_OCCUPIED_FRACTION) as usize).max(1);
-        let dense_count = (0..cells).filter(|&i| !self.is_carved(i) && self.density[i] >= min_density).count();
+        let dense_count = (0..cells)
+            .filter(|&i| !self.is_carved(i) && self.density[i] >= min_density)
+            .count();
         if dense_count < min_occupied {
             // Nothing trained yet: keep the full training grid.
             return;
@@ -404,7 +434,9 @@ impl OccupancyGrid {
         // One cell of margin around dense cells: a thin surface inside a
         // cell can be missed by the cell's samples while the cell behind it
         // is dense, and skipping it would put the surface a cell too far.
-        let dense: Vec<bool> = (0..cells).map(|i| !self.is_carved(i) && self.density[i] >= min_density).collect();
+        let dense: Vec<bool> = (0..cells)
+            .map(|i| !self.is_carved(i) && self.density[i] >= min_density)
+            .collect();
         let res = self.res;
         self.bits.iter_mut().for_each(|w| *w = 0);
         for i in 0..cells {
@@ -467,7 +499,10 @@ impl OccupancyGrid {
             return None;
         }
         grid.carved = carved;
-        grid.density = density.into_iter().map(|d| if d.is_finite() { d.max(0.0) } else { 0.0 }).collect();
+        grid.density = density
+            .into_iter()
+            .map(|d| if d.is_finite() { d.max(0.0) } else { 0.0 })
+            .collect();
         grid.rebuild_bits();
         Some(grid)
     }
@@ -523,7 +558,11 @@ impl Frustum {
             let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
             n.map(|c| c / len)
         });
-        Frustum { origin: cam.origin, rotation: cam.rotation, planes }
+        Frustum {
+            origin: cam.origin,
+            rotation: cam.rotation,
+            planes,
+        }
     }
 
     /// Whether the sphere (`centre`, `radius`) may reach into the frustum:
@@ -551,7 +590,11 @@ mod tests {
             for j in 8..24 {
                 let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
                 for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit });
+                    rays.push(DepthRay {
+                        origin: [x, y, 0.0],
+                        dir: [0.0, 0.0, 1.0],
+                        t_hit,
+                    });
                 }
             }
         }
@@ -563,7 +606,10 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // Rays along +z through cell centres of the middle, hitting a wall at z = 0.5.
         grid.seed_from_depth(&wall_rays(0.5, |_| true), &[]);
-        assert!(!grid.is_occupied([0.5, 0.5, 0.2]), "free space before the wall is carved");
+        assert!(
+            !grid.is_occupied([0.5, 0.5, 0.2]),
+            "free space before the wall is carved"
+        );
         assert!(grid.is_occupied([0.5, 0.5, 0.5]), "surface stays");
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
         assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
@@ -578,8 +624,14 @@ mod tests {
         grid.seed_from_depth(&wall_rays(0.53, |_| true), &[]);
         let at = |z_cell: f32| [0.5, 0.5, (z_cell + 0.5) / 32.0];
         // No haze layer in front of a measured surface (it would fringe silhouettes).
-        assert!(!grid.is_occupied(at(14.0)), "the free cell touching the surface neighbourhood is carved");
-        assert!(grid.is_occupied(at(15.0)) && grid.is_occupied(at(16.0)), "the surface neighbourhood stays");
+        assert!(
+            !grid.is_occupied(at(14.0)),
+            "the free cell touching the surface neighbourhood is carved"
+        );
+        assert!(
+            grid.is_occupied(at(15.0)) && grid.is_occupied(at(16.0)),
+            "the surface neighbourhood stays"
+        );
     }
 
     #[test]
@@ -589,11 +641,20 @@ mod tests {
         // where the sensor returned nothing (a glass object stands there).
         grid.seed_from_depth(&wall_rays(0.5, |i| !(14..18).contains(&i)), &[]);
         let at = |cell_x: f32| [(cell_x + 0.5) / 32.0, 16.5 / 32.0, 0.2];
-        assert!(!grid.is_occupied(at(10.0)), "free space well away from the column is carved");
+        assert!(
+            !grid.is_occupied(at(10.0)),
+            "free space well away from the column is carved"
+        );
         assert!(grid.is_occupied(at(15.0)), "the column itself was never seen free");
         // The object may reach into the neighbouring cells that rays crossed.
-        assert!(grid.is_occupied(at(13.0)) && grid.is_occupied(at(18.0)), "cells bordering the column stay");
-        assert!(!grid.is_occupied(at(12.0)) && !grid.is_occupied(at(19.0)), "one cell of margin, not more");
+        assert!(
+            grid.is_occupied(at(13.0)) && grid.is_occupied(at(18.0)),
+            "cells bordering the column stay"
+        );
+        assert!(
+            !grid.is_occupied(at(12.0)) && !grid.is_occupied(at(19.0)),
+            "one cell of margin, not more"
+        );
     }
 
     /// Block bits against a cell-by-cell count, on a size that is neither
@@ -619,9 +680,16 @@ mod tests {
         for (i, &any) in want.iter().enumerate() {
             let (bx, by, bz) = (i % br, (i / br) % br, i / (br * br));
             assert_eq!(grid.is_occupied_block([bx, by, bz]), any, "block ({bx}, {by}, {bz})");
-            (occupied, empty) = if any { (occupied + 1, empty) } else { (occupied, empty + 1) };
+            (occupied, empty) = if any {
+                (occupied + 1, empty)
+            } else {
+                (occupied, empty + 1)
+            };
         }
-        assert!(occupied > 20 && empty > 20, "{occupied} occupied and {empty} empty blocks");
+        assert!(
+            occupied > 20 && empty > 20,
+            "{occupied} occupied and {empty} empty blocks"
+        );
     }
 
     #[test]
@@ -635,10 +703,22 @@ mod tests {
         let trained = OccupancyGrid::from_saved(res, density.clone(), vec![0; (res * res * res).div_ceil(64)]).unwrap();
         let mut grid = trained;
         grid.restrict_to_rendering();
-        let centre = |x: usize, y: usize, z: usize| [(x as f32 + 0.5) / 16.0, (y as f32 + 0.5) / 16.0, (z as f32 + 0.5) / 16.0];
+        let centre = |x: usize, y: usize, z: usize| {
+            [
+                (x as f32 + 0.5) / 16.0,
+                (y as f32 + 0.5) / 16.0,
+                (z as f32 + 0.5) / 16.0,
+            ]
+        };
         assert!(grid.is_occupied(centre(8, 9, 8)), "a dense cell");
-        assert!(grid.is_occupied(centre(7, 8, 8)) && grid.is_occupied(centre(10, 10, 10)), "its neighbours (a thin surface may sit there)");
-        assert!(!grid.is_occupied(centre(5, 8, 8)) && !grid.is_occupied(centre(0, 0, 0)), "negligible haze is skipped");
+        assert!(
+            grid.is_occupied(centre(7, 8, 8)) && grid.is_occupied(centre(10, 10, 10)),
+            "its neighbours (a thin surface may sit there)"
+        );
+        assert!(
+            !grid.is_occupied(centre(5, 8, 8)) && !grid.is_occupied(centre(0, 0, 0)),
+            "negligible haze is skipped"
+        );
         assert_eq!(grid.occupied_fraction(), 64.0 / 4096.0);
         // Nothing dense at all (an untrained model): the grid is left full.
         let mut flat = OccupancyGrid::from_saved(res, vec![0.01; res * res * res], vec![0; 64]).unwrap();
@@ -651,7 +731,11 @@ mod tests {
         let mut grid = OccupancyGrid::full(32);
         // Through cell corners only (x, y on cell boundaries).
         let rays: Vec<DepthRay> = (0..10)
-            .map(|_| DepthRay { origin: [16.0 / 32.0, 16.0 / 32.0, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 })
+            .map(|_| DepthRay {
+                origin: [16.0 / 32.0, 16.0 / 32.0, 0.0],
+                dir: [0.0, 0.0, 1.0],
+                t_hit: 0.9,
+            })
             .collect();
         grid.seed_from_depth(&rays, &[]);
         assert!(grid.is_occupied([16.2 / 32.0, 16.2 / 32.0, 0.3]));
@@ -660,9 +744,18 @@ mod tests {
     #[test]
     fn single_flying_pixel_ray_does_not_carve_a_surface() {
         let mut grid = OccupancyGrid::full(32);
-        let mut rays: Vec<DepthRay> =
-            (0..5).map(|_| DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.3 }).collect();
-        rays.push(DepthRay { origin: [0.5, 0.5, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.9 });
+        let mut rays: Vec<DepthRay> = (0..5)
+            .map(|_| DepthRay {
+                origin: [0.5, 0.5, 0.0],
+                dir: [0.0, 0.0, 1.0],
+                t_hit: 0.3,
+            })
+            .collect();
+        rays.push(DepthRay {
+            origin: [0.5, 0.5, 0.0],
+            dir: [0.0, 0.0, 1.0],
+            t_hit: 0.9,
+        });
         grid.seed_from_depth(&rays, &[]);
         assert!(grid.is_occupied([0.5, 0.5, 0.3]));
     }
@@ -674,7 +767,11 @@ mod tests {
         let rays: Vec<DepthRay> = (0..16 * 16)
             .flat_map(|k| {
                 let (x, y) = (((k % 16) as f32 + 0.5) / 16.0, ((k / 16) as f32 + 0.5) / 16.0);
-                (0..3).map(move |_| DepthRay { origin: [x, y, -0.5], dir: [0.0, 0.0, 1.0], t_hit: 5.0 })
+                (0..3).map(move |_| DepthRay {
+                    origin: [x, y, -0.5],
+                    dir: [0.0, 0.0, 1.0],
+                    t_hit: 5.0,
+                })
             })
             .collect();
         grid.seed_from_depth(&rays, &[]);
@@ -690,13 +787,18 @@ mod tests {
                 }
             });
         }
-        assert!(!grid.is_occupied([0.25, 0.5, 0.5]), "a floater in seen-free space is not rendered");
+        assert!(
+            !grid.is_occupied([0.25, 0.5, 0.5]),
+            "a floater in seen-free space is not rendered"
+        );
         assert!(grid.occupied_fraction() < 0.01);
         // The density estimates follow the model (used to stop colour-only rays).
         let cell = grid.cell_of([0.25, 0.5, 0.5]).unwrap();
         assert!(grid.cell_density(cell) > 50.0);
         // NaN densities are ignored rather than poisoning the grid.
-        grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| s.iter_mut().for_each(|x| *x = f32::NAN));
+        grid.refresh(0.5, &mut rng, &mut pos, &mut sig, |_, s| {
+            s.iter_mut().for_each(|x| *x = f32::NAN)
+        });
         assert!(grid.densities().iter().all(|d| d.is_finite()));
     }
 
@@ -709,7 +811,11 @@ mod tests {
             .flat_map(|k| {
                 let (a, b) = ((k % 7) as f32 * 0.03 - 0.09, (k / 7) as f32 * 0.03 - 0.09);
                 let n = (a * a + b * b + 1.0).sqrt();
-                (0..3).map(move |_| DepthRay { origin: eye, dir: [a / n, b / n, 1.0 / n], t_hit: 0.6 * n })
+                (0..3).map(move |_| DepthRay {
+                    origin: eye,
+                    dir: [a / n, b / n, 1.0 / n],
+                    t_hit: 0.6 * n,
+                })
             })
             .collect();
         grid.seed_from_depth(&rays, &[]);
@@ -717,8 +823,21 @@ mod tests {
         assert!(grid.is_occupied(eye));
         // A camera without depth whose cell holds another view's surface.
         let beside = [0.2, 0.2, 0.5];
-        let hits = [DepthRay { origin: [0.2, 0.2, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.5 }; 3];
-        let cameras = [CameraSpace { origin: eye, free_distance: 0.3 }, CameraSpace { origin: beside, free_distance: 0.0 }];
+        let hits = [DepthRay {
+            origin: [0.2, 0.2, 0.0],
+            dir: [0.0, 0.0, 1.0],
+            t_hit: 0.5,
+        }; 3];
+        let cameras = [
+            CameraSpace {
+                origin: eye,
+                free_distance: 0.3,
+            },
+            CameraSpace {
+                origin: beside,
+                free_distance: 0.0,
+            },
+        ];
         let all: Vec<DepthRay> = rays.iter().chain(&hits).copied().collect();
         let mut grid = OccupancyGrid::full(16);
         grid.seed_from_depth(&all, &cameras);
@@ -728,7 +847,13 @@ mod tests {
         assert!(grid.is_occupied(beside), "a measured surface is never carved");
         // A camera without depth carves only its own cell.
         let mut bare = OccupancyGrid::full(16);
-        bare.seed_from_depth(&[], &[CameraSpace { origin: eye, free_distance: 0.0 }]);
+        bare.seed_from_depth(
+            &[],
+            &[CameraSpace {
+                origin: eye,
+                free_distance: 0.0,
+            }],
+        );
         assert_eq!(bare.occupied, 16 * 16 * 16 - 1);
         assert!(!bare.is_occupied(eye));
     }
@@ -741,13 +866,23 @@ mod tests {
         let mut grid = OccupancyGrid::full(res);
         // At (0.5, 0.5, 0.1) looking +z, 90 degrees wide: tan = 32 / 32.
         let pose = DMat4::from_translation(DVec3::new(0.5, 0.5, 0.1));
-        let k = Intrinsics { fx: 32.0, fy: 32.0, cx: 31.5, cy: 31.5 };
+        let k = Intrinsics {
+            fx: 32.0,
+            fy: 32.0,
+            cx: 31.5,
+            cy: 31.5,
+        };
         let cam = LocalCamera::new(&pose, &k, 64, 64);
         grid.carve_unseen(&[cam]);
         let cell = 1.0 / res as f32;
         let radius = 0.5 * 3f32.sqrt() * cell;
         for i in 0..res * res * res {
-            let c = [(i % res) as f32 + 0.5, ((i / res) % res) as f32 + 0.5, (i / (res * res)) as f32 + 0.5].map(|v| v * cell);
+            let c = [
+                (i % res) as f32 + 0.5,
+                ((i / res) % res) as f32 + 0.5,
+                (i / (res * res)) as f32 + 0.5,
+            ]
+            .map(|v| v * cell);
             let d = [c[0] - 0.5, c[1] - 0.5, c[2] - 0.1];
             let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             // Distance outside the frustum's side planes (|x| <= z, |y| <= z).

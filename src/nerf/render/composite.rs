@@ -43,7 +43,11 @@ pub fn weights_from_optical_depth(tau: &[f32], weights: &mut [f32]) -> RayCompos
         *w = 0.0;
     }
     let transmittance = log_t.exp();
-    RayComposite { opacity: (1.0 - transmittance).clamp(0.0, 1.0), transmittance, used }
+    RayComposite {
+        opacity: (1.0 - transmittance).clamp(0.0, 1.0),
+        transmittance,
+        used,
+    }
 }
 
 /// Optical depth safe for exp: NaN and negatives become 0, +inf saturates.
@@ -82,7 +86,11 @@ pub fn optical_depth_backward(
         let t_after = grad_tau[i];
         // Clamped or invalid optical depths have zero derivative.
         let differentiable = tau[i] >= 0.0 && tau[i] < 1e4;
-        grad_tau[i] = if differentiable { t_after * grad_w[i] - suffix } else { 0.0 };
+        grad_tau[i] = if differentiable {
+            t_after * grad_w[i] - suffix
+        } else {
+            0.0
+        };
         suffix += weights[i] * grad_w[i];
     }
     for g in grad_tau[n..].iter_mut() {
@@ -98,7 +106,11 @@ pub fn median_depth(t_start: &[f32], delta: &[f32], weights: &[f32]) -> Option<f
     for i in 0..weights.len() {
         let next = acc + weights[i];
         if next >= MIN_SURFACE_WEIGHT {
-            let frac = if weights[i] > 0.0 { (MIN_SURFACE_WEIGHT - acc) / weights[i] } else { 0.0 };
+            let frac = if weights[i] > 0.0 {
+                (MIN_SURFACE_WEIGHT - acc) / weights[i]
+            } else {
+                0.0
+            };
             return Some(t_start[i] + frac.clamp(0.0, 1.0) * delta[i]);
         }
         acc = next;
@@ -132,9 +144,16 @@ mod tests {
                 let mut w = vec![0.0; n];
                 let c = weights_from_optical_depth(&tau, &mut w);
                 let sum: f32 = w.iter().sum();
-                assert!(w.iter().all(|x| x.is_finite() && (0.0..=1.0).contains(x)), "tau {tau_value} n {n}");
+                assert!(
+                    w.iter().all(|x| x.is_finite() && (0.0..=1.0).contains(x)),
+                    "tau {tau_value} n {n}"
+                );
                 assert!(sum <= 1.0 + 1e-5, "sum {sum}");
-                assert!((sum - c.opacity).abs() < 1e-3 + 1e-4 * n as f32 * tau_value.min(1.0) , "sum {sum} opacity {}", c.opacity);
+                assert!(
+                    (sum - c.opacity).abs() < 1e-3 + 1e-4 * n as f32 * tau_value.min(1.0),
+                    "sum {sum} opacity {}",
+                    c.opacity
+                );
                 assert!(c.transmittance.is_finite() && c.transmittance >= 0.0);
             }
         }
@@ -175,7 +194,11 @@ mod tests {
                 minus[i] = (minus[i] - eps).max(0.0);
                 let fd = (loss_of(&plus, &g, g_t) - loss_of(&minus, &g, g_t)) / (plus[i] - minus[i]) as f64;
                 let err = (fd - grad[i] as f64).abs();
-                assert!(err < 2e-3 * (1.0 + fd.abs()), "case {case} i {i}: analytic {} fd {fd}", grad[i]);
+                assert!(
+                    err < 2e-3 * (1.0 + fd.abs()),
+                    "case {case} i {i}: analytic {} fd {fd}",
+                    grad[i]
+                );
             }
         }
     }

@@ -197,7 +197,13 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
     let block_size = BLOCK as f32 / r;
     let mut step = [0i32; 3];
     for a in 0..3 {
-        step[a] = if dir[a] > 0.0 { 1 } else if dir[a] < 0.0 { -1 } else { 0 };
+        step[a] = if dir[a] > 0.0 {
+            1
+        } else if dir[a] < 0.0 {
+            -1
+        } else {
+            0
+        };
     }
     // Distance from `p` to the boundary ahead of cell or block `i` of size `size` on axis `a`.
     let boundary = |a: usize, i: i32, size: f32| -> f32 {
@@ -207,9 +213,23 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
             _ => f32::INFINITY,
         }
     };
-    let axis_of_min = |n: &[f32; 3]| if n[0] <= n[1] && n[0] <= n[2] { 0 } else if n[1] <= n[2] { 1 } else { 2 };
+    let axis_of_min = |n: &[f32; 3]| {
+        if n[0] <= n[1] && n[0] <= n[2] {
+            0
+        } else if n[1] <= n[2] {
+            1
+        } else {
+            2
+        }
+    };
     let cell_size = 1.0 / r;
-    let delta: [f32; 3] = std::array::from_fn(|a| if step[a] == 0 { f32::INFINITY } else { cell_size / dir[a].abs() });
+    let delta: [f32; 3] = std::array::from_fn(|a| {
+        if step[a] == 0 {
+            f32::INFINITY
+        } else {
+            cell_size / dir[a].abs()
+        }
+    });
     let mut next: [f32; 3] = std::array::from_fn(|a| boundary(a, idx[a], cell_size));
     loop {
         let b = idx.map(|i| i / block);
@@ -298,13 +318,20 @@ mod tests {
     use crate::nerf::occupancy::DepthRay;
 
     fn rule() -> StepRule {
-        StepRule { min_step: 1.0 / 256.0, max_step: 1.0 / 16.0, cone: 0.0 }
+        StepRule {
+            min_step: 1.0 / 256.0,
+            max_step: 1.0 / 16.0,
+            cone: 0.0,
+        }
     }
 
     #[test]
     fn full_grid_samples_the_whole_interval_contiguously() {
         let grid = OccupancyGrid::full(32);
-        let ray = LocalRay { origin: [0.5, 0.5, -0.5], dir: [0.0, 0.0, 1.0] };
+        let ray = LocalRay {
+            origin: [0.5, 0.5, -0.5],
+            dir: [0.0, 0.0, 1.0],
+        };
         let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
         let mut out = Vec::new();
         march(&ray, t0, t1, &grid, &rule(), 0.0, 10_000, &mut out);
@@ -322,17 +349,27 @@ mod tests {
             for j in 0..32 {
                 let (x, y) = ((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0);
                 for _ in 0..3 {
-                    rays.push(DepthRay { origin: [x, y, 0.0], dir: [0.0, 0.0, 1.0], t_hit: 0.8 });
+                    rays.push(DepthRay {
+                        origin: [x, y, 0.0],
+                        dir: [0.0, 0.0, 1.0],
+                        t_hit: 0.8,
+                    });
                 }
             }
         }
         grid.seed_from_depth(&rays, &[]);
-        let ray = LocalRay { origin: [0.5, 0.5, -0.5], dir: [0.0, 0.0, 1.0] };
+        let ray = LocalRay {
+            origin: [0.5, 0.5, -0.5],
+            dir: [0.0, 0.0, 1.0],
+        };
         let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
         let mut out = Vec::new();
         march(&ray, t0, t1, &grid, &rule(), 0.3, 10_000, &mut out);
         assert!(out.len() < 256 / 2, "half the ray is carved: {}", out.len());
-        assert!(out.iter().any(|s| (s.mid() - 1.3).abs() < 0.02), "surface at local z = 0.8 is sampled");
+        assert!(
+            out.iter().any(|s| (s.mid() - 1.3).abs() < 0.02),
+            "surface at local z = 0.8 is sampled"
+        );
     }
 
     /// The marcher as first written, on the grid's own cell queries.
@@ -370,7 +407,11 @@ mod tests {
                 let origin = [rng.f32(), rng.f32(), 0.0];
                 let d = [rng.f32() - 0.5, rng.f32() - 0.5, 1.0];
                 let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                DepthRay { origin, dir: d.map(|v| v / n), t_hit: 0.3 + 0.5 * rng.f32() }
+                DepthRay {
+                    origin,
+                    dir: d.map(|v| v / n),
+                    t_hit: 0.3 + 0.5 * rng.f32(),
+                }
             })
             .collect();
         grid.seed_from_depth(&depth_rays, &[]);
@@ -380,13 +421,20 @@ mod tests {
     /// Ray number `i` from a random origin around the unit cube; every 7th
     /// has a zero direction component (skipped in the exit test).
     fn random_ray(rng: &mut crate::rng::Rng, i: usize) -> LocalRay {
-        let origin = [rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32, rng.range(-0.5, 1.5) as f32];
+        let origin = [
+            rng.range(-0.5, 1.5) as f32,
+            rng.range(-0.5, 1.5) as f32,
+            rng.range(-0.5, 1.5) as f32,
+        ];
         let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
         if i % 7 == 0 {
             d[i % 3] = 0.0;
         }
         let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        LocalRay { origin, dir: d.map(|v| v / n) }
+        LocalRay {
+            origin,
+            dir: d.map(|v| v / n),
+        }
     }
 
     #[test]
@@ -395,12 +443,18 @@ mod tests {
         let mut rng = crate::rng::Rng::new(17, 0);
         let grid = randomly_carved_grid(&mut rng);
         assert!(grid.occupied_fraction() < 0.9, "{}", grid.occupied_fraction());
-        let rule = StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 1.0 / 128.0 };
+        let rule = StepRule {
+            min_step: 1.0 / 300.0,
+            max_step: 1.0 / 20.0,
+            cone: 1.0 / 128.0,
+        };
         let full = OccupancyGrid::full(32);
         let mut skipped_some = 0;
         for i in 0..500 {
             let ray = random_ray(&mut rng, i);
-            let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
+            let Some((t0, t1)) = ray_interval(&ray, 0.0) else {
+                continue;
+            };
             let (mut fast, mut slow) = (Vec::new(), Vec::new());
             march(&ray, t0, t1, &grid, &rule, 0.0, usize::MAX, &mut fast);
             march_reference(&ray, t0, t1, &grid, &rule, &mut slow);
@@ -419,7 +473,11 @@ mod tests {
         let mut from = t0;
         for s in samples {
             assert!(s.t >= from - 1e-6, "{which}: samples out of order");
-            assert!(grid.is_occupied(ray.at(s.mid())), "{which}: sample at {} in an empty cell", s.t);
+            assert!(
+                grid.is_occupied(ray.at(s.mid())),
+                "{which}: sample at {} in an empty cell",
+                s.t
+            );
             let mut x = from + 0.5 * rule.at(from);
             while x < s.t - 1.01 * rule.at(s.t) {
                 assert!(
@@ -440,15 +498,25 @@ mod tests {
         let carved = randomly_carved_grid(&mut rng);
         let (mut fast_total, mut slow_total, mut differing) = (0, 0, 0);
         for (k, rule) in [
-            StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 0.0 },
-            StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 1.0 / 64.0 },
+            StepRule {
+                min_step: 1.0 / 300.0,
+                max_step: 1.0 / 20.0,
+                cone: 0.0,
+            },
+            StepRule {
+                min_step: 1.0 / 300.0,
+                max_step: 1.0 / 20.0,
+                cone: 1.0 / 64.0,
+            },
         ]
         .iter()
         .enumerate()
         {
             for i in 0..400 {
                 let ray = random_ray(&mut rng, i);
-                let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
+                let Some((t0, t1)) = ray_interval(&ray, 0.0) else {
+                    continue;
+                };
                 let (mut a, mut b) = (Vec::new(), Vec::new());
                 march_skipping(&ray, t0, t1, &full, rule, usize::MAX, &mut a);
                 march(&ray, t0, t1, &full, rule, 0.0, usize::MAX, &mut b);
@@ -467,7 +535,12 @@ mod tests {
                         differing += 1;
                         let off: Vec<&Segment> = fast.iter().filter(|s| !on_lattice(s)).collect();
                         assert!(off.is_empty(), "ray {i}: samples off the lattice: {off:?}");
-                        assert!(fast.len().abs_diff(slow.len()) <= 1, "ray {i}: {} against {}", fast.len(), slow.len());
+                        assert!(
+                            fast.len().abs_diff(slow.len()) <= 1,
+                            "ray {i}: {} against {}",
+                            fast.len(),
+                            slow.len()
+                        );
                     }
                 }
                 // Stopping after a budget and resuming gives the same samples.
@@ -485,7 +558,10 @@ mod tests {
                 slow_total += slow.len();
             }
         }
-        assert!(slow_total > 5000 && fast_total as f64 > 0.95 * slow_total as f64, "{fast_total} vs {slow_total}");
+        assert!(
+            slow_total > 5000 && fast_total as f64 > 0.95 * slow_total as f64,
+            "{fast_total} vs {slow_total}"
+        );
         assert!(differing <= 4, "{differing} of 400 rays took other samples than march");
     }
 
@@ -498,7 +574,9 @@ mod tests {
         for cell in 0..res * res * res {
             let p = [cell % res, (cell / res) % res, cell / (res * res)].map(|i| (i as f32 + 0.5) / res as f32);
             let radius = p.iter().map(|v| (v - 0.5) * (v - 0.5)).sum::<f32>().sqrt();
-            let in_cluster = clusters.iter().any(|c| (0..3).all(|a| (p[a] - c[a]).abs() < 1.6 / res as f32));
+            let in_cluster = clusters
+                .iter()
+                .any(|c| (0..3).all(|a| (p[a] - c[a]).abs() < 1.6 / res as f32));
             let keep = (radius - 0.3).abs() < 0.03 || in_cluster;
             if !keep {
                 carved[cell >> 6] |= 1 << (cell & 63);
@@ -511,13 +589,21 @@ mod tests {
     fn crossing_empty_blocks_whole_takes_the_samples_of_the_cell_by_cell_march() {
         let mut rng = crate::rng::Rng::new(29, 0);
         let grid = shell_grid(&mut rng);
-        let empty_blocks = (0..512).filter(|&i| !grid.is_occupied_block([i % 8, (i / 8) % 8, i / 64])).count();
+        let empty_blocks = (0..512)
+            .filter(|&i| !grid.is_occupied_block([i % 8, (i / 8) % 8, i / 64]))
+            .count();
         assert!(empty_blocks > 100, "the test needs empty blocks: {empty_blocks}");
-        let rule = StepRule { min_step: 1.0 / 300.0, max_step: 1.0 / 20.0, cone: 0.0 };
+        let rule = StepRule {
+            min_step: 1.0 / 300.0,
+            max_step: 1.0 / 20.0,
+            cone: 0.0,
+        };
         let (mut total, mut differing) = (0, 0);
         for i in 0..600 {
             let ray = random_ray(&mut rng, i);
-            let Some((t0, t1)) = ray_interval(&ray, 0.0) else { continue };
+            let Some((t0, t1)) = ray_interval(&ray, 0.0) else {
+                continue;
+            };
             let (mut fast, mut slow) = (Vec::new(), Vec::new());
             march_skipping(&ray, t0, t1, &grid, &rule, usize::MAX, &mut fast);
             march(&ray, t0, t1, &grid, &rule, 0.0, usize::MAX, &mut slow);
@@ -525,7 +611,12 @@ mod tests {
             // The same step lattice; rounding may move one midpoint lying on a cell face.
             let on_lattice = |s: &Segment| slow.iter().any(|b| (s.t - b.t).abs() < 1e-5);
             assert!(fast.iter().all(on_lattice), "ray {i}: samples off the lattice");
-            assert!(fast.len().abs_diff(slow.len()) <= 1, "ray {i}: {} against {}", fast.len(), slow.len());
+            assert!(
+                fast.len().abs_diff(slow.len()) <= 1,
+                "ray {i}: {} against {}",
+                fast.len(),
+                slow.len()
+            );
             differing += usize::from(fast.len() != slow.len());
             total += fast.len();
         }
@@ -536,8 +627,15 @@ mod tests {
     #[test]
     fn cone_steps_grow_with_distance_and_cap_the_count() {
         let grid = OccupancyGrid::full(32);
-        let ray = LocalRay { origin: [0.0, 0.5, 0.5], dir: [1.0, 0.0, 0.0] };
-        let r = StepRule { min_step: 1e-3, max_step: 0.1, cone: 0.05 };
+        let ray = LocalRay {
+            origin: [0.0, 0.5, 0.5],
+            dir: [1.0, 0.0, 0.0],
+        };
+        let r = StepRule {
+            min_step: 1e-3,
+            max_step: 0.1,
+            cone: 0.05,
+        };
         let mut out = Vec::new();
         march(&ray, 0.0, 1.0, &grid, &r, 0.0, 10_000, &mut out);
         assert!(out.last().unwrap().dt > 5.0 * out[0].dt);

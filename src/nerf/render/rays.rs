@@ -20,12 +20,12 @@
 //! typical ray are saved.
 
 use crate::nerf::camera::{LocalCamera, LocalRay};
-use crate::nerf::render::composite::{sanitize_tau, MIN_SURFACE_WEIGHT};
-use crate::nerf::field::{density_activation, Field, DENSITY_OUTPUTS};
-use crate::nerf::render::march::{march_skipping, ray_interval, Segment, StepRule};
 use crate::nerf::field::mlp::MlpWorkspace;
-use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::field::sh::{self, SH_COEFFS};
+use crate::nerf::field::{density_activation, Field, DENSITY_OUTPUTS};
+use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::composite::{sanitize_tau, MIN_SURFACE_WEIGHT};
+use crate::nerf::render::march::{march_skipping, ray_interval, Segment, StepRule};
 use std::cell::RefCell;
 
 /// Most samples a ray takes when rendering views: enough to cross the unit
@@ -93,7 +93,10 @@ pub struct RayOutput {
 impl RayOutput {
     /// The output of a ray that meets nothing.
     pub fn background(opts: &RenderOptions) -> RayOutput {
-        RayOutput { rgb: opts.background, ..RayOutput::default() }
+        RayOutput {
+            rgb: opts.background,
+            ..RayOutput::default()
+        }
     }
 }
 
@@ -162,7 +165,11 @@ pub fn render_rays(
     out: &mut [RayOutput],
 ) {
     ws.state.clear();
-    ws.state.extend(rays.iter().map(|r| RayState { t: r.t_min, trans: 1.0, ..Default::default() }));
+    ws.state.extend(rays.iter().map(|r| RayState {
+        t: r.t_min,
+        trans: 1.0,
+        ..Default::default()
+    }));
     ws.active.clear();
     let mut pending = (0..rays.len()).filter(|&i| rays[i].t_max > rays[i].t_min);
     loop {
@@ -211,7 +218,11 @@ fn finish(st: &RayState, opts: &RenderOptions) -> RayOutput {
     } else {
         (st.unshaded, transmittance, st.opacity)
     };
-    let scale = if st.shaded > 0.0 { (st.shaded + rest) / st.shaded } else { 0.0 };
+    let scale = if st.shaded > 0.0 {
+        (st.shaded + rest) / st.shaded
+    } else {
+        0.0
+    };
     let bg = opts.background;
     RayOutput {
         rgb: [0, 1, 2].map(|c| (st.rgb[c] * scale + behind * bg[c]).clamp(0.0, 1.0)),
@@ -293,7 +304,11 @@ fn composite_round(ws: &mut RenderWorkspace, color: bool) {
             }
         }
         if st.median.is_none() && st.opacity + w >= MIN_SURFACE_WEIGHT {
-            let frac = if w > 0.0 { (MIN_SURFACE_WEIGHT - st.opacity) / w } else { 0.0 };
+            let frac = if w > 0.0 {
+                (MIN_SURFACE_WEIGHT - st.opacity) / w
+            } else {
+                0.0
+            };
             st.median = Some(seg.t + frac.clamp(0.0, 1.0) * seg.dt);
         }
         st.opacity += w;
@@ -308,7 +323,8 @@ fn composite_round(ws: &mut RenderWorkspace, color: bool) {
 fn shade_round(field: &Field, rays: &[RenderRay], ws: &mut RenderWorkspace) {
     let n = ws.positions.len();
     ws.color_idx.clear();
-    ws.color_idx.extend((0..n as u32).filter(|&i| ws.shade[i as usize] > 0.0));
+    ws.color_idx
+        .extend((0..n as u32).filter(|&i| ws.shade[i as usize] > 0.0));
     let m = ws.color_idx.len();
     if m == 0 {
         return;
@@ -405,9 +421,12 @@ pub fn render_pixels(
 ) -> Vec<RayOutput> {
     use rayon::prelude::*;
     let mut out = vec![RayOutput::default(); pixels.len()];
-    pixels.par_chunks(PACKET).zip(out.par_chunks_mut(PACKET)).for_each(|(px, out)| {
-        render_packet(field, grid, opts, camera, px.len(), |k| (px[k].0, px[k].1, k), out);
-    });
+    pixels
+        .par_chunks(PACKET)
+        .zip(out.par_chunks_mut(PACKET))
+        .for_each(|(px, out)| {
+            render_packet(field, grid, opts, camera, px.len(), |k| (px[k].0, px[k].1, k), out);
+        });
     out
 }
 
@@ -454,9 +473,9 @@ pub fn render_image(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, c
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::render::composite::TERMINATION_TRANSMITTANCE;
-    use crate::nerf::field::{FieldConfig, FieldWorkspace, GridSpec};
     use crate::nerf::field::hash_grid::HashGridConfig;
+    use crate::nerf::field::{FieldConfig, FieldWorkspace, GridSpec};
+    use crate::nerf::render::composite::TERMINATION_TRANSMITTANCE;
     use crate::rng::Rng;
     use crate::scan::Intrinsics;
     use glam::{DMat4, DVec3};
@@ -465,7 +484,11 @@ mod tests {
     fn blob_field(seed: u64) -> Field {
         let mut rng = Rng::new(seed, 0);
         let grid = HashGridConfig::for_scene(1.0, 1.0 / 64.0);
-        let config = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![32], color_hidden: vec![32, 32] };
+        let config = FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![32],
+            color_hidden: vec![32, 32],
+        };
         let mut field = Field::new(config, &mut rng);
         for p in field.grid.params.iter_mut() {
             *p = 2.0 * (rng.f32() - 0.5);
@@ -492,7 +515,11 @@ mod tests {
     fn options(color: bool) -> RenderOptions {
         RenderOptions {
             color,
-            rule: StepRule { min_step: 1.0 / 200.0, max_step: 1.0 / 40.0, cone: 1.0 / 256.0 },
+            rule: StepRule {
+                min_step: 1.0 / 200.0,
+                max_step: 1.0 / 40.0,
+                cone: 1.0 / 256.0,
+            },
             max_samples_per_ray: 4096,
             background: [0.2, 0.4, 0.6],
         }
@@ -505,13 +532,25 @@ mod tests {
     /// rules (few shaded samples, absorbed at 1 %).
     fn reference(field: &Field, grid: &OccupancyGrid, ray: &RenderRay, opts: &RenderOptions, exact: bool) -> RayOutput {
         let mut segs = Vec::new();
-        march_skipping(&ray.ray, ray.t_min, ray.t_max, grid, &opts.rule, opts.max_samples_per_ray, &mut segs);
+        march_skipping(
+            &ray.ray,
+            ray.t_min,
+            ray.t_max,
+            grid,
+            &opts.rule,
+            opts.max_samples_per_ray,
+            &mut segs,
+        );
         let pos: Vec<[f32; 3]> = segs.iter().map(|s| ray.ray.at(s.mid())).collect();
         let dirs = vec![ray.ray.dir; pos.len()];
         let mut ws = FieldWorkspace::default();
         field.forward(&pos, &dirs, &mut ws, false);
         let n = pos.len();
-        let stop = if exact { TERMINATION_TRANSMITTANCE } else { ABSORBED_TRANSMITTANCE };
+        let stop = if exact {
+            TERMINATION_TRANSMITTANCE
+        } else {
+            ABSORBED_TRANSMITTANCE
+        };
         let (mut log_t, mut opacity, mut depth, mut rgb, mut median) = (0.0f32, 0.0f32, 0.0f32, [0.0f32; 3], None);
         let (mut shaded, mut unshaded) = (0.0f32, 0.0f32);
         for (i, s) in segs.iter().enumerate() {
@@ -522,7 +561,11 @@ mod tests {
             let tau = sanitize_tau(ws.sigma[i] * s.dt);
             let w = t_before * -(-tau).exp_m1();
             if median.is_none() && opacity + w >= MIN_SURFACE_WEIGHT {
-                let frac = if w > 0.0 { (MIN_SURFACE_WEIGHT - opacity) / w } else { 0.0 };
+                let frac = if w > 0.0 {
+                    (MIN_SURFACE_WEIGHT - opacity) / w
+                } else {
+                    0.0
+                };
                 median = Some(s.t + frac.clamp(0.0, 1.0) * s.dt);
             }
             if opts.color && w > COLOR_WEIGHT_EPS {
@@ -546,7 +589,11 @@ mod tests {
             (unshaded, opacity, tr) = (unshaded + tr, opacity + tr, 0.0);
         }
         let bg = opts.background;
-        let scale = if shaded > 0.0 { (shaded + unshaded) / shaded } else { 0.0 };
+        let scale = if shaded > 0.0 {
+            (shaded + unshaded) / shaded
+        } else {
+            0.0
+        };
         RayOutput {
             rgb: [0, 1, 2].map(|c| (rgb[c] * scale + tr * bg[c]).clamp(0.0, 1.0)),
             opacity: opacity.clamp(0.0, 1.0),
@@ -564,7 +611,17 @@ mod tests {
         let y = z.cross(x);
         let pose = DMat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
         let f = size as f64;
-        LocalCamera::new(&pose, &Intrinsics { fx: f, fy: f, cx: f / 2.0, cy: f / 2.0 }, size, size)
+        LocalCamera::new(
+            &pose,
+            &Intrinsics {
+                fx: f,
+                fy: f,
+                cx: f / 2.0,
+                cy: f / 2.0,
+            },
+            size,
+            size,
+        )
     }
 
     #[test]
@@ -583,14 +640,24 @@ mod tests {
                     None => RayOutput::background(&opts),
                 };
                 assert_eq!(o.depth_median.is_some(), want.depth_median.is_some(), "pixel {k}");
-                let d = o.depth_median.zip(want.depth_median).map_or(0.0, |(a, b)| (a - b).abs());
-                let errs = [d, (o.opacity - want.opacity).abs(), (o.depth_expected - want.depth_expected).abs()];
+                let d = o
+                    .depth_median
+                    .zip(want.depth_median)
+                    .map_or(0.0, |(a, b)| (a - b).abs());
+                let errs = [
+                    d,
+                    (o.opacity - want.opacity).abs(),
+                    (o.depth_expected - want.depth_expected).abs(),
+                ];
                 let rgb = (0..3).map(|c| (o.rgb[c] - want.rgb[c]).abs());
                 max_err = errs.into_iter().chain(rgb).fold(max_err, f32::max);
                 opaque += usize::from(o.opacity > 0.5);
             }
             assert!(max_err < 1e-5, "colour {color}: largest difference {max_err}");
-            assert!(opaque > 200 && opaque < 48 * 48 - 200, "the blob covers part of the view: {opaque}");
+            assert!(
+                opaque > 200 && opaque < 48 * 48 - 200,
+                "the blob covers part of the view: {opaque}"
+            );
         }
     }
 
@@ -616,7 +683,12 @@ mod tests {
             }
         }
         let mean = sum / f64::from(n.max(1));
-        assert!(mean < 0.5 / 255.0 && max < 4.0 / 255.0, "mean {:.3} max {:.3} grey levels", mean * 255.0, max * 255.0);
+        assert!(
+            mean < 0.5 / 255.0 && max < 4.0 / 255.0,
+            "mean {:.3} max {:.3} grey levels",
+            mean * 255.0,
+            max * 255.0
+        );
     }
 
     #[test]
@@ -648,13 +720,20 @@ mod tests {
                     log_t.exp() < ABSORBED_TRANSMITTANCE
                 })
                 .map_or(segs.len(), |i| i + 1);
-            assert!(o.samples as usize >= needed, "pixel {k}: {} samples < {needed}", o.samples);
+            assert!(
+                o.samples as usize >= needed,
+                "pixel {k}: {} samples < {needed}",
+                o.samples
+            );
             excess += (o.samples as usize - needed) as u64;
             absorbed += 1;
         }
         assert!(absorbed > 500, "{absorbed} absorbed rays");
         let mean_excess = excess as f64 / absorbed as f64;
-        assert!(mean_excess < TAIL_STEP_SAMPLES as f64 / 2.0, "{mean_excess:.2} samples past termination per ray");
+        assert!(
+            mean_excess < TAIL_STEP_SAMPLES as f64 / 2.0,
+            "{mean_excess:.2} samples past termination per ray"
+        );
     }
 
     #[test]

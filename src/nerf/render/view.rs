@@ -7,9 +7,9 @@
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
+use crate::nerf::occupancy::from_field::lattice_pruned;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
-use crate::nerf::occupancy::from_field::lattice_pruned;
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
 use glam::DMat4;
@@ -44,7 +44,11 @@ fn to_u8(c: f32) -> u8 {
 impl<'a> ViewRenderer<'a> {
     /// Renderer for `model` (fails if its stored transform is invalid).
     pub fn new(model: &'a Model) -> Result<Self, GeometryError> {
-        Ok(ViewRenderer { model, transform: model.scene_transform()?, pruned: None })
+        Ok(ViewRenderer {
+            model,
+            transform: model.scene_transform()?,
+            pruned: None,
+        })
     }
 
     /// Renderer for `model` through [`lattice_pruned`]'s grid (worth it for
@@ -52,7 +56,11 @@ impl<'a> ViewRenderer<'a> {
     /// views with the model's own grid).
     pub fn pruned(model: &'a Model) -> Result<Self, GeometryError> {
         let transform = model.scene_transform()?;
-        Ok(ViewRenderer { model, transform, pruned: Some(lattice_pruned(&model.field, &model.occupancy)) })
+        Ok(ViewRenderer {
+            model,
+            transform,
+            pruned: Some(lattice_pruned(&model.field, &model.occupancy)),
+        })
     }
 
     /// The occupancy grid rays are marched through.
@@ -70,7 +78,10 @@ impl<'a> ViewRenderer<'a> {
     fn depth_m(&self, camera: &LocalCamera, o: &RayOutput, u: f32, v: f32) -> f32 {
         let metres_per_unit = 1.0 / self.transform.scale as f32;
         let t_per_z = camera.ray(u, v).1;
-        o.depth_median.map(|t| t / t_per_z * metres_per_unit).filter(|z| z.is_finite() && *z > 0.0).unwrap_or(0.0)
+        o.depth_median
+            .map(|t| t / t_per_z * metres_per_unit)
+            .filter(|z| z.is_finite() && *z > 0.0)
+            .unwrap_or(0.0)
     }
 
     /// Render the listed pixels (integer = pixel centre) of a camera.
@@ -82,8 +93,16 @@ impl<'a> ViewRenderer<'a> {
     ) -> (Vec<[u8; 3]>, Vec<f32>, Vec<f32>) {
         let opts = self.model.render_options(color);
         let out = render_pixels(&self.model.field, self.grid(), &opts, camera, pixels);
-        let rgb = if color { out.iter().map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
-        let depth = out.iter().zip(pixels).map(|(o, &(u, v))| self.depth_m(camera, o, u, v)).collect();
+        let rgb = if color {
+            out.iter().map(|o| o.rgb.map(to_u8)).collect()
+        } else {
+            Vec::new()
+        };
+        let depth = out
+            .iter()
+            .zip(pixels)
+            .map(|(o, &(u, v))| self.depth_m(camera, o, u, v))
+            .collect();
         let opacity = out.iter().map(|o| o.opacity).collect();
         (rgb, depth, opacity)
     }
@@ -101,10 +120,23 @@ impl<'a> ViewRenderer<'a> {
         let opts = self.model.render_options(color);
         let out = render_image(&self.model.field, self.grid(), &opts, &camera);
         let w = width.max(1) as usize;
-        let rgb = if color { out.iter().flat_map(|o| o.rgb.map(to_u8)).collect() } else { Vec::new() };
-        let depth_m =
-            out.iter().enumerate().map(|(i, o)| self.depth_m(&camera, o, (i % w) as f32, (i / w) as f32)).collect();
+        let rgb = if color {
+            out.iter().flat_map(|o| o.rgb.map(to_u8)).collect()
+        } else {
+            Vec::new()
+        };
+        let depth_m = out
+            .iter()
+            .enumerate()
+            .map(|(i, o)| self.depth_m(&camera, o, (i % w) as f32, (i / w) as f32))
+            .collect();
         let opacity = out.iter().map(|o| o.opacity).collect();
-        ViewRender { width, height, rgb, depth_m, opacity }
+        ViewRender {
+            width,
+            height,
+            rgb,
+            depth_m,
+            opacity,
+        }
     }
 }

@@ -15,7 +15,14 @@ pub struct Adam {
 impl Adam {
     /// Zeroed moments for `len` parameters (eps 1e-15 as in Instant-NGP).
     pub fn new(len: usize) -> Self {
-        Adam { m: vec![0.0; len], v: vec![0.0; len], beta1: 0.9, beta2: 0.99, eps: 1e-15, steps: 0 }
+        Adam {
+            m: vec![0.0; len],
+            v: vec![0.0; len],
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-15,
+            steps: 0,
+        }
     }
 
     /// Number of updates applied.
@@ -149,7 +156,10 @@ mod tests {
             adam.step_dense(&mut x, &g, 0.5, 1e-3);
             let taken: f32 = before.iter().zip(&x).map(|(a, b)| (a - b) * (a - b)).sum::<f32>() / x.len() as f32;
             let taken = taken.sqrt() / 0.5;
-            assert!((taken - predicted).abs() < 1e-4 * predicted, "step {step}: predicted {predicted}, taken {taken}");
+            assert!(
+                (taken - predicted).abs() < 1e-4 * predicted,
+                "step {step}: predicted {predicted}, taken {taken}"
+            );
         }
     }
 

@@ -7,11 +7,11 @@
 //! (`container`), written atomically.
 
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
-use crate::nerf::train::settings::{FitSettings, NerfSettings};
 use crate::nerf::field::{Field, FieldConfig};
+use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::train::fit::FitOptions;
 use crate::nerf::train::report::{CurvePoint, Timings};
-use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::train::settings::{FitSettings, NerfSettings};
 use crate::nerf::train::step::{TrainCounters, Trainer};
 use crate::scan::fingerprint::{scan_fingerprint, Fnv};
 use crate::scan::Scan;
@@ -197,7 +197,10 @@ pub fn save(
         loss_ema_bits: loss_ema.to_bits(),
         sections: sections.map(|s| s.count()),
     };
-    let write_error = |source| CheckpointError::Write { path: path.to_path_buf(), source };
+    let write_error = |source| CheckpointError::Write {
+        path: path.to_path_buf(),
+        source,
+    };
     let json = serde_json::to_vec(&header).map_err(|e| write_error(e.into()))?;
     container::save(path, &FORMAT, &json, &sections).map_err(write_error)
 }
@@ -443,11 +446,17 @@ mod tests {
         let mut other = identity();
         other.settings.unseen_objects = true;
         let m = msg(other);
-        assert!(m.contains("with --no-unseen-objects (this run: without --no-unseen-objects)"), "{m}");
+        assert!(
+            m.contains("with --no-unseen-objects (this run: without --no-unseen-objects)"),
+            "{m}"
+        );
         let mut other = identity();
         other.settings.refine_poses = false;
         let m = msg(other);
-        assert!(m.contains("without --no-pose-refine (this run: with --no-pose-refine)"), "{m}");
+        assert!(
+            m.contains("without --no-pose-refine (this run: with --no-pose-refine)"),
+            "{m}"
+        );
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

@@ -1,10 +1,10 @@
 //! Scan frames turned into training and held-out views in local
 //! coordinates, plus the depth rays that seed the occupancy grid.
 
+use crate::mask::{components, dilate_mask};
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::occupancy::{CameraSpace, DepthRay};
 use crate::poses::SceneTransform;
-use crate::mask::{components, dilate_mask};
 use crate::scan::{Frame, Scan};
 use rayon::prelude::*;
 
@@ -44,7 +44,12 @@ pub fn is_holdout(index: usize, every: usize) -> bool {
 /// The camera of a scan frame in local coordinates.
 pub fn local_camera(frame: &crate::scan::Frame, transform: &SceneTransform) -> LocalCamera {
     let (w, h) = frame.size();
-    LocalCamera::new(&transform.world_to_local_pose(&frame.camera_to_world), &frame.intrinsics, w, h)
+    LocalCamera::new(
+        &transform.world_to_local_pose(&frame.camera_to_world),
+        &frame.intrinsics,
+        w,
+        h,
+    )
 }
 
 /// Build the views of `scan` in the local frame of `transform`.
@@ -55,12 +60,26 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
         .map(|frame| {
             let depth = frame.depth.as_ref().map(|d| {
                 let scale = transform.scale as f32;
-                d.metres.iter().map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 }).collect()
+                d.metres
+                    .iter()
+                    .map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 })
+                    .collect()
             });
-            View { camera: local_camera(frame, transform), rgb: frame.rgb.as_raw().clone(), depth, no_return: None }
+            View {
+                camera: local_camera(frame, transform),
+                rgb: frame.rgb.as_raw().clone(),
+                depth,
+                no_return: None,
+            }
         })
         .collect();
-    let mut data = Dataset { train: Vec::new(), holdout: Vec::new(), train_frames: Vec::new(), holdout_frames: Vec::new(), background: [0.5; 3] };
+    let mut data = Dataset {
+        train: Vec::new(),
+        holdout: Vec::new(),
+        train_frames: Vec::new(),
+        holdout_frames: Vec::new(),
+        background: [0.5; 3],
+    };
     let single = views.len() < 2;
     for (i, view) in views.into_iter().enumerate() {
         // A one-frame scan trains on its only frame.
@@ -79,11 +98,17 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
 /// Mark the "no return" pixels of the training views (see
 /// [`View::no_return`]); only the no-return term of training reads them.
 pub fn mark_no_return(data: &mut Dataset, scan: &Scan) {
-    data.train.par_iter_mut().zip(&data.train_frames).for_each(|(view, &i)| {
-        let frame = &scan.frames[i];
-        let (w, h) = frame.size();
-        view.no_return = view.depth.as_deref().and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
-    });
+    data.train
+        .par_iter_mut()
+        .zip(&data.train_frames)
+        .for_each(|(view, &i)| {
+            let frame = &scan.frames[i];
+            let (w, h) = frame.size();
+            view.no_return = view
+                .depth
+                .as_deref()
+                .and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
+        });
 }
 
 /// A view's depth is evidence of absence only when most of it was measured
@@ -110,13 +135,23 @@ pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<b
     let radius = (2.0 * ratio).round().max(2.0) as usize;
     let near_measured = dilate_mask(&valid, w, h, radius);
     // Regions without depth (value 0) that touch the border are open.
-    let regions = components(&valid.iter().map(|&v| v as u16).collect::<Vec<_>>(), w as usize, h as usize);
+    let regions = components(
+        &valid.iter().map(|&v| v as u16).collect::<Vec<_>>(),
+        w as usize,
+        h as usize,
+    );
     let shadow = shadow_regions(depth, &valid, &regions.label, regions.value.len(), w as usize);
     let evidence = |i: usize| {
         let region = regions.label[i] as usize;
         !regions.border[region] && !shadow[region]
     };
-    Some(near_measured.iter().enumerate().map(|(i, &near)| !near && evidence(i)).collect())
+    Some(
+        near_measured
+            .iter()
+            .enumerate()
+            .map(|(i, &near)| !near && evidence(i))
+            .collect(),
+    )
 }
 
 /// Relative depth step across a region without depth above which its row
@@ -133,7 +168,10 @@ const SHADOW_DEPTH_STEP: f32 = 0.1;
 fn shadow_regions(depth: &[f32], valid: &[bool], label: &[u32], regions: usize, w: usize) -> Vec<bool> {
     let (mut rows, mut steps) = (vec![0usize; regions], vec![0usize; regions]);
     let mut left = vec![0.0f32; w];
-    for (row_depth, (row_valid, row_label)) in depth.chunks_exact(w).zip(valid.chunks_exact(w).zip(label.chunks_exact(w))) {
+    for (row_depth, (row_valid, row_label)) in depth
+        .chunks_exact(w)
+        .zip(valid.chunks_exact(w).zip(label.chunks_exact(w)))
+    {
         let mut last = 0.0;
         for x in 0..w {
             if row_valid[x] {
@@ -186,10 +224,20 @@ pub fn camera_spaces(views: &[View]) -> Vec<CameraSpace> {
         .iter()
         .map(|view| {
             let nearest = view.depth.as_deref().map_or(f32::INFINITY, |d| {
-                d.iter().copied().filter(|&z| z > 0.0 && z.is_finite()).fold(f32::INFINITY, f32::min)
+                d.iter()
+                    .copied()
+                    .filter(|&z| z > 0.0 && z.is_finite())
+                    .fold(f32::INFINITY, f32::min)
             });
-            let free_distance = if nearest.is_finite() { CAMERA_FREE_FRACTION * nearest } else { 0.0 };
-            CameraSpace { origin: view.camera.origin, free_distance }
+            let free_distance = if nearest.is_finite() {
+                CAMERA_FREE_FRACTION * nearest
+            } else {
+                0.0
+            };
+            CameraSpace {
+                origin: view.camera.origin,
+                free_distance,
+            }
         })
         .collect()
 }
@@ -211,7 +259,11 @@ pub fn depth_rays(views: &[View], stride: usize) -> Vec<DepthRay> {
                         return None;
                     }
                     let (ray, t_per_z) = cam.ray(x as f32, y as f32);
-                    Some(DepthRay { origin: ray.origin, dir: ray.dir, t_hit: z * t_per_z })
+                    Some(DepthRay {
+                        origin: ray.origin,
+                        dir: ray.dir,
+                        t_hit: z * t_per_z,
+                    })
                 })
             })
         })

@@ -4,20 +4,20 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
-use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
-use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
-use crate::nerf::train::dataset::{self, Dataset};
-use crate::nerf::train::validation::{validate, Validation};
 use crate::nerf::field::Field;
-use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::model_file::{Model, ModelHeader};
+use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::RenderOptions;
+use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
+use crate::nerf::train::dataset::{self, Dataset};
 use crate::nerf::train::report::{CurvePoint, FitReport, PoseRefinementReport, PoseScaleReport, Timings};
+use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
 use crate::nerf::train::step::{StepStats, Trainer};
+use crate::nerf::train::validation::{validate, Validation};
 use crate::poses::{
-    estimate_pose_scale, normalize, refine_poses, scale_poses, scene_bounds, BoundsOptions, GeometryError, NormalizeOptions,
-    RefineOptions, SceneTransform,
+    estimate_pose_scale, normalize, refine_poses, scale_poses, scene_bounds, BoundsOptions, GeometryError,
+    NormalizeOptions, RefineOptions, SceneTransform,
 };
 use crate::rng::Rng;
 use crate::scan::Scan;
@@ -84,7 +84,10 @@ impl FitOptions {
             return bad("--steps", "must be at least 1".into());
         }
         if !(self.eval_interval_s.is_finite() && self.eval_interval_s > 0.0) {
-            return bad("eval_interval_s", format!("must be a positive number of seconds, got {}", self.eval_interval_s));
+            return bad(
+                "eval_interval_s",
+                format!("must be a positive number of seconds, got {}", self.eval_interval_s),
+            );
         }
         Ok(())
     }
@@ -97,9 +100,19 @@ pub enum FitEvent<'a> {
     /// The poses were aligned to the depth.
     PosesRefined(&'a PoseRefinementReport),
     /// Set-up done; training starts.
-    Prepared { train_views: usize, holdout_views: usize, param_count: usize, occupied_fraction: f64 },
+    Prepared {
+        train_views: usize,
+        holdout_views: usize,
+        param_count: usize,
+        occupied_fraction: f64,
+    },
     /// A step finished; `progress` in [0, 1].
-    Step { step: u64, stats: &'a StepStats, train_seconds: f64, progress: f64 },
+    Step {
+        step: u64,
+        stats: &'a StepStats,
+        train_seconds: f64,
+        progress: f64,
+    },
     /// A held-out evaluation finished.
     Eval(&'a CurvePoint),
     /// A checkpoint was written after this step.
@@ -131,7 +144,12 @@ pub enum FitError {
 /// sensor depth, or without depth the median camera distance to the scene
 /// centre, over the mean focal length.
 pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
-    let focal = scan.frames.iter().map(|f| 0.5 * (f.intrinsics.fx + f.intrinsics.fy)).sum::<f64>() / scan.frames.len().max(1) as f64;
+    let focal = scan
+        .frames
+        .iter()
+        .map(|f| 0.5 * (f.intrinsics.fx + f.intrinsics.fy))
+        .sum::<f64>()
+        / scan.frames.len().max(1) as f64;
     let distance = if bounds.stats.depth_median > 0.0 {
         bounds.stats.depth_median
     } else {
@@ -200,7 +218,14 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
             trainer.set_measured_surfaces(MeasuredSurfaces::from_depth_rays(&measured, res));
         }
     }
-    Ok(Prepared { data, settings, transform, metres_per_unit, trainer, timings })
+    Ok(Prepared {
+        data,
+        settings,
+        transform,
+        metres_per_unit,
+        trainer,
+        timings,
+    })
 }
 
 /// Scale the scan's camera positions: by `forced`, else by the estimate
@@ -215,13 +240,22 @@ fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseS
         },
     };
     scan.set_poses(&scale_poses(&scan.poses(), applied));
-    Ok(Some(PoseScaleReport { applied, forced: forced.is_some(), verdict }))
+    Ok(Some(PoseScaleReport {
+        applied,
+        forced: forced.is_some(),
+        verdict,
+    }))
 }
 
 /// Fit a model to `scan`. `stop` ends training early (Ctrl-C) with a usable
 /// model. With `opts.settings.refine_poses` the scan's poses are first aligned to its
 /// depth, in place; the model records them (`Model::apply_fitted_poses`).
-pub fn fit(scan: &mut Scan, opts: &FitOptions, stop: &AtomicBool, on_event: &mut dyn FnMut(FitEvent)) -> Result<FitOutcome, FitError> {
+pub fn fit(
+    scan: &mut Scan,
+    opts: &FitOptions,
+    stop: &AtomicBool,
+    on_event: &mut dyn FnMut(FitEvent),
+) -> Result<FitOutcome, FitError> {
     run(scan, opts, None, stop, on_event)
 }
 
@@ -253,7 +287,11 @@ fn run(
     if let Some(r) = &scale_report {
         on_event(FitEvent::PosesScaled(r));
     }
-    let refinement = if opts.settings.refine_poses { refine_poses(scan, &RefineOptions::default())? } else { None };
+    let refinement = if opts.settings.refine_poses {
+        refine_poses(scan, &RefineOptions::default())?
+    } else {
+        None
+    };
     if let Some(r) = &refinement {
         scan.set_poses(&r.camera_to_world);
     }
@@ -263,12 +301,22 @@ fn run(
     }
     let pose_refine_s = t.elapsed().as_secs_f64();
     let scaled = scale_report.is_some();
-    let Prepared { data, settings, transform, metres_per_unit, mut trainer, mut timings } = prepare_with(scan, opts, from.is_none())?;
+    let Prepared {
+        data,
+        settings,
+        transform,
+        metres_per_unit,
+        mut trainer,
+        mut timings,
+    } = prepare_with(scan, opts, from.is_none())?;
     timings.pose_refine_s = pose_refine_s;
     let mut identity = FitIdentity::new(scan, opts, &settings);
     identity.scan_fingerprint = captured_fingerprint;
     let mut state = match from {
-        None => FitProgress { timings, ..FitProgress::default() },
+        None => FitProgress {
+            timings,
+            ..FitProgress::default()
+        },
         Some(ckpt) => {
             ckpt.check(&identity)?;
             if opts.time.is_none() && opts.steps.is_none() {
@@ -308,7 +356,11 @@ fn run(
     // What finishing costs (final evaluation, checkpoint, model and report):
     // training stops early enough for it to fit in the budget.
     let mut finish_cost = 0.0f64;
-    let interval = if opts.eval_interval_s.is_finite() { opts.eval_interval_s.max(1e-3) } else { DEFAULT_TIME_S };
+    let interval = if opts.eval_interval_s.is_finite() {
+        opts.eval_interval_s.max(1e-3)
+    } else {
+        DEFAULT_TIME_S
+    };
     // A short budget evaluates sooner: the curve gets its points, and the
     // first evaluation tells what finishing will cost.
     let interval = time_budget.map_or(interval, |limit| interval.min(limit / 4.0));
@@ -320,7 +372,14 @@ fn run(
         let wall = spent();
         let t = Instant::now();
         let grid = trainer.rendering_occupancy();
-        let r: Validation = validate(&trainer.field, &grid, &render_opts, &data.holdout, metres_per_unit, opts.eval_max_side);
+        let r: Validation = validate(
+            &trainer.field,
+            &grid,
+            &render_opts,
+            &data.holdout,
+            metres_per_unit,
+            opts.eval_max_side,
+        );
         state.timings.eval_s += t.elapsed().as_secs_f64();
         let samples = trainer.counters.samples;
         let dt = (state.train_seconds - state.last_point.0).max(1e-9);
@@ -342,7 +401,9 @@ fn run(
         let result = checkpoint::save(path, &identity, state, trainer);
         state.timings.checkpoint_s += t.elapsed().as_secs_f64();
         match result {
-            Ok(()) => on_event(FitEvent::CheckpointSaved { step: trainer.counters.steps }),
+            Ok(()) => on_event(FitEvent::CheckpointSaved {
+                step: trainer.counters.steps,
+            }),
             Err(e) => on_event(FitEvent::CheckpointFailed(&e)),
         }
     };
@@ -365,7 +426,12 @@ fn run(
         let t = Instant::now();
         let stats = trainer.step(&data.train, progress as f32);
         state.train_seconds += t.elapsed().as_secs_f64();
-        on_event(FitEvent::Step { step: trainer.counters.steps, stats: &stats, train_seconds: state.train_seconds, progress });
+        on_event(FitEvent::Step {
+            step: trainer.counters.steps,
+            stats: &stats,
+            train_seconds: state.train_seconds,
+            progress,
+        });
         // The final evaluation comes soon anyway: no periodic one just before it.
         let near_end = time_budget.is_some_and(|limit| spent() + 2.0 * finish_cost >= limit);
         if state.train_seconds >= next_eval && !near_end {
@@ -412,7 +478,8 @@ fn run(
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
-        fitted_poses: (scaled || refinement.is_some()).then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
+        fitted_poses: (scaled || refinement.is_some())
+            .then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
         sections: [0; 5],
     };
     let occupancy = trainer.rendering_occupancy();
@@ -423,7 +490,11 @@ fn run(
         preset: opts.settings.preset,
         threads: rayon::current_num_threads(),
         train_frames: data.train.len(),
-        holdout_frames: data.holdout_frames.iter().map(|&i| scan.frames[i].name.clone()).collect(),
+        holdout_frames: data
+            .holdout_frames
+            .iter()
+            .map(|&i| scan.frames[i].name.clone())
+            .collect(),
         metres_per_unit,
         param_count,
         field: settings.field,
@@ -438,6 +509,10 @@ fn run(
         pose_refinement: refinement_report,
         curve: state.curve,
     };
-    let model = Model { header, field: trainer.field, occupancy };
+    let model = Model {
+        header,
+        field: trainer.field,
+        occupancy,
+    };
     Ok(FitOutcome { model, report })
 }

@@ -2,7 +2,12 @@
 
 /// PSNR in dB of two RGB8 images of equal size (99 dB when identical).
 pub fn psnr(a: &[u8], b: &[u8]) -> f64 {
-    let mse = a.iter().zip(b).map(|(&x, &y)| (x as f64 - y as f64).powi(2)).sum::<f64>() / a.len().max(1) as f64;
+    let mse = a
+        .iter()
+        .zip(b)
+        .map(|(&x, &y)| (x as f64 - y as f64).powi(2))
+        .sum::<f64>()
+        / a.len().max(1) as f64;
     if mse <= 0.0 {
         return 99.0;
     }
@@ -95,7 +100,11 @@ mod tests {
         assert_eq!(psnr(&img, &img), 99.0);
         assert!((ssim(&img, &img, w, h) - 1.0).abs() < 1e-6);
         let slight: Vec<u8> = img.iter().map(|&v| v.saturating_add(4)).collect();
-        let heavy: Vec<u8> = img.iter().enumerate().map(|(i, &v)| if i % 2 == 0 { 255 - v } else { v }).collect();
+        let heavy: Vec<u8> = img
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| if i % 2 == 0 { 255 - v } else { v })
+            .collect();
         assert!((psnr(&img, &slight) - 20.0 * (255.0f64 / 4.0).log10()).abs() < 0.5);
         assert!(psnr(&img, &slight) > psnr(&img, &heavy) + 10.0);
         assert!(ssim(&img, &slight, w, h) > 0.9);

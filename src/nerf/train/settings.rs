@@ -3,8 +3,8 @@
 //! a tabletop and a room (or the same scene at 1/100 scale) get the same
 //! treatment in local units.
 
-use crate::nerf::field::{FieldConfig, GridSpec};
 use crate::nerf::field::hash_grid::HashGridConfig;
+use crate::nerf::field::{FieldConfig, GridSpec};
 use crate::nerf::occupancy::DEFAULT_RESOLUTION;
 use crate::nerf::render::march::StepRule;
 use serde::{Deserialize, Deserializer, Serialize};
@@ -158,10 +158,16 @@ impl FitSettings {
             }
         }
         if !(self.lambda_depth.is_finite() && self.lambda_depth >= 0.0) {
-            return bad("--lambda-depth", format!("must be a finite number >= 0, got {}", self.lambda_depth));
+            return bad(
+                "--lambda-depth",
+                format!("must be a finite number >= 0, got {}", self.lambda_depth),
+            );
         }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
-            return bad("--learning-rate", format!("must be a positive finite number, got {}", self.learning_rate));
+            return bad(
+                "--learning-rate",
+                format!("must be a positive finite number, got {}", self.learning_rate),
+            );
         }
         Ok(())
     }
@@ -199,7 +205,11 @@ impl FitSettings {
                 ArgAction::SetFalse | ArgAction::SetTrue => {
                     let flag_given = matches!(arg.get_action(), ArgAction::SetTrue);
                     let describe = |v: &serde_json::Value| {
-                        if v.as_bool() == Some(flag_given) { format!("with {flag}") } else { format!("without {flag}") }
+                        if v.as_bool() == Some(flag_given) {
+                            format!("with {flag}")
+                        } else {
+                            format!("without {flag}")
+                        }
                     };
                     out.push(format!("{} (this run: {})", describe(a), describe(b)));
                 }
@@ -255,19 +265,23 @@ const FINEST_CELLS: f64 = 2048.0;
 /// whose cameras see `pixel_footprint_m` metres per pixel at their typical
 /// viewing distance: the finest cell is a few pixel footprints, so detail
 /// follows what the sensor resolves, at any scene scale.
-pub fn settings_for_scene(
-    metres_per_unit: f64,
-    pixel_footprint_m: f64,
-    fit: &FitSettings,
-) -> NerfSettings {
+pub fn settings_for_scene(metres_per_unit: f64, pixel_footprint_m: f64, fit: &FitSettings) -> NerfSettings {
     let preset = fit.preset;
     let wanted = pixel_footprint_m * preset.pixels_per_cell();
-    let cells = if wanted.is_finite() && wanted > 0.0 { metres_per_unit / wanted } else { 256.0 };
+    let cells = if wanted.is_finite() && wanted > 0.0 {
+        metres_per_unit / wanted
+    } else {
+        256.0
+    };
     let cells = cells.clamp(preset.min_cells(), FINEST_CELLS);
     let grid = HashGridConfig::for_scene(metres_per_unit, metres_per_unit / cells);
     let finest = grid.finest_resolution.max(16) as f32;
     // About one finest cell per step; far steps grow slowly for big scenes.
-    let step = StepRule { min_step: 0.75 / finest, max_step: 1.0 / 32.0, cone: 1.0 / 256.0 };
+    let step = StepRule {
+        min_step: 0.75 / finest,
+        max_step: 1.0 / 32.0,
+        cone: 1.0 / 256.0,
+    };
     let train = TrainConfig {
         samples_per_step: preset.samples_per_step(),
         max_samples_per_ray: 1024,
@@ -283,7 +297,11 @@ pub fn settings_for_scene(
         seed: fit.seed,
     };
     NerfSettings {
-        field: FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![64], color_hidden: vec![64, 64] },
+        field: FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![64],
+            color_hidden: vec![64, 64],
+        },
         train,
         occupancy_resolution: DEFAULT_RESOLUTION,
         render_step: step,
@@ -298,10 +316,21 @@ mod tests {
     fn presets_order_from_coarse_and_cheap_to_fine_and_costly() {
         // Tabletop-like (6 m cube, 2 mm pixels) and room-like (20 m, 8 mm) scenes.
         for (metres, footprint) in [(6.0, 0.002), (20.0, 0.008)] {
-            let [fast, default, quality] = [Preset::Fast, Preset::Default, Preset::Quality]
-                .map(|preset| settings_for_scene(metres, footprint, &FitSettings { preset, ..FitSettings::default() }));
+            let [fast, default, quality] = [Preset::Fast, Preset::Default, Preset::Quality].map(|preset| {
+                settings_for_scene(
+                    metres,
+                    footprint,
+                    &FitSettings {
+                        preset,
+                        ..FitSettings::default()
+                    },
+                )
+            });
             let finest = |s: &NerfSettings| s.field.grid.finest_resolution;
-            assert!(finest(&fast) < finest(&default) && finest(&default) < finest(&quality), "{metres} m");
+            assert!(
+                finest(&fast) < finest(&default) && finest(&default) < finest(&quality),
+                "{metres} m"
+            );
             assert!(fast.train.samples_per_step <= default.train.samples_per_step);
             assert!(default.train.samples_per_step <= quality.train.samples_per_step);
             // The step follows the finest cell.
@@ -319,7 +348,9 @@ mod tests {
         // `differences` finds each saved field by its flag's id: none may be missing.
         let command = FitSettings::augment_args(clap::Command::new("fit"));
         let ids: Vec<&str> = command.get_arguments().map(|a| a.get_id().as_str()).collect();
-        let serde_json::Value::Object(saved) = serde_json::to_value(&defaults).unwrap() else { panic!() };
+        let serde_json::Value::Object(saved) = serde_json::to_value(&defaults).unwrap() else {
+            panic!()
+        };
         for key in saved.keys() {
             assert!(ids.contains(&key.as_str()), "{key} has no flag");
         }
@@ -331,7 +362,10 @@ mod tests {
     fn checkpoints_of_earlier_versions_read_null_weights_as_the_defaults() {
         let old = r#"{"seed": 3, "preset": "fast", "holdout_every": 0, "lambda_depth": null, "learning_rate": null}"#;
         let s: FitSettings = serde_json::from_str(old).unwrap();
-        assert_eq!((s.lambda_depth, s.learning_rate), (DEFAULT_LAMBDA_DEPTH, DEFAULT_LEARNING_RATE));
+        assert_eq!(
+            (s.lambda_depth, s.learning_rate),
+            (DEFAULT_LAMBDA_DEPTH, DEFAULT_LEARNING_RATE)
+        );
         assert_eq!((s.seed, s.preset, s.holdout_every), (3, Preset::Fast, 0));
     }
 }

@@ -4,14 +4,14 @@
 //! divergence. Chunks map to threads deterministically for a given seed and
 //! thread count.
 
-use crate::nerf::train::adam::Adam;
-use crate::nerf::train::settings::TrainConfig;
-use crate::nerf::train::dataset::View;
-use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use crate::nerf::field::{Field, FieldGrad, FieldWorkspace};
-use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
+use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule};
+use crate::nerf::train::adam::Adam;
+use crate::nerf::train::dataset::View;
+use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -75,7 +75,6 @@ const RENDERING_GRID_STREAM: u64 = u64::MAX / 2;
 /// The first occupancy refresh after warm-up visits every cell: this many
 /// passes of the random subset a later refresh covers.
 const FIRST_REFRESH_PASSES: usize = 8;
-
 
 /// What one step did.
 #[derive(Clone, Copy, Debug, Default)]
@@ -226,7 +225,11 @@ impl Trainer {
     fn schedule(&self, progress: f32) -> f32 {
         let warm = self.config.warmup_steps.max(1) as f32;
         let warmup = ((self.counters.steps as f32 + 1.0) / warm).min(1.0);
-        let decay = LR_DECAY.iter().rev().find(|(from, _)| progress >= *from).map_or(1.0, |(_, factor)| *factor);
+        let decay = LR_DECAY
+            .iter()
+            .rev()
+            .find(|(from, _)| progress >= *from)
+            .map_or(1.0, |(_, factor)| *factor);
         warmup * decay
     }
 
@@ -240,7 +243,10 @@ impl Trainer {
         let coverage = *self.depth_coverage.get_or_insert_with(|| depth_coverage(views));
         let rule = self.config.step;
         let (colour_only, colour_only_cap) = if coverage >= COLOUR_ONLY_COARSE_MIN_COVERAGE {
-            (coarser(&rule, COLOUR_ONLY_STEP_FACTOR), self.config.max_samples_per_ray / 16)
+            (
+                coarser(&rule, COLOUR_ONLY_STEP_FACTOR),
+                self.config.max_samples_per_ray / 16,
+            )
         } else {
             (rule, self.config.max_samples_per_ray)
         };
@@ -298,9 +304,14 @@ impl Trainer {
         total.learning_rate = lr;
         let finite = total.loss.is_finite() && grad.all_finite();
         if finite {
-            let density = self.adam_density.dense_step_rms(&self.field.density.params, &grad.density, MLP_WEIGHT_DECAY);
-            let color = self.adam_color.dense_step_rms(&self.field.color.params, &grad.color, MLP_WEIGHT_DECAY);
-            total.relative_update = relative(lr * density, self.mlp_scale[0]).max(relative(lr * color, self.mlp_scale[1]));
+            let density = self
+                .adam_density
+                .dense_step_rms(&self.field.density.params, &grad.density, MLP_WEIGHT_DECAY);
+            let color = self
+                .adam_color
+                .dense_step_rms(&self.field.color.params, &grad.color, MLP_WEIGHT_DECAY);
+            total.relative_update =
+                relative(lr * density, self.mlp_scale[0]).max(relative(lr * color, self.mlp_scale[1]));
         }
         if !finite || diverged || total.relative_update > MAX_RELATIVE_UPDATE || total.rays == 0 {
             // Skip the batch (nothing applied: parameters and moments stay
@@ -319,9 +330,12 @@ impl Trainer {
         };
         let grid_decay = GRID_PRIOR * touched_rms(&grad.grid.values, grad.grid.touched());
         let touched = grad.grid.touched();
-        self.adam_grid.step_sparse_decayed(&mut self.field.grid.params, &grad.grid.values, touched, lr, grid_decay);
-        self.adam_density.step_dense(&mut self.field.density.params, &grad.density, lr, MLP_WEIGHT_DECAY);
-        self.adam_color.step_dense(&mut self.field.color.params, &grad.color, lr, MLP_WEIGHT_DECAY);
+        self.adam_grid
+            .step_sparse_decayed(&mut self.field.grid.params, &grad.grid.values, touched, lr, grid_decay);
+        self.adam_density
+            .step_dense(&mut self.field.density.params, &grad.density, lr, MLP_WEIGHT_DECAY);
+        self.adam_color
+            .step_dense(&mut self.field.color.params, &grad.color, lr, MLP_WEIGHT_DECAY);
         total
     }
 
@@ -331,9 +345,12 @@ impl Trainer {
         let mut grid = self.occupancy.clone();
         let mut rng = Rng::new(self.config.seed, RENDERING_GRID_STREAM);
         let field = &self.field;
-        grid.prune_for_rendering(&mut rng, &mut self.occupancy_positions, &mut self.occupancy_sigmas, |p, s| {
-            density_batched(field, p, s)
-        });
+        grid.prune_for_rendering(
+            &mut rng,
+            &mut self.occupancy_positions,
+            &mut self.occupancy_sigmas,
+            |p, s| density_batched(field, p, s),
+        );
         grid
     }
 
@@ -391,21 +408,32 @@ fn relative(step: f32, scale: f32) -> f32 {
 /// Density for many points, in parallel blocks.
 pub fn density_batched(field: &Field, positions: &[[f32; 3]], sigmas: &mut [f32]) {
     const BLOCK: usize = 8192;
-    positions.par_chunks(BLOCK).zip(sigmas.par_chunks_mut(BLOCK)).for_each_init(FieldWorkspace::default, |ws, (p, s)| {
-        field.density_only(p, ws, s);
-    });
+    positions
+        .par_chunks(BLOCK)
+        .zip(sigmas.par_chunks_mut(BLOCK))
+        .for_each_init(FieldWorkspace::default, |ws, (p, s)| {
+            field.density_only(p, ws, s);
+        });
 }
 
 /// Optimiser state that checkpoints save and restore (`checkpoint.rs`).
 impl Trainer {
     /// Adam state of the grid, density MLP and colour MLP; step-size scale; loss average.
     pub(crate) fn optimiser(&self) -> ([&Adam; 3], f32, f64) {
-        ([&self.adam_grid, &self.adam_density, &self.adam_color], self.lr_scale, self.loss_ema)
+        (
+            [&self.adam_grid, &self.adam_density, &self.adam_color],
+            self.lr_scale,
+            self.loss_ema,
+        )
     }
 
     /// The same state, mutable, to restore a checkpoint.
     pub(crate) fn optimiser_mut(&mut self) -> ([&mut Adam; 3], &mut f32, &mut f64) {
-        ([&mut self.adam_grid, &mut self.adam_density, &mut self.adam_color], &mut self.lr_scale, &mut self.loss_ema)
+        (
+            [&mut self.adam_grid, &mut self.adam_density, &mut self.adam_color],
+            &mut self.lr_scale,
+            &mut self.loss_ema,
+        )
     }
 }
 
@@ -427,14 +455,21 @@ fn depth_coverage(views: &[View]) -> f32 {
     let (mut with, mut all) = (0usize, 0usize);
     for v in views {
         all += v.rgb.len() / 3;
-        with += v.depth.as_ref().map_or(0, |d| d.iter().filter(|&&z| z > 0.0 && z.is_finite()).count());
+        with += v
+            .depth
+            .as_ref()
+            .map_or(0, |d| d.iter().filter(|&&z| z > 0.0 && z.is_finite()).count());
     }
     with as f32 / all.max(1) as f32
 }
 
 fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) -> ChunkStats {
     draw_rays(ctx, chunk, rng, budget);
-    let mut stats = ChunkStats { rays: chunk.rays.len(), samples: chunk.segments.len(), ..Default::default() };
+    let mut stats = ChunkStats {
+        rays: chunk.rays.len(),
+        samples: chunk.segments.len(),
+        ..Default::default()
+    };
     for ray in chunk.rays.iter().filter(|r| r.depth_t.is_none()) {
         stats.rays_without_depth += 1;
         stats.samples_without_depth += ray.count;
@@ -474,7 +509,9 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
         let pixel = rng.below(view.camera.pixels() as u64) as usize;
         let width = view.camera.width as usize;
         let (ray, t_per_z) = view.camera.ray((pixel % width) as f32, (pixel / width) as f32);
-        let Some((t0, t1)) = ray_interval(&ray, ctx.rule.min_step) else { continue };
+        let Some((t0, t1)) = ray_interval(&ray, ctx.rule.min_step) else {
+            continue;
+        };
         let depth_t = view.depth.as_ref().and_then(|d| {
             let z = d[pixel];
             (z > 0.0 && z.is_finite()).then_some(z * t_per_z)
@@ -490,14 +527,27 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
                 march(&ray, t0, w0, ctx.occupancy, &sparse, jitter, max, &mut chunk.segments);
                 let mut t = w0 + jitter * fine_step;
                 while t < w1 && chunk.segments.len() - first < max {
-                    chunk.segments.push(Segment { t, dt: fine_step.min(w1 - t) });
+                    chunk.segments.push(Segment {
+                        t,
+                        dt: fine_step.min(w1 - t),
+                    });
                     t += fine_step;
                 }
                 w1
             }
             // Without depth: stop where the grid says the ray is surely absorbed.
-            _ => march_until(&ray, t0, t1, ctx.occupancy, &ctx.colour_only, jitter, ctx.colour_only_cap, ABSORBED_OPTICAL_DEPTH, &mut chunk.segments)
-                .min(t1),
+            _ => march_until(
+                &ray,
+                t0,
+                t1,
+                ctx.occupancy,
+                &ctx.colour_only,
+                jitter,
+                ctx.colour_only_cap,
+                ABSORBED_OPTICAL_DEPTH,
+                &mut chunk.segments,
+            )
+            .min(t1),
         };
         let count = chunk.segments.len() - first;
         if count == 0 {
@@ -509,9 +559,20 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             break;
         }
         let px = 3 * pixel;
-        let target = [view.rgb[px] as f32 / 255.0, view.rgb[px + 1] as f32 / 255.0, view.rgb[px + 2] as f32 / 255.0];
+        let target = [
+            view.rgb[px] as f32 / 255.0,
+            view.rgb[px + 1] as f32 / 255.0,
+            view.rgb[px + 2] as f32 / 255.0,
+        ];
         let no_return = depth_t.is_none() && view.no_return.as_ref().is_some_and(|m| m[pixel]);
-        chunk.rays.push(RayRecord { first, count, target, depth_t, t_end, no_return });
+        chunk.rays.push(RayRecord {
+            first,
+            count,
+            target,
+            depth_t,
+            t_end,
+            no_return,
+        });
         chunk.ray_origins.push(ray.origin);
         chunk.ray_dirs.push(ray.dir);
     }
@@ -520,7 +581,11 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
 /// `rule` with its smallest step multiplied by `factor`.
 fn coarser(rule: &StepRule, factor: f32) -> StepRule {
     let min_step = factor * rule.min_step;
-    StepRule { min_step, max_step: rule.max_step.max(min_step), cone: rule.cone }
+    StepRule {
+        min_step,
+        max_step: rule.max_step.max(min_step),
+        cone: rule.cone,
+    }
 }
 
 fn sized<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
@@ -544,11 +609,14 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
         let (o, d) = (chunk.ray_origins[r], chunk.ray_dirs[r]);
         for seg in &chunk.segments[rec.first..rec.first + rec.count] {
             let t = seg.mid();
-            chunk.sample_positions.push([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+            chunk
+                .sample_positions
+                .push([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
             chunk.sample_dirs.push(d);
         }
     }
-    ctx.field.forward(&chunk.sample_positions, &chunk.sample_dirs, &mut chunk.ws, true);
+    ctx.field
+        .forward(&chunk.sample_positions, &chunk.sample_dirs, &mut chunk.ws, true);
     let tau = sized(&mut chunk.tau, n);
     let weights = sized(&mut chunk.weights, n);
     let grad_w = sized(&mut chunk.grad_w, n);
@@ -578,7 +646,11 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             }
             depth += w * segs[i].mid();
         }
-        let err = [color[0] - rec.target[0], color[1] - rec.target[1], color[2] - rec.target[2]];
+        let err = [
+            color[0] - rec.target[0],
+            color[1] - rec.target[1],
+            color[2] - rec.target[2],
+        ];
         stats.loss_rgb += (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]) as f64 / 3.0;
         let two_err = [2.0 * err[0] / 3.0, 2.0 * err[1] / 3.0, 2.0 * err[2] / 3.0];
         let mut g_t = two_err[0] * bg[0] + two_err[1] * bg[1] + two_err[2] * bg[2];
@@ -615,13 +687,26 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
         }
         if let (true, Some(measured)) = (rec.no_return, ctx.measured) {
             let positions = &chunk.sample_positions[o..o + k];
-            let loss = no_return_term(positions, &weights[o..o + k], measured, cfg.lambda_no_return, &mut grad_w[o..o + k]);
+            let loss = no_return_term(
+                positions,
+                &weights[o..o + k],
+                measured,
+                cfg.lambda_no_return,
+                &mut grad_w[o..o + k],
+            );
             stats.loss_depth += loss as f64;
         }
         for g in grad_w[o..o + k].iter_mut() {
             *g *= GRAD_SCALE;
         }
-        optical_depth_backward(&tau[o..o + k], &weights[o..o + k], &comp, &grad_w[o..o + k], g_t * GRAD_SCALE, &mut grad_tau[o..o + k]);
+        optical_depth_backward(
+            &tau[o..o + k],
+            &weights[o..o + k],
+            &comp,
+            &grad_w[o..o + k],
+            g_t * GRAD_SCALE,
+            &mut grad_tau[o..o + k],
+        );
         for i in 0..k {
             let j = o + i;
             d_sigma[j] = grad_tau[j] * segs[i].dt;
@@ -631,7 +716,13 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             d_rgb[2 * n + j] = two_err[2] * w;
         }
     }
-    ctx.field.backward(&chunk.sample_positions, &mut chunk.ws, &chunk.d_sigma[..n], &chunk.d_rgb[..3 * n], &mut chunk.grad);
+    ctx.field.backward(
+        &chunk.sample_positions,
+        &mut chunk.ws,
+        &chunk.d_sigma[..n],
+        &chunk.d_rgb[..3 * n],
+        &mut chunk.grad,
+    );
     let _ = stats;
 }
 
@@ -642,8 +733,16 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
 /// term, colour alone may paint such an object onto the surfaces behind
 /// it instead. Adds the gradient with respect to each weight to `grad_w`;
 /// returns the loss (0 when the ray meets no measured surface).
-fn no_return_term(positions: &[[f32; 3]], weights: &[f32], measured: &MeasuredSurfaces, lambda: f32, grad_w: &mut [f32]) -> f32 {
-    let Some(first) = positions.iter().position(|&p| measured.contains(p)) else { return 0.0 };
+fn no_return_term(
+    positions: &[[f32; 3]],
+    weights: &[f32],
+    measured: &MeasuredSurfaces,
+    lambda: f32,
+    grad_w: &mut [f32],
+) -> f32 {
+    let Some(first) = positions.iter().position(|&p| measured.contains(p)) else {
+        return 0.0;
+    };
     // Light through = 1 - sum of the weights in front.
     let through = 1.0 - weights[..first].iter().sum::<f32>();
     for g in &mut grad_w[..first] {
@@ -657,8 +756,8 @@ pub(crate) mod tests {
     use super::*;
     use crate::nerf::camera::LocalCamera;
     use crate::nerf::field::{FieldConfig, GridSpec};
-    use crate::nerf::render::composite::optical_depth_backward;
     use crate::nerf::occupancy::DepthRay;
+    use crate::nerf::render::composite::optical_depth_backward;
     use crate::nerf::render::rays::{render_pixels, RenderOptions};
     use crate::scan::Intrinsics;
     use glam::{DMat4, DVec3};
@@ -677,7 +776,12 @@ pub(crate) mod tests {
                     eye.extend(1.0),
                 );
                 let f = size as f64 * 0.8;
-                let k = Intrinsics { fx: f, fy: f, cx: size as f64 / 2.0 - 0.5, cy: size as f64 / 2.0 - 0.5 };
+                let k = Intrinsics {
+                    fx: f,
+                    fy: f,
+                    cx: size as f64 / 2.0 - 0.5,
+                    cy: size as f64 / 2.0 - 0.5,
+                };
                 let camera = LocalCamera::new(&pose, &k, size, size);
                 let mut rgb = Vec::new();
                 let mut depth = Vec::new();
@@ -692,15 +796,28 @@ pub(crate) mod tests {
                         depth.push(t / t_per_z);
                     }
                 }
-                View { camera, rgb, depth: with_depth.then_some(depth), no_return: None }
+                View {
+                    camera,
+                    rgb,
+                    depth: with_depth.then_some(depth),
+                    no_return: None,
+                }
             })
             .collect()
     }
 
     pub(crate) fn small_config(seed: u64) -> (FieldConfig, TrainConfig) {
         let grid = crate::nerf::field::hash_grid::HashGridConfig::for_scene(1.0, 1.0 / 128.0);
-        let field = FieldConfig { grid: GridSpec::from(&grid), density_hidden: vec![64], color_hidden: vec![64, 64] };
-        let step = StepRule { min_step: 1.0 / 160.0, max_step: 1.0 / 32.0, cone: 0.0 };
+        let field = FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![64],
+            color_hidden: vec![64, 64],
+        };
+        let step = StepRule {
+            min_step: 1.0 / 160.0,
+            max_step: 1.0 / 32.0,
+            cone: 0.0,
+        };
         let train = TrainConfig {
             samples_per_step: 1 << 14,
             max_samples_per_ray: 512,
@@ -720,9 +837,17 @@ pub(crate) mod tests {
 
     /// Mean depth error (local units) of the trained plane seen from view 0.
     fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
-        let opts = RenderOptions { color: true, rule: train_cfg.step, max_samples_per_ray: 4096, background: [0.5; 3] };
+        let opts = RenderOptions {
+            color: true,
+            rule: train_cfg.step,
+            max_samples_per_ray: 4096,
+            background: [0.5; 3],
+        };
         let cam = views[0].camera;
-        let pixels: Vec<(f32, f32)> = (8..40).step_by(4).flat_map(|v| (8..40).step_by(4).map(move |u| (u as f32, v as f32))).collect();
+        let pixels: Vec<(f32, f32)> = (8..40)
+            .step_by(4)
+            .flat_map(|v| (8..40).step_by(4).map(move |u| (u as f32, v as f32)))
+            .collect();
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
         let mut err = 0.0;
         for (o, &(u, v)) in out.iter().zip(&pixels) {
@@ -738,7 +863,11 @@ pub(crate) mod tests {
     fn measured_plane() -> MeasuredSurfaces {
         let rays: Vec<DepthRay> = (0..100)
             .flat_map(|i| (0..100).map(move |j| (i, j)))
-            .map(|(i, j)| DepthRay { origin: [0.2 + i as f32 * 0.006, 0.2 + j as f32 * 0.006, 0.1], dir: [0.0, 0.0, 1.0], t_hit: 0.5 })
+            .map(|(i, j)| DepthRay {
+                origin: [0.2 + i as f32 * 0.006, 0.2 + j as f32 * 0.006, 0.1],
+                dir: [0.0, 0.0, 1.0],
+                t_hit: 0.5,
+            })
             .collect();
         MeasuredSurfaces::from_depth_rays(&rays, 64)
     }
@@ -750,7 +879,11 @@ pub(crate) mod tests {
         let positions: Vec<[f32; 3]> = (0..80).map(|i| [0.5, 0.5, 0.1 + 0.01 * i as f32]).collect();
         let first = positions.iter().position(|&p| measured.contains(p)).unwrap();
         // The plane's cell starts at z = 38/64, grown by one cell.
-        assert!((positions[first][2] - 37.0 / 64.0).abs() <= 0.01, "first measured sample at z {}", positions[first][2]);
+        assert!(
+            (positions[first][2] - 37.0 / 64.0).abs() <= 0.01,
+            "first measured sample at z {}",
+            positions[first][2]
+        );
         let mut rng = Rng::new(9, 0);
         let tau: Vec<f32> = (0..80).map(|_| 0.05 * rng.f32()).collect();
         let mut weights = vec![0.0; 80];
@@ -759,7 +892,11 @@ pub(crate) mod tests {
         let lambda = 0.3;
         let loss = no_return_term(&positions, &weights, &measured, lambda, &mut grad_w);
         let through = (-tau[..first].iter().sum::<f32>()).exp();
-        assert!((loss - lambda * through).abs() < 1e-5, "loss {loss} vs {}", lambda * through);
+        assert!(
+            (loss - lambda * through).abs() < 1e-5,
+            "loss {loss} vs {}",
+            lambda * through
+        );
         // Through the compositing: d loss / d tau_i = -lambda * through in front, 0 behind.
         let mut grad_tau = vec![0.0; 80];
         optical_depth_backward(&tau, &weights, &comp, &grad_w, 0.0, &mut grad_tau);
@@ -789,7 +926,11 @@ pub(crate) mod tests {
                     if in_patch(p) {
                         let i = (v * size + u) as usize;
                         let stripe = ((p[0] * 60.0).floor() as i64) & 1 == 0;
-                        view.rgb[3 * i..3 * i + 3].copy_from_slice(if stripe { &[60, 200, 90] } else { &[235, 240, 235] });
+                        view.rgb[3 * i..3 * i + 3].copy_from_slice(if stripe {
+                            &[60, 200, 90]
+                        } else {
+                            &[235, 240, 235]
+                        });
                         depth[i] = 0.0;
                     }
                 }
@@ -813,19 +954,30 @@ pub(crate) mod tests {
         // `no_return_term_is_the_light_reaching_the_first_measured_surface`.
         let (field_cfg, train_cfg) = small_config(5);
         let mut rng = Rng::new(5, 0);
-        let mut trainer = Trainer::new(Field::new(field_cfg, &mut rng), OccupancyGrid::full(64), train_cfg.clone(), [0.5; 3]);
+        let mut trainer = Trainer::new(
+            Field::new(field_cfg, &mut rng),
+            OccupancyGrid::full(64),
+            train_cfg.clone(),
+            [0.5; 3],
+        );
         trainer.set_measured_surfaces(measured_plane());
         for s in 0..200 {
             trainer.step(&views, s as f32 / 200.0);
         }
-        let opts = RenderOptions { color: false, rule: train_cfg.step, max_samples_per_ray: 4096, background: [0.5; 3] };
+        let opts = RenderOptions {
+            color: false,
+            rule: train_cfg.step,
+            max_samples_per_ray: 4096,
+            background: [0.5; 3],
+        };
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
         let mut err: Vec<f32> = out
             .iter()
             .zip(&pixels)
             .map(|(o, &(u, v))| {
                 let (ray, _) = cam.ray(u, v);
-                o.depth_median.map_or(1.0, |t| (t - (0.45 - ray.origin[2]) / ray.dir[2]).abs())
+                o.depth_median
+                    .map_or(1.0, |t| (t - (0.45 - ray.origin[2]) / ray.dir[2]).abs())
             })
             .collect();
         err.sort_by(f32::total_cmp);
@@ -847,7 +999,12 @@ pub(crate) mod tests {
             last = trainer.step(&views, s as f32 / 150.0);
             first_loss.get_or_insert(last.loss);
         }
-        assert!(last.loss < 0.3 * first_loss.unwrap(), "loss {} -> {}", first_loss.unwrap(), last.loss);
+        assert!(
+            last.loss < 0.3 * first_loss.unwrap(),
+            "loss {} -> {}",
+            first_loss.unwrap(),
+            last.loss
+        );
         assert_eq!(trainer.counters.skipped_batches, 0);
         let err = plane_depth_error(&trainer, &views, &train_cfg);
         eprintln!("normal learning rate: mean depth error {err}");
@@ -865,7 +1022,10 @@ pub(crate) mod tests {
         let mut losses = Vec::new();
         for s in 0..150 {
             let stats = trainer.step(&views, s as f32 / 150.0);
-            assert!(stats.skipped || stats.relative_update <= MAX_RELATIVE_UPDATE, "step {s}: {stats:?}");
+            assert!(
+                stats.skipped || stats.relative_update <= MAX_RELATIVE_UPDATE,
+                "step {s}: {stats:?}"
+            );
             if !stats.skipped {
                 losses.push(stats.loss);
             }
@@ -873,7 +1033,13 @@ pub(crate) mod tests {
         let skipped = trainer.counters.skipped_batches;
         assert!(skipped > 0 && skipped < 30, "{skipped} of 150 batches skipped");
         let f = &trainer.field;
-        assert!(f.grid.params.iter().chain(&f.density.params).chain(&f.color.params).all(|v| v.is_finite()));
+        assert!(f
+            .grid
+            .params
+            .iter()
+            .chain(&f.density.params)
+            .chain(&f.color.params)
+            .all(|v| v.is_finite()));
         let (first, last) = (losses[0], losses[losses.len() - 1]);
         // Measured 0.0087 (the normal learning rate: 0.0054).
         let err = plane_depth_error(&trainer, &views, &train_cfg);

@@ -2,11 +2,11 @@
 //! subsample of each held-out view's pixels and compare with its colour and
 //! sensor depth.
 
-use crate::nerf::train::dataset::View;
 use crate::nerf::field::Field;
-use crate::nerf::train::metrics;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
+use crate::nerf::train::dataset::View;
+use crate::nerf::train::metrics;
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -35,7 +35,14 @@ pub fn subsample_grid(width: u32, height: u32, max_side: u32) -> (usize, usize, 
 }
 
 /// Evaluate on `views`; `metres_per_unit` converts local depth to metres.
-pub fn validate(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, views: &[View], metres_per_unit: f64, max_side: u32) -> Validation {
+pub fn validate(
+    field: &Field,
+    grid: &OccupancyGrid,
+    opts: &RenderOptions,
+    views: &[View],
+    metres_per_unit: f64,
+    max_side: u32,
+) -> Validation {
     let (mut psnr, mut ssim) = (0.0, 0.0);
     let (mut depth_sum, mut depth_n) = (0.0, 0usize);
     for view in views {
@@ -63,5 +70,9 @@ pub fn validate(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, views
         ssim += metrics::ssim(&rendered, &truth, w, h);
     }
     let n = views.len().max(1) as f64;
-    Validation { psnr: psnr / n, ssim: ssim / n, depth_mae_m: (depth_n > 0).then(|| depth_sum / depth_n as f64) }
+    Validation {
+        psnr: psnr / n,
+        ssim: ssim / n,
+        depth_mae_m: (depth_n > 0).then(|| depth_sum / depth_n as f64),
+    }
 }

@@ -42,7 +42,12 @@ struct Group<const F: usize> {
 
 impl<const F: usize> Group<F> {
     fn new() -> Self {
-        Group { idx: [[0; 8]; 8], g: [[[0.0; F]; 8]; 8], b0: 0, lanes: 0 }
+        Group {
+            idx: [[0; 8]; 8],
+            g: [[[0.0; F]; 8]; 8],
+            b0: 0,
+            lanes: 0,
+        }
     }
 
     /// Fills the group from block lanes `lane0..` (samples `b0..`); returns
@@ -52,7 +57,11 @@ impl<const F: usize> Group<F> {
     fn fill(&mut self, input: &LevelInput, block: &Block, lane0: usize, b0: usize) -> (u32, u32) {
         self.b0 = b0;
         self.lanes = (block.len - lane0).min(8);
-        let cols = [&block.x[lane0..lane0 + 8], &block.y[lane0..lane0 + 8], &block.z[lane0..lane0 + 8]];
+        let cols = [
+            &block.x[lane0..lane0 + 8],
+            &block.y[lane0..lane0 + 8],
+            &block.z[lane0..lane0 + 8],
+        ];
         if input.use_simd && self.lanes == 8 && F == 2 {
             let (rows, n) = (input.rows, input.n);
             let d = [&rows[b0..b0 + 8], &rows[n + b0..n + b0 + 8]];
@@ -133,9 +142,18 @@ pub(super) fn level<const F: usize>(
     grad: &mut GridGrad,
 ) {
     let n = positions.len();
-    let input = LevelInput { level, rows, n, use_simd };
+    let input = LevelInput {
+        level,
+        rows,
+        n,
+        use_simd,
+    };
     let base = level.param_offset / F;
-    let mut run = Run::<F> { idx: [0; 8], acc: [[0.0; F]; 8], live: false };
+    let mut run = Run::<F> {
+        idx: [0; 8],
+        acc: [[0.0; F]; 8],
+        live: false,
+    };
     // Range of entries the level's samples reach (for the summary bitset).
     let (mut lo, mut hi) = (u32::MAX, 0u32);
     let mut groups = [Group::<F>::new(), Group::<F>::new()];

@@ -70,7 +70,8 @@ impl GridGrad {
 
     /// Touched parameter indices since the last clear, ascending, without repeats.
     pub fn touched(&self) -> impl Iterator<Item = usize> + '_ {
-        self.touched_words().flat_map(|(first, bits)| ones(bits).map(move |b| first + b))
+        self.touched_words()
+            .flat_map(|(first, bits)| ones(bits).map(move |b| first + b))
     }
 
     /// Touched parameters as `(first index, bitmask)` over 64-parameter words,
@@ -102,7 +103,11 @@ impl GridGrad {
     /// Adds `other`'s touched values into `self` and takes over its touched set.
     /// Deterministic for a fixed merge order. Panics if the sizes differ.
     pub fn merge_from(&mut self, other: &GridGrad) {
-        assert_eq!(self.values.len(), other.values.len(), "GridGrad::merge_from: buffers of different grids");
+        assert_eq!(
+            self.values.len(),
+            other.values.len(),
+            "GridGrad::merge_from: buffers of different grids"
+        );
         for w in other.touched_word_indices() {
             let end = (w * 64 + 64).min(self.values.len());
             // Untouched values of `other` are zero, so adding the whole word is exact.
@@ -118,7 +123,10 @@ impl GridGrad {
 
     /// Indices of words of `bits` with a touched parameter, ascending.
     fn touched_word_indices(&self) -> impl Iterator<Item = usize> + '_ {
-        self.summary.iter().enumerate().flat_map(|(s, &sw)| ones(sw).map(move |b| s * 64 + b))
+        self.summary
+            .iter()
+            .enumerate()
+            .flat_map(|(s, &sw)| ones(sw).map(move |b| s * 64 + b))
     }
 }
 

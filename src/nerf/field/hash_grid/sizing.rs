@@ -38,7 +38,9 @@ pub fn for_scene(extent_m: f64, target_cell_m: f64) -> HashGridConfig {
         1
     } else {
         // Smallest count whose growth factor is at most MAX_GROWTH.
-        let steps = ((finest as f64 / base as f64).ln() / MAX_GROWTH.ln() - 1e-9).ceil().max(1.0);
+        let steps = ((finest as f64 / base as f64).ln() / MAX_GROWTH.ln() - 1e-9)
+            .ceil()
+            .max(1.0);
         steps as usize + 1
     };
     let side = finest as u64 + 1;
@@ -50,7 +52,13 @@ pub fn for_scene(extent_m: f64, target_cell_m: f64) -> HashGridConfig {
     } else {
         hashed
     };
-    HashGridConfig { levels, features_per_level: 2, log2_table_size, base_resolution: base, finest_resolution: finest }
+    HashGridConfig {
+        levels,
+        features_per_level: 2,
+        log2_table_size,
+        base_resolution: base,
+        finest_resolution: finest,
+    }
 }
 
 /// Smallest k with 2^k >= n (n >= 1).

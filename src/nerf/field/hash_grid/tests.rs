@@ -36,7 +36,13 @@ fn ray_positions(n: usize, seed: u64) -> Vec<[f32; 3]> {
 
 fn small_mixed(features_per_level: usize) -> HashGridConfig {
     // Levels 4..40 with a 2^12 table: the coarse ones dense, the fine ones hashed.
-    HashGridConfig { levels: 5, features_per_level, log2_table_size: 12, base_resolution: 4, finest_resolution: 40 }
+    HashGridConfig {
+        levels: 5,
+        features_per_level,
+        log2_table_size: 12,
+        base_resolution: 4,
+        finest_resolution: 40,
+    }
 }
 
 /// Plain reference: per sample, per level, per corner, in f64, from the config alone.
@@ -53,18 +59,26 @@ fn reference_encode(config: &HashGridConfig, params: &[f32], pos: &[[f32; 3]]) -
             let mut cell = [0u64; 3];
             let mut frac = [0f64; 3];
             for a in 0..3 {
-                let x = if p[a].is_nan() { 0.0 } else { (p[a] as f64).clamp(0.0, 1.0) };
+                let x = if p[a].is_nan() {
+                    0.0
+                } else {
+                    (p[a] as f64).clamp(0.0, 1.0)
+                };
                 let q = x * res as f64;
                 cell[a] = (q.floor() as u64).min(res as u64 - 1);
                 frac[a] = q - cell[a] as f64;
             }
             for c in 0..8u64 {
                 let v = [cell[0] + (c & 1), cell[1] + ((c >> 1) & 1), cell[2] + (c >> 2)];
-                let w: f64 = (0..3).map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] }).product();
+                let w: f64 = (0..3)
+                    .map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] })
+                    .product();
                 let entry = if dense {
                     v[0] + side * (v[1] + side * v[2])
                 } else {
-                    ((v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861)) as u64
+                    ((v[0] as u32)
+                        ^ (v[1] as u32).wrapping_mul(2_654_435_761)
+                        ^ (v[2] as u32).wrapping_mul(805_459_861)) as u64
                         % table
                 };
                 for f in 0..fpl {
@@ -96,18 +110,26 @@ fn reference_backward(config: &HashGridConfig, pos: &[[f32; 3]], d_out: &[f32]) 
             let mut cell = [0u64; 3];
             let mut frac = [0f64; 3];
             for a in 0..3 {
-                let x = if p[a].is_nan() { 0.0 } else { (p[a] as f64).clamp(0.0, 1.0) };
+                let x = if p[a].is_nan() {
+                    0.0
+                } else {
+                    (p[a] as f64).clamp(0.0, 1.0)
+                };
                 let q = x * res as f64;
                 cell[a] = (q.floor() as u64).min(res as u64 - 1);
                 frac[a] = q - cell[a] as f64;
             }
             for c in 0..8u64 {
                 let v = [cell[0] + (c & 1), cell[1] + ((c >> 1) & 1), cell[2] + (c >> 2)];
-                let w: f64 = (0..3).map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] }).product();
+                let w: f64 = (0..3)
+                    .map(|a| if (c >> a) & 1 == 1 { frac[a] } else { 1.0 - frac[a] })
+                    .product();
                 let entry = if dense {
                     v[0] + side * (v[1] + side * v[2])
                 } else {
-                    ((v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861)) as u64
+                    ((v[0] as u32)
+                        ^ (v[1] as u32).wrapping_mul(2_654_435_761)
+                        ^ (v[2] as u32).wrapping_mul(805_459_861)) as u64
                         % table
                 };
                 let live = (0..fpl).any(|f| d_out[(l * fpl + f) * n + b] != 0.0);
@@ -143,7 +165,11 @@ fn encode_matches_plain_reference() {
         let pos = positions(1000 + 3, 10 + k as u64); // not a multiple of 8 or of the block
         let got = encode(&g, &pos);
         let want = reference_encode(config, &g.params, &pos);
-        let worst = got.iter().zip(&want).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (*a as f64 - b).abs())
+            .fold(0.0, f64::max);
         // f32 rounding of x * res moves the fraction by ~res * 2^-24 per axis.
         let tol = 1e-6 + 2e-7 * config.finest_resolution as f64;
         assert!(worst < tol, "config {config:?}: max |encode - reference| = {worst}");
@@ -159,20 +185,36 @@ fn simd_and_scalar_paths_are_bit_identical() {
     let config = HashGridConfig::for_scene(2.0, 0.015);
     let g = grid(config, 3);
     for (k, mut pos) in [positions(777, 4), ray_positions(1000, 5)].into_iter().enumerate() {
-        pos.extend([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [-0.5, 2.0, f32::NAN], [f32::INFINITY, f32::NEG_INFINITY, 0.5]]);
+        pos.extend([
+            [1.0, 1.0, 1.0],
+            [0.0, 0.0, 0.0],
+            [-0.5, 2.0, f32::NAN],
+            [f32::INFINITY, f32::NEG_INFINITY, 0.5],
+        ]);
         let n = pos.len();
         let (mut fast, mut plain) = (vec![0.0; n * g.output_dim()], vec![0.0; n * g.output_dim()]);
         g.encode_with(&pos, &mut fast, true);
         g.encode_with(&pos, &mut plain, false);
-        assert!(fast.iter().zip(&plain).all(|(a, b)| a.to_bits() == b.to_bits()), "set {k}: SIMD encode differs");
+        assert!(
+            fast.iter().zip(&plain).all(|(a, b)| a.to_bits() == b.to_bits()),
+            "set {k}: SIMD encode differs"
+        );
 
         // Random d_out with every 5th sample's gradient zero (skipped inside runs).
         let mut rng = Rng::new(6, k as u64);
-        let d_out: Vec<f32> = (0..n * g.output_dim()).map(|i| if i % n % 5 == 0 { 0.0 } else { rng.f32() - 0.5 }).collect();
+        let d_out: Vec<f32> = (0..n * g.output_dim())
+            .map(|i| if i % n % 5 == 0 { 0.0 } else { rng.f32() - 0.5 })
+            .collect();
         let (mut ga, mut gb) = (GridGrad::new(g.param_count()), GridGrad::new(g.param_count()));
         g.backward_with(&pos, &d_out, &mut ga, true);
         g.backward_with(&pos, &d_out, &mut gb, false);
-        assert!(ga.values.iter().zip(&gb.values).all(|(a, b)| a.to_bits() == b.to_bits()), "set {k}: SIMD backward differs");
+        assert!(
+            ga.values
+                .iter()
+                .zip(&gb.values)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "set {k}: SIMD backward differs"
+        );
         assert!(ga.touched().eq(gb.touched()));
     }
 }
@@ -189,13 +231,27 @@ fn backward_along_rays_matches_reference_gradient() {
         g.backward(&pos, &d_out, &mut grad);
         let (want, reached) = reference_backward(&config, &pos, &d_out);
         let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let worst = grad.values.iter().zip(&want).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
-        assert!(worst < 1e-5 * scale.max(1.0), "{config:?}: max gradient error {worst} (largest {scale})");
+        let worst = grad
+            .values
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (*a as f64 - b).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 1e-5 * scale.max(1.0),
+            "{config:?}: max gradient error {worst} (largest {scale})"
+        );
         // Rays leave the cube, and clamped samples on a face have zero-weight corners: touched
         // is every corner reached, a superset of the non-zero gradients.
         let reached: Vec<usize> = (0..want.len()).filter(|&i| reached[i]).collect();
-        assert!(grad.touched().eq(reached.iter().copied()), "{config:?}: touched set differs from the corners reached");
-        assert!(want.iter().enumerate().all(|(i, v)| *v == 0.0 || reached.binary_search(&i).is_ok()));
+        assert!(
+            grad.touched().eq(reached.iter().copied()),
+            "{config:?}: touched set differs from the corners reached"
+        );
+        assert!(want
+            .iter()
+            .enumerate()
+            .all(|(i, v)| *v == 0.0 || reached.binary_search(&i).is_ok()));
         assert!(reached.iter().filter(|&&i| want[i] == 0.0).count() < reached.len() / 10);
     }
 }
@@ -220,12 +276,21 @@ fn backward_matches_central_differences_and_touched_is_exact() {
 
     let touched: Vec<usize> = grad.touched().collect();
     let nonzero: Vec<usize> = (0..g.param_count()).filter(|&i| grad.values[i] != 0.0).collect();
-    assert_eq!(touched, nonzero, "touched set must be exactly the params with a gradient");
-    assert!(touched.windows(2).all(|w| w[0] < w[1]), "touched must be ascending and unique");
+    assert_eq!(
+        touched, nonzero,
+        "touched set must be exactly the params with a gradient"
+    );
+    assert!(
+        touched.windows(2).all(|w| w[0] < w[1]),
+        "touched must be ascending and unique"
+    );
     assert!(touched.len() > 100);
 
     // Central differences on touched params and a few untouched ones.
-    let untouched = (0..g.param_count()).filter(|i| grad.values[*i] == 0.0).step_by(97).take(5);
+    let untouched = (0..g.param_count())
+        .filter(|i| grad.values[*i] == 0.0)
+        .step_by(97)
+        .take(5);
     let probe: Vec<usize> = touched.iter().copied().step_by(7).chain(untouched).collect();
     let eps = 1e-2;
     for i in probe {
@@ -237,7 +302,11 @@ fn backward_matches_central_differences_and_touched_is_exact() {
         g.params[i] = keep;
         let fd = (up - down) / (2.0 * eps as f64);
         let err = (fd - grad.values[i] as f64).abs();
-        assert!(err < 1e-3 * (1.0 + fd.abs()), "param {i}: backward {} vs finite difference {fd}", grad.values[i]);
+        assert!(
+            err < 1e-3 * (1.0 + fd.abs()),
+            "param {i}: backward {} vs finite difference {fd}",
+            grad.values[i]
+        );
     }
 }
 
@@ -245,7 +314,13 @@ fn backward_matches_central_differences_and_touched_is_exact() {
 fn gradient_is_exact_because_encoding_is_linear_in_params() {
     // d(sum c*out)/d(param) = sum over samples of c * corner weight: compare with an f64 reference
     // built from unit parameter vectors' encodings.
-    let config = HashGridConfig { levels: 2, features_per_level: 2, log2_table_size: 6, base_resolution: 2, finest_resolution: 5 };
+    let config = HashGridConfig {
+        levels: 2,
+        features_per_level: 2,
+        log2_table_size: 6,
+        base_resolution: 2,
+        finest_resolution: 5,
+    };
     let g = grid(config, 11);
     let pos = positions(40, 12);
     let mut rng = Rng::new(13, 0);
@@ -256,7 +331,11 @@ fn gradient_is_exact_because_encoding_is_linear_in_params() {
         unit[i] = 1.0;
         let basis = reference_encode(&config, &unit, &pos);
         let want: f64 = basis.iter().zip(&c).map(|(b, c)| b * *c as f64).sum();
-        assert!((grad.values[i] as f64 - want).abs() < 1e-5, "param {i}: {} vs exact {want}", grad.values[i]);
+        assert!(
+            (grad.values[i] as f64 - want).abs() < 1e-5,
+            "param {i}: {} vs exact {want}",
+            grad.values[i]
+        );
     }
 }
 
@@ -275,7 +354,10 @@ fn for_scene_sizes_tabletop_room_and_tiny() {
         let res = c.resolutions();
         assert_eq!(res.first(), Some(&c.base_resolution));
         assert_eq!(res.last(), Some(&c.finest_resolution));
-        assert!(res.windows(2).all(|w| w[1] > w[0]), "levels must grow strictly: {res:?}");
+        assert!(
+            res.windows(2).all(|w| w[1] > w[0]),
+            "levels must grow strictly: {res:?}"
+        );
         let growth = (c.finest_resolution as f64 / c.base_resolution as f64).powf(1.0 / (c.levels - 1) as f64);
         assert!((1.2..=1.45 + 1e-9).contains(&growth), "growth {growth}");
         assert!(c.log2_table_size <= 19);
@@ -354,7 +436,9 @@ fn merge_is_deterministic_and_matches_one_buffer() {
     let d: Vec<f32> = (0..pos.len() * g.output_dim()).map(|_| rng.f32() - 0.5).collect();
     // Two "threads", each with half the samples (d_out re-sliced per half).
     let half = |r: std::ops::Range<usize>| -> GridGrad {
-        let sub: Vec<f32> = (0..g.output_dim()).flat_map(|f| d[f * pos.len() + r.start..f * pos.len() + r.end].to_vec()).collect();
+        let sub: Vec<f32> = (0..g.output_dim())
+            .flat_map(|f| d[f * pos.len() + r.start..f * pos.len() + r.end].to_vec())
+            .collect();
         let mut gg = GridGrad::new(g.param_count());
         g.backward(&pos[r], &sub, &mut gg);
         gg
@@ -367,11 +451,20 @@ fn merge_is_deterministic_and_matches_one_buffer() {
         m
     };
     let (m1, m2) = (merged(&a, &b), merged(&a, &b));
-    assert!(m1.values.iter().zip(&m2.values).all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert!(m1
+        .values
+        .iter()
+        .zip(&m2.values)
+        .all(|(x, y)| x.to_bits() == y.to_bits()));
     let mut whole = GridGrad::new(g.param_count());
     g.backward(&pos, &d, &mut whole);
     assert!(m1.touched().eq(whole.touched()), "merged touched set = union");
-    let worst = m1.values.iter().zip(&whole.values).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
+    let worst = m1
+        .values
+        .iter()
+        .zip(&whole.values)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
     assert!(worst < 1e-5, "merged vs single buffer: {worst}");
     assert!(a.touched_count() < m1.touched_count());
 }
@@ -379,8 +472,20 @@ fn merge_is_deterministic_and_matches_one_buffer() {
 #[test]
 fn positions_outside_the_cube_or_nan_are_clamped() {
     let g = grid(small_mixed(2), 21);
-    let wild = [[-0.5, 0.3, 2.0], [f32::NAN, 0.7, 0.2], [f32::INFINITY, f32::NEG_INFINITY, 0.5], [1.0, 1.0, 1.0], [1e30, -1e30, f32::NAN]];
-    let tame = [[0.0, 0.3, 1.0], [0.0, 0.7, 0.2], [1.0, 0.0, 0.5], [1.0, 1.0, 1.0], [1.0, 0.0, 0.0]];
+    let wild = [
+        [-0.5, 0.3, 2.0],
+        [f32::NAN, 0.7, 0.2],
+        [f32::INFINITY, f32::NEG_INFINITY, 0.5],
+        [1.0, 1.0, 1.0],
+        [1e30, -1e30, f32::NAN],
+    ];
+    let tame = [
+        [0.0, 0.3, 1.0],
+        [0.0, 0.7, 0.2],
+        [1.0, 0.0, 0.5],
+        [1.0, 1.0, 1.0],
+        [1.0, 0.0, 0.0],
+    ];
     let (a, b) = (encode(&g, &wild), encode(&g, &tame));
     assert_eq!(a, b);
     assert!(a.iter().all(|v| v.is_finite()));
@@ -402,7 +507,14 @@ fn no_reallocation_after_warm_up() {
     let d = vec![0.25; pos.len() * g.output_dim()];
     let mut main = GridGrad::new(g.param_count());
     let mut other = GridGrad::new(g.param_count());
-    let fingerprint = |gg: &GridGrad| (gg.values.as_ptr(), gg.values.capacity(), gg.bits.as_ptr(), gg.summary.as_ptr());
+    let fingerprint = |gg: &GridGrad| {
+        (
+            gg.values.as_ptr(),
+            gg.values.capacity(),
+            gg.bits.as_ptr(),
+            gg.summary.as_ptr(),
+        )
+    };
     let before = (fingerprint(&main), fingerprint(&other));
     for _ in 0..3 {
         main.clear();
@@ -419,13 +531,25 @@ fn no_reallocation_after_warm_up() {
 fn from_params_rejects_bad_input() {
     let config = small_mixed(2);
     let n = config.param_count();
-    assert!(matches!(HashGrid::from_params(config, vec![0.0; n - 1]), Err(GridError::ParamCount { .. })));
+    assert!(matches!(
+        HashGrid::from_params(config, vec![0.0; n - 1]),
+        Err(GridError::ParamCount { .. })
+    ));
     let mut p = vec![0.0; n];
     p[5] = f32::NAN;
-    assert!(matches!(HashGrid::from_params(config, p), Err(GridError::NonFinite { index: 5, .. })));
-    let bad = HashGridConfig { features_per_level: 3, ..config };
+    assert!(matches!(
+        HashGrid::from_params(config, p),
+        Err(GridError::NonFinite { index: 5, .. })
+    ));
+    let bad = HashGridConfig {
+        features_per_level: 3,
+        ..config
+    };
     assert!(matches!(HashGrid::from_params(bad, vec![]), Err(GridError::Config(_))));
-    let bad = HashGridConfig { finest_resolution: 2, ..config };
+    let bad = HashGridConfig {
+        finest_resolution: 2,
+        ..config
+    };
     assert!(bad.validate().is_err());
     assert!(HashGrid::from_params(config, vec![0.0; n]).is_ok());
 }
@@ -458,7 +582,14 @@ fn level_split_across_threads_matches_one_thread_exactly() {
         let mut merged = GridGrad::new(g.param_count());
         merged.merge_from(&gb);
         merged.merge_from(&ga);
-        assert!(merged.values.iter().zip(&whole.values).all(|(x, y)| x.to_bits() == y.to_bits()), "split {split}");
+        assert!(
+            merged
+                .values
+                .iter()
+                .zip(&whole.values)
+                .all(|(x, y)| x.to_bits() == y.to_bits()),
+            "split {split}"
+        );
         assert!(merged.touched().eq(whole.touched()));
         assert!(ga.touched().all(|i| i < g.levels()[split].param_offset));
     }
@@ -473,7 +604,13 @@ fn buffers_shorter_than_a_word_work() {
     assert_eq!(other.touched().count(), 0);
 
     // 27 parameters (one dense 3x3x3-vertex level, 1 feature): the last word is partial.
-    let config = HashGridConfig { levels: 1, features_per_level: 1, log2_table_size: 5, base_resolution: 2, finest_resolution: 2 };
+    let config = HashGridConfig {
+        levels: 1,
+        features_per_level: 1,
+        log2_table_size: 5,
+        base_resolution: 2,
+        finest_resolution: 2,
+    };
     let g = grid(config, 60);
     assert_eq!(g.param_count(), 27);
     let pos = [[1.0, 1.0, 1.0], [0.9, 0.2, 0.6]];

@@ -61,11 +61,8 @@ fn entries_reachable(level: &GridLevel) -> Option<usize> {
 pub fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) -> bool {
     let n = out0.len();
     let padded = xyz[0].len();
-    let shapes_ok = padded.is_multiple_of(8)
-        && padded >= n
-        && xyz[1].len() == padded
-        && xyz[2].len() == padded
-        && out1.len() == n;
+    let shapes_ok =
+        padded.is_multiple_of(8) && padded >= n && xyz[1].len() == padded && xyz[2].len() == padded && out1.len() == n;
     let table_ok = entries_reachable(level).is_some_and(|e| table.len() >= 2 * e);
     if !(shapes_ok && table_ok && available()) {
         return false;
@@ -89,7 +86,13 @@ pub fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0:
 /// scatter. `xyz` and `d` are columns of 8, `g` has 128 elements. Returns
 /// the lowest and highest entry, or None (writing nothing) when AVX2 is
 /// missing or a length is wrong.
-pub fn group_grad_f2(level: &GridLevel, xyz: [&[f32]; 3], d: [&[f32]; 2], idx: &mut [[u32; 8]; 8], g: &mut [f32]) -> Option<(u32, u32)> {
+pub fn group_grad_f2(
+    level: &GridLevel,
+    xyz: [&[f32]; 3],
+    d: [&[f32]; 2],
+    idx: &mut [[u32; 8]; 8],
+    g: &mut [f32],
+) -> Option<(u32, u32)> {
     if xyz.iter().chain(&d).any(|c| c.len() != 8) || g.len() != 128 || level.resolution == 0 || !available() {
         return None;
     }
@@ -200,7 +203,13 @@ mod avx2 {
     /// AVX2 and FMA must be available; every column must be 8 long and `g`
     /// must hold 128 f32.
     #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn group_grad_f2(level: &GridLevel, xyz: [&[f32]; 3], d: [&[f32]; 2], idx: &mut [[u32; 8]; 8], g: &mut [f32]) -> (u32, u32) {
+    pub unsafe fn group_grad_f2(
+        level: &GridLevel,
+        xyz: [&[f32]; 3],
+        d: [&[f32]; 2],
+        idx: &mut [[u32; 8]; 8],
+        g: &mut [f32],
+    ) -> (u32, u32) {
         // SAFETY: the caller guarantees 8 readable f32 per column.
         let (x, y, z, d0, d1) = unsafe {
             (
@@ -212,7 +221,11 @@ mod avx2 {
             )
         };
         let (ci, cw) = corners(level, x, y, z);
-        let (mut fi, mut f0, mut f1) = ([_mm256_setzero_ps(); 8], [_mm256_setzero_ps(); 8], [_mm256_setzero_ps(); 8]);
+        let (mut fi, mut f0, mut f1) = (
+            [_mm256_setzero_ps(); 8],
+            [_mm256_setzero_ps(); 8],
+            [_mm256_setzero_ps(); 8],
+        );
         for c in 0..8 {
             fi[c] = _mm256_castsi256_ps(ci[c]);
             f0[c] = _mm256_mul_ps(cw[c], d0);
@@ -244,7 +257,10 @@ mod avx2 {
             _mm256_storeu_si256(lo8.as_mut_ptr().cast(), lo);
             _mm256_storeu_si256(hi8.as_mut_ptr().cast(), hi);
         }
-        (lo8.into_iter().fold(u32::MAX, u32::min), hi8.into_iter().fold(0, u32::max))
+        (
+            lo8.into_iter().fold(u32::MAX, u32::min),
+            hi8.into_iter().fold(0, u32::max),
+        )
     }
 
     /// See [`super::encode_level_f2`].
@@ -254,7 +270,13 @@ mod avx2 {
     /// multiple of 8 and cover `out0`; `table` must hold 2 f32 for every entry
     /// index the level's geometry can produce (`entries_reachable`).
     #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn encode_level_f2(level: &GridLevel, table: &[f32], xyz: [&[f32]; 3], out0: &mut [f32], out1: &mut [f32]) {
+    pub unsafe fn encode_level_f2(
+        level: &GridLevel,
+        table: &[f32],
+        xyz: [&[f32]; 3],
+        out0: &mut [f32],
+        out1: &mut [f32],
+    ) {
         let n = out0.len();
         if n == 0 {
             return;
@@ -299,8 +321,12 @@ mod avx2 {
                 hi = _mm256_add_ps(hi, _mm256_mul_ps(wh, _mm256_castpd_ps(vh)));
             }
             // De-interleave: shuffle gives samples 0 1 4 5 | 2 3 6 7, the 64-bit permute restores order.
-            let f0 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(_mm256_shuffle_ps::<0b10_00_10_00>(lo, hi))));
-            let f1 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(_mm256_shuffle_ps::<0b11_01_11_01>(lo, hi))));
+            let f0 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(
+                _mm256_shuffle_ps::<0b10_00_10_00>(lo, hi),
+            )));
+            let f1 = _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(
+                _mm256_shuffle_ps::<0b11_01_11_01>(lo, hi),
+            )));
             if s + 8 <= n {
                 // SAFETY: out0 and out1 have n >= s + 8 elements.
                 unsafe {
@@ -328,7 +354,14 @@ mod tests {
     use crate::nerf::field::hash_grid::HashGridConfig;
 
     fn levels() -> Vec<GridLevel> {
-        HashGridConfig { levels: 3, features_per_level: 2, log2_table_size: 10, base_resolution: 4, finest_resolution: 30 }.level_layout()
+        HashGridConfig {
+            levels: 3,
+            features_per_level: 2,
+            log2_table_size: 10,
+            base_resolution: 4,
+            finest_resolution: 30,
+        }
+        .level_layout()
     }
 
     #[test]
@@ -340,11 +373,24 @@ mod tests {
             let (mut o0, mut o1) = ([7.0f32; 16], [7.0f32; 16]);
             // A table one entry short, columns not padded to 8, or a length mismatch: refused, nothing written.
             assert!(!encode_level_f2(&level, &full[..full.len() - 2], xyz, &mut o0, &mut o1));
-            assert!(!encode_level_f2(&level, &full, [&cols[..15], &cols[..15], &cols[..15]], &mut o0[..15], &mut o1[..15]));
+            assert!(!encode_level_f2(
+                &level,
+                &full,
+                [&cols[..15], &cols[..15], &cols[..15]],
+                &mut o0[..15],
+                &mut o1[..15]
+            ));
             assert!(!encode_level_f2(&level, &full, xyz, &mut o0[..9], &mut o1[..8]));
             assert!(o0.iter().chain(&o1).all(|v| *v == 7.0));
             let (mut idx, mut g) = ([[0u32; 8]; 8], [0f32; 128]);
-            assert!(group_grad_f2(&level, [&cols[..7], &cols[..8], &cols[..8]], [&cols[..8]; 2], &mut idx, &mut g).is_none());
+            assert!(group_grad_f2(
+                &level,
+                [&cols[..7], &cols[..8], &cols[..8]],
+                [&cols[..8]; 2],
+                &mut idx,
+                &mut g
+            )
+            .is_none());
             assert!(group_grad_f2(&level, [&cols[..8]; 3], [&cols[..8]; 2], &mut idx, &mut g[..127]).is_none());
             if available() {
                 // Empty output: accepted, nothing read.
@@ -364,7 +410,13 @@ mod tests {
         let mut rng = crate::rng::Rng::new(40, 0);
         let col = |r: &mut crate::rng::Rng| -> Vec<f32> { (0..8).map(|_| r.f32() * 1.2 - 0.1).collect() };
         for level in levels() {
-            let (x, y, z, d0, d1) = (col(&mut rng), col(&mut rng), col(&mut rng), col(&mut rng), col(&mut rng));
+            let (x, y, z, d0, d1) = (
+                col(&mut rng),
+                col(&mut rng),
+                col(&mut rng),
+                col(&mut rng),
+                col(&mut rng),
+            );
             let (mut idx, mut g) = ([[0u32; 8]; 8], [0f32; 128]);
             let (lo, hi) = group_grad_f2(&level, [&x, &y, &z], [&d0, &d1], &mut idx, &mut g).expect("AVX2 present");
             for s in 0..8 {

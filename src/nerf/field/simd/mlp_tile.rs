@@ -90,12 +90,18 @@ pub fn gemm_tile(
     y: &mut [f32],
     ldy: usize,
 ) {
-    assert!(cols.is_multiple_of(COL_BLOCK), "gemm_tile: cols {cols} not a multiple of {COL_BLOCK}");
+    assert!(
+        cols.is_multiple_of(COL_BLOCK),
+        "gemm_tile: cols {cols} not a multiple of {COL_BLOCK}"
+    );
     if rows == 0 || cols == 0 {
         return;
     }
     if k_len > 0 {
-        assert!((rows - 1) * a_rs + (k_len - 1) * a_ks < a.len(), "gemm_tile: A out of bounds");
+        assert!(
+            (rows - 1) * a_rs + (k_len - 1) * a_ks < a.len(),
+            "gemm_tile: A out of bounds"
+        );
         assert!((k_len - 1) * ldx + cols <= x.len(), "gemm_tile: x out of bounds");
     }
     if let Some(b) = bias {
@@ -153,7 +159,10 @@ pub fn grad_tile(
     cols: usize,
     dwv: &mut [f32],
 ) {
-    assert!(cols.is_multiple_of(LANES), "grad_tile: cols {cols} not a multiple of {LANES}");
+    assert!(
+        cols.is_multiple_of(LANES),
+        "grad_tile: cols {cols} not a multiple of {LANES}"
+    );
     if out == 0 || inp == 0 || cols == 0 {
         return;
     }
@@ -182,7 +191,10 @@ pub fn grad_tile(
 
 /// Bias-gradient partials: `dbv[r * 8 + l] += sum_j dz[r][8j + l]`.
 pub fn rowsum_tile(kernel: MlpKernel, dz: &[f32], ldz: usize, rows: usize, cols: usize, dbv: &mut [f32]) {
-    assert!(cols.is_multiple_of(LANES), "rowsum_tile: cols {cols} not a multiple of {LANES}");
+    assert!(
+        cols.is_multiple_of(LANES),
+        "rowsum_tile: cols {cols} not a multiple of {LANES}"
+    );
     if rows == 0 || cols == 0 {
         return;
     }

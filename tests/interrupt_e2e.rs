@@ -410,7 +410,8 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
     assert_eq!(check_labels(&out), Some(24));
     let mut rng = Rng::new(62, 0);
     let mut killed = Vec::new();
-    let mut complete = Some("0..24".to_string());
+    // The last complete labelling: its range and its image count.
+    let mut complete = Some(("0..24".to_string(), 24));
     for i in 0..7 {
         let frames = 23 - i;
         let range = format!("0..{frames}");
@@ -431,19 +432,24 @@ fn sigkill_during_label_leaves_the_previous_or_a_complete_new_labelling() {
         match check_labels(&out) {
             Some(n) => {
                 // A partial run keeps the other frames of a complete labelling; after a
-                // kill between the swap's renames there is none (it sits in .replaced-PID).
-                let expected = if complete.is_some() { 24 } else { frames };
-                assert!(n == 24 || n == expected, "run {i}: {n} images, expected {expected}");
+                // kill between the swap's renames there is none (it sits in .replaced-PID),
+                // so the next run writes only its own frames.
+                let old = complete.as_ref().map(|(_, count)| *count);
+                let new = old.map_or(frames, |count| count.max(frames));
+                assert!(
+                    n == new || Some(n) == old,
+                    "run {i}: {n} images, expected {new} (new) or {old:?} (old)"
+                );
                 let labelled = labelled_range(&out);
                 assert!(
-                    labelled == range || Some(&labelled) == complete.as_ref(),
+                    labelled == range || Some(&labelled) == complete.as_ref().map(|(r, _)| r),
                     "run {i}: range {labelled} is neither the old nor the new labelling"
                 );
                 assert!(
                     was_killed || labelled == range,
                     "run {i} finished but left the old labels"
                 );
-                complete = Some(labelled);
+                complete = Some((labelled, n));
             }
             None => {
                 // Killed between the renames of the swap: the previous run sits complete beside it.

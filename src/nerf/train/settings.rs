@@ -264,7 +264,9 @@ const FINEST_CELLS: f64 = 2048.0;
 /// Settings for a scene whose unit cube spans `metres_per_unit` metres and
 /// whose cameras see `pixel_footprint_m` metres per pixel at their typical
 /// viewing distance: the finest cell is a few pixel footprints, so detail
-/// follows what the sensor resolves, at any scene scale.
+/// follows what the sensor resolves, at any scene scale. `fit` gives the
+/// preset, seed, loss weights and learning rate, and whether the no-return
+/// term is on.
 pub fn settings_for_scene(metres_per_unit: f64, pixel_footprint_m: f64, fit: &FitSettings) -> NerfSettings {
     let preset = fit.preset;
     let wanted = pixel_footprint_m * preset.pixels_per_cell();

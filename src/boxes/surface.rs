@@ -44,7 +44,7 @@ pub struct CrossingOptions {
 
 /// For each ray, the distance where accumulated opacity first reaches the
 /// threshold (interpolated inside the sample), `None` when it never does
-/// within `[t_min, t_max)`.
+/// within `[t_min, t_max)`. Returns the number of samples evaluated.
 pub fn first_crossings(
     field: &Field,
     grid: &OccupancyGrid,
@@ -52,7 +52,7 @@ pub fn first_crossings(
     opts: &CrossingOptions,
     ws: &mut SurfaceWorkspace,
     out: &mut [Option<f32>],
-) {
+) -> usize {
     let (rule, threshold, max_samples) = (&opts.rule, opts.threshold, opts.max_samples);
     debug_assert_eq!(rays.len(), out.len());
     out.iter_mut().for_each(|o| *o = None);
@@ -64,8 +64,9 @@ pub fn first_crossings(
     ws.active.clear();
     ws.active
         .extend((0..rays.len()).filter(|&i| rays[i].t_max > rays[i].t_min));
+    let mut evaluated = 0;
     while !ws.active.is_empty() {
-        let per_ray = (ROUND_SAMPLES / ws.active.len()).clamp(4, 64);
+        let per_ray = (ROUND_SAMPLES / ws.active.len()).clamp(2, 64);
         ws.segments.clear();
         ws.owner.clear();
         ws.positions.clear();
@@ -81,6 +82,7 @@ pub fn first_crossings(
                 .extend(ws.segments[first..].iter().map(|s| rays[r].ray.at(s.mid())));
         }
         ws.sigma.resize(ws.positions.len(), 0.0);
+        evaluated += ws.positions.len();
         field.density_only(&ws.positions, &mut ws.field, &mut ws.sigma);
         let mut keep = Vec::with_capacity(ws.owner.len());
         for &(r, first, count) in &ws.owner {
@@ -108,6 +110,7 @@ pub fn first_crossings(
         }
         ws.active = keep;
     }
+    evaluated
 }
 
 #[cfg(test)]

@@ -200,7 +200,21 @@ impl Mlp {
     /// Inference: `input[i * n + b]` is feature `i` of sample `b`; writes
     /// `output[o * n + b]`. Slices may be longer than `width * n`.
     pub fn forward(&self, input: &[f32], n: usize, ws: &mut MlpWorkspace, output: &mut [f32]) {
-        self.check_io(input.len(), output.len(), n);
+        self.forward_leading(input, n, self.config.output, ws, output);
+    }
+
+    /// Inference of the first `rows` outputs only (the last layer computes
+    /// just those): `output[o * n + b]` for `o < rows`, bit for bit what
+    /// [`Mlp::forward`] gives there. A density-only pass needs one of the
+    /// density network's outputs.
+    pub fn forward_leading(&self, input: &[f32], n: usize, rows: usize, ws: &mut MlpWorkspace, output: &mut [f32]) {
+        let rows = rows.min(self.config.output);
+        assert_eq!(self.params.len(), self.param_count(), "Mlp: params length changed");
+        assert!(
+            input.len() >= self.config.input * n,
+            "Mlp: input shorter than input * n"
+        );
+        assert!(output.len() >= rows * n, "Mlp: output shorter than rows * n");
         let tile_len = self.max_width * TILE;
         ws.tile_a.ensure(tile_len);
         ws.tile_b.ensure(tile_len);
@@ -209,11 +223,12 @@ impl Mlp {
             let valid = (n - t0).min(TILE);
             let cols = valid.next_multiple_of(COL_BLOCK);
             gather(input, n, self.config.input, t0, valid, cols, src);
-            for l in &self.layers {
-                self.layer_forward(l, src, cols, dst);
+            for (k, l) in self.layers.iter().enumerate() {
+                let out_rows = if k + 1 == self.layers.len() { rows } else { l.out };
+                self.layer_forward(l, out_rows, src, cols, dst);
                 std::mem::swap(&mut src, &mut dst);
             }
-            scatter(src, self.config.output, t0, valid, output, n);
+            scatter(src, rows, t0, valid, output, n);
         }
     }
 
@@ -241,7 +256,7 @@ impl Mlp {
                 } else {
                     &mut *out_tile
                 };
-                self.layer_forward(l, src, cols, dst);
+                self.layer_forward(l, l.out, src, cols, dst);
             }
             scatter(out_tile, self.config.output, t0, valid, output, n);
         }
@@ -339,9 +354,11 @@ impl Mlp {
     }
 
     /// One layer on one tile: `dst = act(W src + b)`.
-    fn layer_forward(&self, l: &Layer, src: &[f32], cols: usize, dst: &mut [f32]) {
-        let w = &self.params[l.w..l.w + l.inp * l.out];
-        let b = &self.params[l.b..l.b + l.out];
+    /// Layer `l`'s first `rows` outputs (weights are row-major, so they are
+    /// the first `rows` rows).
+    fn layer_forward(&self, l: &Layer, rows: usize, src: &[f32], cols: usize, dst: &mut [f32]) {
+        let w = &self.params[l.w..l.w + l.inp * rows];
+        let b = &self.params[l.b..l.b + rows];
         let epi = if l.relu { Epilogue::Relu } else { Epilogue::Linear };
         mlp_tile::gemm_tile(
             self.kernel,
@@ -352,7 +369,7 @@ impl Mlp {
             l.inp,
             src,
             TILE,
-            l.out,
+            rows,
             cols,
             epi,
             dst,
@@ -614,6 +631,11 @@ mod tests {
                     let mut out_train = vec![f32::NAN; config.output * n];
                     mlp.forward_train(&input, n, &mut ws, &mut out_train);
                     assert_eq!(out, out_train, "{what}: forward_train differs from forward");
+                    for rows in [1, config.output.div_ceil(2)] {
+                        let mut leading = vec![f32::NAN; rows * n];
+                        mlp.forward_leading(&input, n, rows, &mut ws, &mut leading);
+                        assert_eq!(leading, out[..rows * n], "{what}: first {rows} outputs differ");
+                    }
                     let mut grad = grad0.clone();
                     let mut d_in = vec![f32::NAN; config.input * n];
                     mlp.backward(&mut ws, &d_out, n, &mut grad, Some(&mut d_in));

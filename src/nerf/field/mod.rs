@@ -224,9 +224,11 @@ impl Field {
         let enc_dim = self.grid.config.output_dim();
         let encoded = sized(&mut ws.encoded, enc_dim * n);
         self.grid.encode(positions, encoded);
-        let out = sized(&mut ws.density_out, DENSITY_OUTPUTS * n);
+        // Only the density output: the features feed the colour network.
+        let out = sized(&mut ws.density_out, n);
         let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
-        self.density.forward(&ws.encoded[..enc_dim * n], n, mlp_ws, out);
+        self.density
+            .forward_leading(&ws.encoded[..enc_dim * n], n, 1, mlp_ws, out);
         for (s, &raw) in sigma.iter_mut().zip(&out[..n]) {
             *s = density_activation(raw);
         }

@@ -15,7 +15,7 @@
 //! (2 x 128 + 1)^3 density evaluations.
 
 use crate::nerf::field::{Field, FieldWorkspace};
-use crate::nerf::occupancy::{OccupancyGrid, RENDER_MIN_CELL_OPTICAL_DEPTH};
+use crate::nerf::occupancy::{OccupancyGrid, MAX_RESOLUTION, RENDER_MIN_CELL_OPTICAL_DEPTH};
 use rayon::prelude::*;
 
 /// Lattice steps per cell edge: 2 (half-cell spacing) matched 3 within
@@ -52,6 +52,129 @@ fn pruned_at(field: &Field, grid: &OccupancyGrid, steps: usize, min_density: f32
     }
     // The dropped cells are marked carved so the marcher never enters them.
     OccupancyGrid::from_saved(res, grid.densities().to_vec(), dropped).unwrap_or_else(|| grid.clone())
+}
+
+/// Occupied cells per parallel work item of [`refined`].
+const REFINE_CHUNK: usize = 256;
+
+/// `grid` at twice its resolution, for rendering only. Most samples of a
+/// rendered ray lie in the cell holding its surface; halving that cell
+/// skips the empty part in front of the surface. Each occupied cell on the
+/// boundary of the occupied space (a face neighbour empty) is split into
+/// its 8 children, and a child is kept when the density at any point of its
+/// own lattice ([`LATTICE_STEPS`] per child edge, faces and corners
+/// included) reaches [`RENDER_MIN_CELL_OPTICAL_DEPTH`] across the child.
+/// Cells inside the occupied space keep all their children (rays are
+/// absorbed before they get there), and children of empty cells stay empty.
+/// Costs (2 x 2 + 1)^3 density evaluations per boundary cell. Returns
+/// `grid` unchanged when it is already at [`MAX_RESOLUTION`] or when too
+/// few children are dense (nothing trained).
+pub fn refined(field: &Field, grid: &OccupancyGrid) -> OccupancyGrid {
+    let fine = 2 * grid.resolution();
+    refined_at(field, grid, RENDER_MIN_CELL_OPTICAL_DEPTH * fine as f32)
+}
+
+/// [`refined`] with a given density threshold.
+fn refined_at(field: &Field, grid: &OccupancyGrid, min_density: f32) -> OccupancyGrid {
+    let res = grid.resolution();
+    let fine = 2 * res;
+    if fine > MAX_RESOLUTION {
+        return grid.clone();
+    }
+    let occupied: Vec<usize> = (0..res * res * res).filter(|&c| grid.is_occupied_cell(c)).collect();
+    let boundary: Vec<usize> = occupied.iter().copied().filter(|&c| on_boundary(grid, c)).collect();
+    let boundary_children: Vec<u8> = boundary
+        .par_chunks(REFINE_CHUNK)
+        .map_init(
+            || (FieldWorkspace::default(), Vec::new(), Vec::new()),
+            |(ws, positions, sigma), cells| dense_children(field, res, cells, min_density, ws, positions, sigma),
+        )
+        .flatten_iter()
+        .collect();
+    // Too few dense children on the boundary: nothing trained.
+    let dense: usize = boundary_children.iter().map(|m| m.count_ones() as usize).sum();
+    if dense < (fine * fine * fine / 1000).max(1) {
+        return grid.clone();
+    }
+    let mut bits = vec![0u64; (fine * fine * fine).div_ceil(64)];
+    let mut refined = boundary.iter().zip(&boundary_children).peekable();
+    for &cell in &occupied {
+        let mask = match refined.peek() {
+            Some(&(&b, &mask)) if b == cell => {
+                refined.next();
+                mask
+            }
+            _ => 0xff,
+        };
+        let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+        for child in (0..8).filter(|k| mask >> k & 1 == 1) {
+            let (dx, dy, dz) = (child & 1, (child >> 1) & 1, child >> 2);
+            let c = ((2 * z + dz) * fine + 2 * y + dy) * fine + 2 * x + dx;
+            bits[c >> 6] |= 1 << (c & 63);
+        }
+    }
+    OccupancyGrid::from_occupied_bits(fine, bits).unwrap_or_else(|| grid.clone())
+}
+
+/// Whether an occupied cell has an empty face neighbour (outside the grid counts as empty).
+fn on_boundary(grid: &OccupancyGrid, cell: usize) -> bool {
+    let res = grid.resolution();
+    let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+    let (last, plane) = (res - 1, res * res);
+    x == 0
+        || y == 0
+        || z == 0
+        || x == last
+        || y == last
+        || z == last
+        || [cell - 1, cell + 1, cell - res, cell + res, cell - plane, cell + plane]
+            .iter()
+            .any(|&n| !grid.is_occupied_cell(n))
+}
+
+/// For each cell of `cells` (a grid of `res` per axis), a bit per child
+/// (x + 2 y + 4 z) set when the child is dense at a point of its lattice.
+fn dense_children(
+    field: &Field,
+    res: usize,
+    cells: &[usize],
+    min_density: f32,
+    ws: &mut FieldWorkspace,
+    positions: &mut Vec<[f32; 3]>,
+    sigma: &mut Vec<f32>,
+) -> Vec<u8> {
+    // Lattice points per cell edge, shared by its two children at the middle.
+    let k = 2 * LATTICE_STEPS + 1;
+    let inv = 1.0 / (2 * LATTICE_STEPS * res) as f32;
+    positions.clear();
+    for &cell in cells {
+        let base = [cell % res, (cell / res) % res, cell / (res * res)].map(|i| i * 2 * LATTICE_STEPS);
+        positions.extend((0..k * k * k).map(|i| {
+            let o = [i % k, (i / k) % k, i / (k * k)];
+            std::array::from_fn(|a| (base[a] + o[a]) as f32 * inv)
+        }));
+    }
+    sigma.clear();
+    sigma.resize(positions.len(), 0.0);
+    field.density_only(positions, ws, sigma);
+    sigma
+        .chunks_exact(k * k * k)
+        .map(|lattice| {
+            let mut mask = 0u8;
+            for child in 0..8 {
+                let lo = [child & 1, (child >> 1) & 1, child >> 2].map(|h| h * LATTICE_STEPS);
+                let dense = (0..=LATTICE_STEPS).any(|z| {
+                    (0..=LATTICE_STEPS).any(|y| {
+                        let row = ((lo[2] + z) * k + lo[1] + y) * k + lo[0];
+                        // Written so NaN is not dense.
+                        lattice[row..=row + LATTICE_STEPS].iter().any(|&s| s >= min_density)
+                    })
+                });
+                mask |= u8::from(dense) << child;
+            }
+            mask
+        })
+        .collect()
 }
 
 /// Largest density of every cell over its (steps + 1)^3 lattice points
@@ -177,6 +300,53 @@ mod tests {
                 "both kinds of cells occur: {kept} kept, {dropped} dropped"
             );
         }
+    }
+
+    #[test]
+    fn refined_children_are_exactly_the_dense_halves_of_occupied_cells() {
+        let field = random_field(10);
+        let res: usize = 8;
+        let cells = res * res * res;
+        // The coarse grid keeps two cells in three in its lower half, all of its upper half.
+        let mut carved = vec![0u64; cells.div_ceil(64)];
+        for c in (0..cells / 2).filter(|c| c % 3 == 0) {
+            carved[c >> 6] |= 1 << (c & 63);
+        }
+        let grid = OccupancyGrid::from_saved(res, vec![1.0; cells], carved).unwrap();
+        // Reference: each fine cell's peak over its own lattice points.
+        let fine = 2 * res;
+        let peak = cell_peaks(&field, fine, LATTICE_STEPS);
+        let mut sorted = peak.clone();
+        sorted.sort_by(f32::total_cmp);
+        let threshold = sorted[sorted.len() / 2];
+        let refined = refined_at(&field, &grid, threshold);
+        assert_eq!(refined.resolution(), fine);
+        let (mut kept, mut dropped, mut inside) = (0, 0, 0);
+        for (c, &p) in peak.iter().enumerate() {
+            let (x, y, z) = (c % fine, (c / fine) % fine, c / (fine * fine));
+            let parent = ((z / 2) * res + y / 2) * res + x / 2;
+            inside += usize::from(grid.is_occupied_cell(parent) && !on_boundary(&grid, parent) && p < threshold);
+            // Batches of other sizes round the MLP differently in the last bits.
+            if (p - threshold).abs() <= 1e-4 * threshold.abs().max(1.0) {
+                continue;
+            }
+            let keep = grid.is_occupied_cell(parent) && (p >= threshold || !on_boundary(&grid, parent));
+            assert_eq!(refined.is_occupied_cell(c), keep, "fine cell {c} peak {p}");
+            if grid.is_occupied_cell(parent) {
+                if keep {
+                    kept += 1;
+                } else {
+                    dropped += 1;
+                }
+            }
+        }
+        assert!(
+            kept > 300 && dropped > 300 && inside > 50,
+            "every kind of child occurs: {kept} kept, {dropped} dropped, {inside} kept inside the occupied space"
+        );
+        // Nothing dense: the grid is kept as it was given.
+        let unchanged = refined_at(&field, &grid, f32::INFINITY);
+        assert_eq!(unchanged.bits(), grid.bits());
     }
 
     #[test]

@@ -58,6 +58,8 @@ pub struct OccupancyGrid {
     /// One bit per block of BLOCK^3 cells: set when any cell of the block
     /// is occupied (rendering crosses empty blocks whole).
     blocks: Vec<u64>,
+    /// The same for groups of GROUP^3 cells, the level between cells and blocks.
+    groups: Vec<u64>,
     /// Cells the sensor saw as free space; they stay empty.
     carved: Vec<u64>,
     occupied: usize,
@@ -65,8 +67,13 @@ pub struct OccupancyGrid {
     refresh_phase: usize,
 }
 
+/// Most cells per axis (the marchers' index arithmetic relies on it).
+pub const MAX_RESOLUTION: usize = 512;
+
 /// Cells per block edge of the coarse occupancy level.
 pub const BLOCK: usize = 8;
+/// Cells per group edge of the middle level (a block holds (BLOCK / GROUP)^3 groups).
+pub const GROUP: usize = 2;
 
 /// A refresh evaluates one of this many interleaved subsets of the cells.
 const REFRESH_PARTS: usize = 8;
@@ -79,7 +86,7 @@ const MIN_OCCUPIED_FRACTION: f64 = 1e-3;
 impl OccupancyGrid {
     /// Every cell occupied (nothing known yet).
     pub fn full(res: usize) -> Self {
-        let res = res.clamp(4, 512);
+        let res = res.clamp(4, MAX_RESOLUTION);
         let cells = res * res * res;
         // A faint initial estimate (0.1 % opacity per cell): seeding and
         // model refreshes replace it.
@@ -91,6 +98,7 @@ impl OccupancyGrid {
             density: vec![initial; cells],
             bits: vec![0; words],
             blocks: Vec::new(),
+            groups: Vec::new(),
             occupied: 0,
             refresh_phase: 0,
         };
@@ -105,7 +113,7 @@ impl OccupancyGrid {
 
     /// Fraction of cells marked occupied.
     pub fn occupied_fraction(&self) -> f64 {
-        self.occupied as f64 / self.density.len() as f64
+        self.occupied as f64 / self.res.pow(3) as f64
     }
 
     /// Index of the cell holding `p`, `None` outside the unit cube or NaN.
@@ -134,31 +142,32 @@ impl OccupancyGrid {
         (self.blocks[i >> 6] >> (i & 63)) & 1 == 1
     }
 
-    /// Count the occupied cells and mark the blocks holding them.
-    fn finish_bits(&mut self) {
-        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
-        let (res, br) = (self.res, self.block_resolution());
-        self.blocks.clear();
-        self.blocks.resize((br * br * br).div_ceil(64), 0);
-        for (w, &word) in self.bits.iter().enumerate() {
-            let mut rest = word;
-            while rest != 0 {
-                let bit = rest.trailing_zeros() as usize;
-                let cell = w * 64 + bit;
-                let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
-                let b = ((z / BLOCK) * br + y / BLOCK) * br + x / BLOCK;
-                self.blocks[b >> 6] |= 1 << (b & 63);
-                // The next cells along x up to the block's edge are in the same block.
-                let run = (BLOCK - x % BLOCK).min(res - x);
-                rest &= if bit + run >= 64 { 0 } else { !0u64 << (bit + run) };
-            }
-        }
+    /// Groups per axis of the middle level (the last may be partial).
+    #[inline]
+    pub fn group_resolution(&self) -> usize {
+        self.res.div_ceil(GROUP)
     }
 
-    /// The density estimate of a cell (local units).
+    /// Whether the group with these group coordinates holds an occupied cell.
+    #[inline]
+    pub fn is_occupied_group(&self, group: [usize; 3]) -> bool {
+        let gr = self.group_resolution();
+        let i = (group[2] * gr + group[1]) * gr + group[0];
+        (self.groups[i >> 6] >> (i & 63)) & 1 == 1
+    }
+
+    /// Count the occupied cells and mark the groups and blocks holding them.
+    fn finish_bits(&mut self) {
+        self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
+        self.blocks = coarse_bits(&self.bits, self.res, BLOCK, std::mem::take(&mut self.blocks));
+        self.groups = coarse_bits(&self.bits, self.res, GROUP, std::mem::take(&mut self.groups));
+    }
+
+    /// The density estimate of a cell (local units; 0 in a rendering grid,
+    /// which keeps none).
     #[inline]
     pub fn cell_density(&self, cell: usize) -> f32 {
-        self.density[cell]
+        self.density.get(cell).copied().unwrap_or(0.0)
     }
 
     /// Whether the point may hold density (false outside the cube).
@@ -492,6 +501,28 @@ impl OccupancyGrid {
         self.refresh_phase = phase % REFRESH_PARTS;
     }
 
+    /// A grid for rendering only, from its occupancy bits (x-fastest cells,
+    /// 64 per word): it keeps no density estimates, so it can be marched but
+    /// not refreshed or saved. `None` when the sizes do not match.
+    pub fn from_occupied_bits(res: usize, bits: Vec<u64>) -> Option<Self> {
+        let words = res.checked_pow(3)?.div_ceil(64);
+        if !(4..=MAX_RESOLUTION).contains(&res) || bits.len() != words {
+            return None;
+        }
+        let mut grid = OccupancyGrid {
+            res,
+            density: Vec::new(),
+            bits,
+            blocks: Vec::new(),
+            groups: Vec::new(),
+            carved: vec![0; words],
+            occupied: 0,
+            refresh_phase: 0,
+        };
+        grid.finish_bits();
+        Some(grid)
+    }
+
     /// Rebuild a grid from saved density estimates and carved mask.
     pub fn from_saved(res: usize, density: Vec<f32>, carved: Vec<u64>) -> Option<Self> {
         let mut grid = OccupancyGrid::full(res);
@@ -506,6 +537,28 @@ impl OccupancyGrid {
         grid.rebuild_bits();
         Some(grid)
     }
+}
+
+/// One bit per `size`^3 cells of a `res`^3 bit grid, set when any of its
+/// cells is (reusing `buf`).
+fn coarse_bits(bits: &[u64], res: usize, size: usize, mut buf: Vec<u64>) -> Vec<u64> {
+    let cr = res.div_ceil(size);
+    buf.clear();
+    buf.resize((cr * cr * cr).div_ceil(64), 0);
+    for (w, &word) in bits.iter().enumerate() {
+        let mut rest = word;
+        while rest != 0 {
+            let bit = rest.trailing_zeros() as usize;
+            let cell = w * 64 + bit;
+            let (x, y, z) = (cell % res, (cell / res) % res, cell / (res * res));
+            let c = ((z / size) * cr + y / size) * cr + x / size;
+            buf[c >> 6] |= 1 << (c & 63);
+            // The next cells along x up to the coarse cell's edge are in the same one.
+            let run = (size - x % size).min(res - x);
+            rest &= if bit + run >= 64 { 0 } else { !0u64 << (bit + run) };
+        }
+    }
+    buf
 }
 
 /// Whether `keep` holds for every cell of the 3x3x3 block around `cell`
@@ -660,36 +713,43 @@ mod tests {
     /// Block bits against a cell-by-cell count, on a size that is neither
     /// a multiple of the block edge nor of the 64-bit word.
     #[test]
-    fn a_block_is_occupied_exactly_when_one_of_its_cells_is() {
+    fn a_block_or_group_is_occupied_exactly_when_one_of_its_cells_is() {
         let mut rng = Rng::new(31, 0);
         let res: usize = 44;
-        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
-        for cell in 0..res * res * res {
-            if rng.f32() < 0.995 {
-                carved[cell >> 6] |= 1 << (cell & 63);
+        for (size, keep) in [(BLOCK, 0.005), (GROUP, 0.1)] {
+            let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+            for cell in 0..res * res * res {
+                if rng.f32() >= keep {
+                    carved[cell >> 6] |= 1 << (cell & 63);
+                }
             }
+            let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+            let cr = res.div_ceil(size);
+            let mut want = vec![false; cr * cr * cr];
+            for c in (0..res * res * res).filter(|&c| grid.is_occupied_cell(c)) {
+                let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
+                want[((z / size) * cr + y / size) * cr + x / size] = true;
+            }
+            let (mut occupied, mut empty) = (0, 0);
+            for (i, &any) in want.iter().enumerate() {
+                let at = [i % cr, (i / cr) % cr, i / (cr * cr)];
+                let got = if size == BLOCK {
+                    grid.is_occupied_block(at)
+                } else {
+                    grid.is_occupied_group(at)
+                };
+                assert_eq!(got, any, "size {size}: {at:?}");
+                (occupied, empty) = if any {
+                    (occupied + 1, empty)
+                } else {
+                    (occupied, empty + 1)
+                };
+            }
+            assert!(
+                occupied > 20 && empty > 20,
+                "size {size}: {occupied} occupied and {empty} empty"
+            );
         }
-        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
-        let br = grid.block_resolution();
-        let mut want = vec![false; br * br * br];
-        for c in (0..res * res * res).filter(|&c| grid.is_occupied_cell(c)) {
-            let (x, y, z) = (c % res, (c / res) % res, c / (res * res));
-            want[((z / BLOCK) * br + y / BLOCK) * br + x / BLOCK] = true;
-        }
-        let (mut occupied, mut empty) = (0, 0);
-        for (i, &any) in want.iter().enumerate() {
-            let (bx, by, bz) = (i % br, (i / br) % br, i / (br * br));
-            assert_eq!(grid.is_occupied_block([bx, by, bz]), any, "block ({bx}, {by}, {bz})");
-            (occupied, empty) = if any {
-                (occupied + 1, empty)
-            } else {
-                (occupied, empty + 1)
-            };
-        }
-        assert!(
-            occupied > 20 && empty > 20,
-            "{occupied} occupied and {empty} empty blocks"
-        );
     }
 
     #[test]

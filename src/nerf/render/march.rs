@@ -2,7 +2,7 @@
 //! empty cells of the occupancy grid skipped whole.
 
 use crate::nerf::camera::{unit_cube_interval, LocalRay};
-use crate::nerf::occupancy::{OccupancyGrid, BLOCK};
+use crate::nerf::occupancy::{OccupancyGrid, BLOCK, GROUP};
 
 /// One volume-rendering sample: interval [t, t + dt), evaluated at its middle.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -132,9 +132,9 @@ fn march_impl<const BOUNDED: bool>(
 
 /// March for rendering: the samples [`march`] takes in occupied cells, but a
 /// run of empty cells is crossed in one jump. From an empty cell the cells
-/// along the ray are walked with a 3D DDA (a compare and an add per cell,
-/// where [`march`] pays a division and a libm call), blocks of
-/// [`BLOCK`]^3 cells without an occupied cell in one step each, and
+/// along the ray are walked (a few multiplications per step, where
+/// [`march`] pays a division and a libm call per cell), empty blocks of
+/// [`BLOCK`]^3 cells and groups of [`GROUP`]^3 in one step each, and
 /// marching resumes at the first step whose middle lies past the run, so at
 /// most one step of an occupied cell is passed over, as with [`march`].
 /// Landing points follow the current step size, so with growing steps they
@@ -185,94 +185,83 @@ fn cell_index_of(i: [i32; 3], res: usize) -> usize {
 }
 
 /// Distance from `p` (in the empty cell `idx`) along `dir` to the first
-/// occupied cell, the grid's edge, or `limit`, whichever comes first: a DDA
-/// over cells that crosses empty blocks in one step each.
+/// occupied cell, the grid's edge, or `limit`, whichever comes first. Each
+/// step crosses the largest empty cell of the three levels holding the
+/// current one: a block of [`BLOCK`]^3 cells, a group of [`GROUP`]^3, or
+/// the cell itself, so empty space costs a step per block and the space in
+/// front of a surface a step per group.
 #[inline(always)]
 fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [i32; 3], limit: f32) -> f32 {
     let res = grid.resolution();
-    let r = res as f32;
+    let cell_size = 1.0 / res as f32;
     let last = res as i32 - 1;
-    let block = BLOCK as i32;
-    let block_last = grid.block_resolution() as i32 - 1;
-    let block_size = BLOCK as f32 / r;
-    let mut step = [0i32; 3];
-    for a in 0..3 {
-        step[a] = if dir[a] > 0.0 {
+    let step: [i32; 3] = dir.map(|d| {
+        if d > 0.0 {
             1
-        } else if dir[a] < 0.0 {
+        } else if d < 0.0 {
             -1
         } else {
             0
-        };
-    }
-    // Distance from `p` to the boundary ahead of cell or block `i` of size `size` on axis `a`.
-    let boundary = |a: usize, i: i32, size: f32| -> f32 {
-        match step[a] {
-            1 => ((i + 1) as f32 * size - p[a]) / dir[a],
-            -1 => (i as f32 * size - p[a]) / dir[a],
-            _ => f32::INFINITY,
-        }
-    };
-    let axis_of_min = |n: &[f32; 3]| {
-        if n[0] <= n[1] && n[0] <= n[2] {
-            0
-        } else if n[1] <= n[2] {
-            1
-        } else {
-            2
-        }
-    };
-    let cell_size = 1.0 / r;
-    let delta: [f32; 3] = std::array::from_fn(|a| {
-        if step[a] == 0 {
-            f32::INFINITY
-        } else {
-            cell_size / dir[a].abs()
         }
     });
-    let mut next: [f32; 3] = std::array::from_fn(|a| boundary(a, idx[a], cell_size));
-    loop {
-        let b = idx.map(|i| i / block);
-        if !grid.is_occupied_block(b.map(|i| i as usize)) {
-            // Cross empty blocks whole, then resume cell by cell where the
-            // ray enters a block holding an occupied cell.
-            let block_delta: [f32; 3] = std::array::from_fn(|a| delta[a] * BLOCK as f32);
-            let mut bi = b;
-            let mut block_next: [f32; 3] = std::array::from_fn(|a| boundary(a, bi[a], block_size));
-            let entered = loop {
-                let a = axis_of_min(&block_next);
-                let d = block_next[a];
-                bi[a] += step[a];
-                if d >= limit || bi[a] < 0 || bi[a] > block_last {
-                    return d;
-                }
-                if grid.is_occupied_block(bi.map(|i| i as usize)) {
-                    break d;
-                }
-                block_next[a] += block_delta[a];
+    let inv: [f32; 3] = dir.map(|d| 1.0 / d);
+    // Level sizes as shifts (indices are never negative inside the grid).
+    const BLOCK_SHIFT: u32 = BLOCK.trailing_zeros();
+    const GROUP_SHIFT: u32 = GROUP.trailing_zeros();
+    const _: () = assert!(BLOCK.is_power_of_two() && GROUP.is_power_of_two());
+    let mut d = 0.0f32;
+    // Every step leaves a cell for one further along an axis, so a walk
+    // across the grid takes under 3 res steps; stopping early is safe (the
+    // march resumes there).
+    for _ in 0..4 * res {
+        let shift = if !grid.is_occupied_block(idx.map(|i| (i >> BLOCK_SHIFT) as usize)) {
+            BLOCK_SHIFT
+        } else if !grid.is_occupied_group(idx.map(|i| (i >> GROUP_SHIFT) as usize)) {
+            GROUP_SHIFT
+        } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
+            0
+        } else {
+            return d;
+        };
+        // Leave the empty cell of that level (cells `lo..lo + size` per axis).
+        let size = 1i32 << shift;
+        let lo = idx.map(|i| (i >> shift) << shift);
+        let (mut exit, mut axis) = (f32::INFINITY, 0);
+        for a in 0..3 {
+            let face = match step[a] {
+                1 => (lo[a] + size) as f32 * cell_size,
+                -1 => lo[a] as f32 * cell_size,
+                _ => continue,
             };
-            // The cell where the ray enters block `bi`, kept inside that block
-            // (the point lies on its face, where rounding may fall either side).
-            for a in 0..3 {
-                let q = (p[a] + entered * dir[a]) * r;
-                let lo = bi[a] * block;
-                let hi = (lo + block - 1).min(last);
-                idx[a] = (q.max(0.0) as i32).clamp(lo, hi);
+            let t = (face - p[a]) * inv[a];
+            if t < exit {
+                (exit, axis) = (t, a);
             }
-            if grid.is_occupied_cell(cell_index_of(idx, res)) {
-                return entered;
-            }
-            next = std::array::from_fn(|a| boundary(a, idx[a], cell_size));
-            continue;
         }
-        let a = axis_of_min(&next);
-        let d = next[a];
-        idx[a] += step[a];
-        if d >= limit || idx[a] < 0 || idx[a] > last || grid.is_occupied_cell(cell_index_of(idx, res)) {
+        d = exit.max(d);
+        if d >= limit {
             return d;
         }
-        next[a] += delta[a];
+        // The next cell: across the exit face on `axis`; on the other axes
+        // where the ray is, kept inside the cell just left (the point lies
+        // on its face, where rounding may fall either side).
+        for a in 0..3 {
+            idx[a] = if a == axis {
+                if step[a] > 0 {
+                    lo[a] + size
+                } else {
+                    lo[a] - 1
+                }
+            } else {
+                let q = ((p[a] + d * dir[a]) * res as f32).max(0.0) as i32;
+                q.clamp(lo[a], (lo[a] + size - 1).min(last))
+            };
+        }
+        if idx[axis] < 0 || idx[axis] > last {
+            return d;
+        }
     }
+    d
 }
 
 /// `OccupancyGrid::distance_to_cell_exit` for a point inside the cube whose

@@ -2,12 +2,13 @@
 //! colour (optional), metric z-depth and opacity per pixel.
 //!
 //! For many views of one model, [`ViewRenderer::pruned`] first re-estimates
-//! from the field which cells hold density ([`crate::nerf::occupancy::from_field`]).
+//! from the field which cells hold density, at twice the grid's resolution
+//! ([`crate::nerf::occupancy::from_field`]).
 
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
-use crate::nerf::occupancy::from_field::lattice_pruned;
+use crate::nerf::occupancy::from_field::{lattice_pruned, refined};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
 use crate::poses::{GeometryError, SceneTransform};
@@ -51,15 +52,21 @@ impl<'a> ViewRenderer<'a> {
         })
     }
 
-    /// Renderer for `model` through [`lattice_pruned`]'s grid (worth it for
-    /// many views: the set-up costs about as much as rendering five 320x240
+    /// Renderer for `model` through a grid re-estimated from the field:
+    /// [`lattice_pruned`], then [`refined`] to twice the resolution (worth it
+    /// for many views: the set-up costs about as much as rendering a few
     /// views with the model's own grid).
     pub fn pruned(model: &'a Model) -> Result<Self, GeometryError> {
-        let transform = model.scene_transform()?;
+        let grid = refined(&model.field, &lattice_pruned(&model.field, &model.occupancy));
+        Self::with_grid(model, grid)
+    }
+
+    /// Renderer for `model` marching through `grid` instead of the model's own.
+    pub fn with_grid(model: &'a Model, grid: OccupancyGrid) -> Result<Self, GeometryError> {
         Ok(ViewRenderer {
             model,
-            transform,
-            pruned: Some(lattice_pruned(&model.field, &model.occupancy)),
+            transform: model.scene_transform()?,
+            pruned: Some(grid),
         })
     }
 

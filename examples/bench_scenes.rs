@@ -5,7 +5,7 @@
 //! loose (+2.5 cm, 2 cm into the support), scored against the exact masks.
 //!
 //! Run: `cargo run --release --example bench_scenes -- [--scenes tabletop,clutter,room]
-//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--overlap deepest] [--no-tsdf] [--no-pose-refine]`
+//! [--seeds 2] [--fit-seconds 120] [--every 4] [--dir DIR] [--objects] [--exact-boxes] [--overlap deepest] [--no-tsdf] [--no-pose-refine] [--no-colour-snap]`
 //!
 //! Besides the product's sources it labels TSDF fusion (the paper's
 //! baseline: sensor depth fused at 5 mm, ray cast into every frame,
@@ -45,6 +45,7 @@ struct Args {
     overlap: Overlap,
     tsdf: bool,
     refine_poses: bool,
+    snap: bool,
 }
 
 fn parse_args() -> Result<Args, Error> {
@@ -59,6 +60,7 @@ fn parse_args() -> Result<Args, Error> {
         overlap: Overlap::Smallest,
         tsdf: true,
         refine_poses: true,
+        snap: true,
     };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
@@ -77,6 +79,7 @@ fn parse_args() -> Result<Args, Error> {
             "--exact-boxes" => args.exact_boxes = true,
             "--overlap" => args.overlap = clap::ValueEnum::from_str(&value("--overlap")?, true)?,
             "--no-tsdf" => args.tsdf = false,
+            "--no-colour-snap" => args.snap = false,
             "--no-pose-refine" => args.refine_poses = false,
             other => return Err(format!("unknown option {other}").into()),
         }
@@ -176,6 +179,7 @@ fn main() -> Result<(), Error> {
                         source,
                         exact_boxes: args.exact_boxes,
                         overlap: args.overlap,
+                        snap_to_colour: args.snap,
                         ..LabelOptions::default()
                     };
                     let e = evaluate_labels(scan, &boxes, Some(&model), &truth, opts)?;

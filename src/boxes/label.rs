@@ -7,6 +7,7 @@
 //! of a box are found) only to the far end of the ray's interval through the
 //! boxes, and stop at termination.
 
+use super::boundary::snap_to_colour;
 use super::classify::BoxClassifier;
 use super::cleanup::clean_mask;
 use super::options::{DepthSource, LabelError, LabelOptions};
@@ -298,6 +299,9 @@ impl<'a> Labeler<'a> {
                         .is_some_and(|planes| planes.iter().any(excluded_by));
                 mask[index] = if excluded { 0 } else { id as u16 };
             }
+        }
+        if self.options.snap_to_colour && frame.rgb.width() == w && frame.rgb.height() == h {
+            mask = snap_to_colour(&mask, &frame.rgb);
         }
         if self.options.cleanup_fraction > 0.0 {
             clean_mask(&mut mask, w, h, self.options.cleanup_fraction);

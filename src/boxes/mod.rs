@@ -11,6 +11,7 @@
 //! Depends on `scan`, `poses` and `nerf` (to render depth); never on `synth`
 //! or the CLI. Never prints.
 
+pub mod boundary;
 pub mod classify;
 pub mod cleanup;
 pub mod coco;

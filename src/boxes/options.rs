@@ -141,6 +141,9 @@ pub struct LabelOptions {
     pub exact_boxes: bool,
     /// Which box a point inside several boxes belongs to.
     pub overlap: Overlap,
+    /// Move silhouettes onto the frame's colour edges ([`super::boundary`]);
+    /// on by default.
+    pub snap_to_colour: bool,
 }
 
 impl Default for LabelOptions {
@@ -154,6 +157,7 @@ impl Default for LabelOptions {
             exact_boxes: false,
             overlap: Overlap::Smallest,
             cleanup_fraction: 0.02,
+            snap_to_colour: true,
         }
     }
 }

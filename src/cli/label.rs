@@ -31,6 +31,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         full_depth: args.depth,
         exact_boxes: args.exact_boxes,
         overlap: args.overlap,
+        snap_to_colour: !args.no_colour_snap,
         ..LabelOptions::default()
     };
     let mut labeler = Labeler::new(&boxes, model.as_ref(), options)?;

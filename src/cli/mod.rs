@@ -253,6 +253,13 @@ pub struct LabelArgs {
     /// Which box a point inside several boxes belongs to.
     #[arg(long, value_enum, default_value_t = Overlap::Smallest)]
     pub overlap: Overlap,
+    /// Keep silhouettes exactly where depth and poses put them. By default
+    /// each pixel within 2 px of a silhouette takes the label whose nearby
+    /// pixels match its colour clearly better: the frame's own image shows
+    /// where the object is, while a pose error of a millimetre moves the
+    /// depth-based silhouette by about a pixel.
+    #[arg(long)]
+    pub no_colour_snap: bool,
 }
 
 #[derive(Args, Debug)]

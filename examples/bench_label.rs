@@ -16,6 +16,7 @@
 //! `--exact-boxes` (no support or wall plane excluded from the boxes),
 //! `--no-pose-refine` (fit with the poses as captured),
 //! `--cleanup F` (mask clean-up fraction, 0 = off),
+//! `--no-colour-snap` (silhouettes not moved onto the colour edges),
 //! `--opacity A` (accumulated opacity that marks the rendered surface),
 //! `--depth-errors` (fixture: rendered depth against exact depth inside each object),
 //! `--dump DIR` (error images of every 10th frame: green = right, red =
@@ -50,6 +51,7 @@ struct Args {
     depth_errors: bool,
     opacity: f32,
     cleanup: f64,
+    snap_to_colour: bool,
     /// Grow every box by this margin on each side, bottom 2 cm below the original.
     loose: Option<f64>,
     exact_boxes: bool,
@@ -80,6 +82,7 @@ fn parse_args() -> Result<Args, Error> {
         depth_errors: false,
         opacity: LabelOptions::default().surface_opacity,
         cleanup: LabelOptions::default().cleanup_fraction,
+        snap_to_colour: true,
         loose: None,
         exact_boxes: false,
         refine_poses: true,
@@ -101,6 +104,7 @@ fn parse_args() -> Result<Args, Error> {
             "--boxes" => args.boxes = value("--boxes")?.into(),
             "--realistic" => args.realistic = true,
             "--cleanup" => args.cleanup = value("--cleanup")?.parse()?,
+            "--no-colour-snap" => args.snap_to_colour = false,
             "--opacity" => args.opacity = value("--opacity")?.parse()?,
             "--depth-errors" => args.depth_errors = true,
             "--dump" => args.dump = Some(value("--dump")?.into()),
@@ -356,6 +360,7 @@ fn main() -> Result<(), Error> {
             surface_opacity: args.opacity,
             cleanup_fraction: args.cleanup,
             exact_boxes: args.exact_boxes,
+            snap_to_colour: args.snap_to_colour,
             ..LabelOptions::default()
         };
         let e = evaluate_labels(&scan, &boxes, Some(&model), &truth, opts)?;

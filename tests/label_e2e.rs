@@ -215,6 +215,7 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
     let coco: Value = serde_json::from_slice(&std::fs::read(out.join("coco.json")).unwrap()).unwrap();
     assert_eq!(coco["info"]["source"], "sensor");
     assert_eq!(coco["info"]["overlap"], "smallest");
+    assert_eq!(coco["info"]["colour_snap"], true);
     let images = coco["images"].as_array().unwrap();
     assert_eq!(images.len(), 6);
     assert_eq!(coco["categories"].as_array().unwrap().len(), boxes.categories.len());

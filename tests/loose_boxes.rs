@@ -87,3 +87,26 @@ fn a_loose_box_labels_the_object_not_the_table() {
         "the loose box labels about as well as the tight one: {rule_iou} vs {tight_iou}"
     );
 }
+
+#[test]
+fn colour_snapping_is_on_by_default_recorded_and_can_be_turned_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan: PathBuf = dir.path().join("scan");
+    copy_dir(&Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small"), &scan);
+    let boxes = scan.join("boxes.json");
+    let (snapped, _) = label(&scan, &boxes, &dir.path().join("snapped"), &[]);
+    let (kept, _) = label(&scan, &boxes, &dir.path().join("kept"), &["--no-colour-snap"]);
+    eprintln!("sensor source, small fixture: snapped {snapped:.4}, --no-colour-snap {kept:.4}");
+    let info = |out: &str| -> serde_json::Value {
+        let coco: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join(out).join("coco.json")).unwrap()).unwrap();
+        coco["info"]["colour_snap"].clone()
+    };
+    assert_eq!(info("snapped"), true);
+    assert_eq!(info("kept"), false);
+    // The sensor's low-resolution depth puts silhouettes a pixel off; the colour edges do not.
+    assert!(
+        snapped > kept,
+        "snapping to the colour edges helps: {snapped} vs {kept}"
+    );
+}

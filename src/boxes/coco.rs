@@ -17,6 +17,8 @@ pub struct CocoInfo {
     pub source: String,
     /// Which box a point in several boxes went to: smallest or deepest.
     pub overlap: String,
+    /// Silhouettes moved onto the colour edges (`label --no-colour-snap` = false).
+    pub colour_snap: bool,
     /// Seed of the model's fit (`None` without a model).
     pub seed: Option<u64>,
     pub scan: String,

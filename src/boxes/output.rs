@@ -370,6 +370,7 @@ fn stage(
     let info = CocoInfo {
         source: labeler.options().source.name().to_string(),
         overlap: labeler.options().overlap.name().to_string(),
+        colour_snap: labeler.options().snap_to_colour,
         ..options.info.clone()
     };
     let coco = assemble(info, boxes, &records);

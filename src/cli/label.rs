@@ -47,6 +47,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),
         source: source.name().into(),
         overlap: args.overlap.name().into(),
+        colour_snap: !args.no_colour_snap,
         seed: model.as_ref().map(|m| m.header.seed),
         scan: scan_dir.display().to_string(),
         boxes: args.boxes.display().to_string(),

@@ -14,7 +14,6 @@ use nerflabel::evaluate::read_gray16;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined};
 use nerflabel::nerf::occupancy::OccupancyGrid;
-use nerflabel::nerf::render::march::ray_interval;
 use nerflabel::nerf::render::rays::{render_image, RenderRay, PACKET};
 use nerflabel::nerf::render::view::ViewRenderer;
 use nerflabel::scan::{load, LoadOptions};
@@ -110,8 +109,8 @@ fn main() -> Result<(), Error> {
             let (mut marched, mut pixel_of) = (Vec::new(), Vec::new());
             for i in 0..(w * h) as usize {
                 let (ray, t_per_z) = camera.ray((i % w as usize) as f32, (i / w as usize) as f32);
-                if let Some((t_min, t_max)) = ray_interval(&ray, depth_opts.rule.min_step) {
-                    marched.push(RenderRay { ray, t_min, t_max });
+                if let Some(r) = RenderRay::through_cube(ray, depth_opts.rule.min_step) {
+                    marched.push(r);
                     pixel_of.push((i, t_per_z));
                 }
             }

@@ -300,7 +300,7 @@ impl<'a> Labeler<'a> {
                 mask[index] = if excluded { 0 } else { id as u16 };
             }
         }
-        if self.options.snap_to_colour && frame.rgb.width() == w && frame.rgb.height() == h {
+        if self.options.snap_to_colour {
             mask = snap_to_colour(&mask, &frame.rgb);
         }
         if self.options.cleanup_fraction > 0.0 {

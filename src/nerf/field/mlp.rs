@@ -209,12 +209,7 @@ impl Mlp {
     /// density network's outputs.
     pub fn forward_leading(&self, input: &[f32], n: usize, rows: usize, ws: &mut MlpWorkspace, output: &mut [f32]) {
         let rows = rows.min(self.config.output);
-        assert_eq!(self.params.len(), self.param_count(), "Mlp: params length changed");
-        assert!(
-            input.len() >= self.config.input * n,
-            "Mlp: input shorter than input * n"
-        );
-        assert!(output.len() >= rows * n, "Mlp: output shorter than rows * n");
+        self.check_io(input.len(), output.len(), n, rows);
         let tile_len = self.max_width * TILE;
         ws.tile_a.ensure(tile_len);
         ws.tile_b.ensure(tile_len);
@@ -235,7 +230,7 @@ impl Mlp {
     /// Training forward: like [`Mlp::forward`], and keeps every layer's input
     /// in `ws` for [`Mlp::backward`].
     pub fn forward_train(&self, input: &[f32], n: usize, ws: &mut MlpWorkspace, output: &mut [f32]) {
-        self.check_io(input.len(), output.len(), n);
+        self.check_io(input.len(), output.len(), n, self.config.output);
         let tiles = n.div_ceil(TILE);
         let tile_stride = self.act_rows * TILE;
         ws.acts.ensure(tiles * tile_stride);
@@ -377,13 +372,11 @@ impl Mlp {
         );
     }
 
-    fn check_io(&self, input_len: usize, output_len: usize, n: usize) {
+    /// Checks a pass over `n` samples that writes `rows` output rows.
+    fn check_io(&self, input_len: usize, output_len: usize, n: usize, rows: usize) {
         assert_eq!(self.params.len(), self.param_count(), "Mlp: params length changed");
         assert!(input_len >= self.config.input * n, "Mlp: input shorter than input * n");
-        assert!(
-            output_len >= self.config.output * n,
-            "Mlp: output shorter than output * n"
-        );
+        assert!(output_len >= rows * n, "Mlp: output shorter than rows * n");
     }
 
     /// Identifies a forward_train so backward can refuse a mismatched one.

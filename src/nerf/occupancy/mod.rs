@@ -137,9 +137,7 @@ impl OccupancyGrid {
     /// Whether the block with these block coordinates holds an occupied cell.
     #[inline]
     pub fn is_occupied_block(&self, block: [usize; 3]) -> bool {
-        let br = self.block_resolution();
-        let i = (block[2] * br + block[1]) * br + block[0];
-        (self.blocks[i >> 6] >> (i & 63)) & 1 == 1
+        coarse_bit(&self.blocks, self.block_resolution(), block)
     }
 
     /// Groups per axis of the middle level (the last may be partial).
@@ -151,9 +149,7 @@ impl OccupancyGrid {
     /// Whether the group with these group coordinates holds an occupied cell.
     #[inline]
     pub fn is_occupied_group(&self, group: [usize; 3]) -> bool {
-        let gr = self.group_resolution();
-        let i = (group[2] * gr + group[1]) * gr + group[0];
-        (self.groups[i >> 6] >> (i & 63)) & 1 == 1
+        coarse_bit(&self.groups, self.group_resolution(), group)
     }
 
     /// Count the occupied cells and mark the groups and blocks holding them.
@@ -537,6 +533,13 @@ impl OccupancyGrid {
         grid.rebuild_bits();
         Some(grid)
     }
+}
+
+/// The bit of coarse cell `at` in a level of `cr` cells per axis built by [`coarse_bits`].
+#[inline]
+fn coarse_bit(words: &[u64], cr: usize, at: [usize; 3]) -> bool {
+    let i = (at[2] * cr + at[1]) * cr + at[0];
+    (words[i >> 6] >> (i & 63)) & 1 == 1
 }
 
 /// One bit per `size`^3 cells of a `res`^3 bit grid, set when any of its

@@ -158,6 +158,12 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
                 .unwrap_or_else(|| "n/a".into())
         );
     }
+    if let Some(a) = &r.appearance {
+        println!(
+            "appearance: {} frames, colour change median {:.3}, largest {:.3} (frame {})",
+            a.frames, a.median_strength, a.largest_strength, a.largest_frame
+        );
+    }
     println!("report: {}", report_path.display());
     Ok(())
 }

@@ -25,6 +25,9 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
         c.jpeg_quality = q;
     }
     c.pose_noise |= args.pose_noise;
+    if let Some(e) = args.exposure {
+        c.exposure_change = e;
+    }
     if let Some(text) = &args.pose_error {
         let parsed: Option<(f64, f64)> = text
             .split_once(',')

@@ -156,6 +156,10 @@ pub struct FixtureArgs {
     /// Slow drift of the written camera positions, RMS millimetres over the scan (implies --pose-noise).
     #[arg(long, value_name = "MM")]
     pub pose_drift: Option<f64>,
+    /// Exposure and white balance drifting along the capture, as auto-exposure does: RMS of the log
+    /// gain over the scan (e.g. 0.2 for about +-20 %); white balance per channel a third of it.
+    #[arg(long, value_name = "LOG_GAIN")]
+    pub exposure: Option<f64>,
     /// As hard as a real handheld scan: JPEG colour (quality 85) and pose error on top of the default corruptions.
     #[arg(long, conflicts_with = "clean")]
     pub realistic: bool,
@@ -299,6 +303,11 @@ pub struct SynthArgs {
     /// Minimum distance of a sampled camera to the scanned surface, metres (default: scaled to the scene).
     #[arg(long)]
     pub clearance: Option<f64>,
+    /// Exposure and white balance of the rendered colour: `neutral` (the
+    /// scan's average, what the model learnt) or a frame's stem (e.g.
+    /// 000042) to render as that frame was captured.
+    #[arg(long, value_name = "neutral|FRAME", default_value = "neutral")]
+    pub appearance: String,
 }
 
 /// Run one parsed command.

@@ -39,7 +39,18 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             out.display()
         );
     }
+    let appearance = match args.appearance.as_str() {
+        "neutral" => None,
+        stem => Some(scan.frames.iter().position(|f| f.name == stem).ok_or_else(|| {
+            anyhow::anyhow!(
+                "--appearance {stem}: no frame of {} has that stem (use `neutral` or a frame's stem such as {})",
+                scan_dir.display(),
+                scan.frames.first().map_or("000000", |f| f.name.as_str())
+            )
+        })?),
+    };
     let options = SynthOptions {
+        appearance,
         n: args.n,
         width: args.width,
         height: args.height,

@@ -8,6 +8,7 @@
 //! `render` to load, in the `container` the training checkpoint shares.
 //! Nothing in `field`, `occupancy` or `render` imports `train`'s driver.
 
+pub mod appearance;
 pub mod camera;
 pub mod container;
 pub mod field;

@@ -3,6 +3,7 @@
 //! parameters and the occupancy grid as sections. Written atomically; every
 //! defect on load is a clear error.
 
+use crate::nerf::appearance::Affine;
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
@@ -66,6 +67,10 @@ pub struct ModelHeader {
     /// `None`: the scan's own poses.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fitted_poses: Option<Vec<[f64; 16]>>,
+    /// Each scan frame's appearance map (`nerf::appearance`), in scan
+    /// order; `None`: fitted without (the field's colour is every frame's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<Vec<Affine>>,
     /// Lengths of the sections: grid, density MLP, colour MLP, occupancy
     /// densities (f32 each), then carved-cell mask (u64 words).
     pub sections: [usize; 5],
@@ -88,6 +93,12 @@ impl Model {
             max_samples_per_ray: RENDER_MAX_SAMPLES_PER_RAY,
             background: self.header.background,
         }
+    }
+
+    /// The appearance map of scan frame `frame`, when the model learnt
+    /// appearance and has that frame.
+    pub fn frame_appearance(&self, frame: usize) -> Option<Affine> {
+        self.header.appearance.as_ref()?.get(frame).copied()
     }
 
     /// The world-to-local scene transform stored in the model.
@@ -289,6 +300,10 @@ mod tests {
             scan_frames: Some(2),
             scan_fingerprint: Some(11),
             fitted_poses: Some(vec![glam::DMat4::from_translation(glam::DVec3::X).to_cols_array(); 2]),
+            appearance: Some(vec![
+                crate::nerf::appearance::IDENTITY,
+                [0.9, 0.0, 0.0, 0.02, 0.0, 1.1, 0.0, -0.01, 0.0, 0.0, 1.0, 0.0],
+            ]),
             sections: [0; 5],
         };
         Model {

@@ -65,6 +65,8 @@ pub enum SynthError {
     Options(String),
     #[error("the scan has no frames to take the camera from")]
     NoFrames,
+    #[error("--appearance {frame}: the model has no appearance for that frame (fitted with --no-appearance or by an earlier version); use --appearance neutral")]
+    NoAppearance { frame: String },
     #[error("the scan has no depth, so the clearance of {clearance} m cannot be checked; pass --clearance 0")]
     NoCloud { clearance: f64 },
     #[error("cannot build the k-d tree of the scanned points: {0}")]

@@ -45,6 +45,9 @@ pub struct SynthOptions {
     pub min_observed: f64,
     /// CRC-32 of the model file's bytes, recorded in the file's metadata.
     pub model_checksum: u32,
+    /// Render colour with the appearance (exposure, white balance) of this
+    /// scan frame; `None`: the model's neutral appearance.
+    pub appearance: Option<usize>,
 }
 
 impl Default for SynthOptions {
@@ -58,6 +61,7 @@ impl Default for SynthOptions {
             poses: None,
             min_observed: MIN_OBSERVED,
             model_checksum: 0,
+            appearance: None,
         }
     }
 }
@@ -200,7 +204,18 @@ pub fn synthesize_objects(
 ) -> Result<SynthSummary, SynthError> {
     let start = Instant::now();
     // Many views of one model: skip the cells the model left empty.
-    let renderer = ViewRenderer::pruned(model)?;
+    let mut renderer = ViewRenderer::pruned(model)?;
+    if let Some(frame) = options.appearance {
+        let name = || {
+            scan.frames
+                .get(frame)
+                .map_or_else(|| frame.to_string(), |f| f.name.clone())
+        };
+        let map = model
+            .frame_appearance(frame)
+            .ok_or_else(|| SynthError::NoAppearance { frame: name() })?;
+        renderer = renderer.with_appearance(map);
+    }
     let first = scan.frames.first().ok_or(SynthError::NoFrames)?;
     let (total, group) = match &options.poses {
         Some(p) => (
@@ -273,6 +288,13 @@ pub fn synthesize_objects(
         (
             "clearance_m",
             clearance_m.map_or_else(|| "none".into(), |c| format!("{c:.6}")),
+        ),
+        (
+            "appearance",
+            options
+                .appearance
+                .and_then(|f| scan.frames.get(f))
+                .map_or_else(|| "neutral".into(), |f| format!("frame {}", f.name)),
         ),
     ];
     let mut writer = SynthWriter::create(out, &metadata)?;

@@ -5,6 +5,7 @@
 //! from the field which cells hold density, at twice the grid's resolution
 //! ([`crate::nerf::occupancy::from_field`]).
 
+use crate::nerf::appearance::{apply, Affine, IDENTITY};
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
@@ -34,6 +35,8 @@ pub struct ViewRenderer<'a> {
     pub transform: SceneTransform,
     /// The grid rays are marched through, when not the model's own.
     pruned: Option<OccupancyGrid>,
+    /// Colour map applied to rendered colour (the identity: neutral).
+    appearance: Affine,
 }
 
 /// An 8-bit channel of a colour in [0, 1].
@@ -49,6 +52,7 @@ impl<'a> ViewRenderer<'a> {
             model,
             transform: model.scene_transform()?,
             pruned: None,
+            appearance: IDENTITY,
         })
     }
 
@@ -67,7 +71,21 @@ impl<'a> ViewRenderer<'a> {
             model,
             transform: model.scene_transform()?,
             pruned: Some(grid),
+            appearance: IDENTITY,
         })
+    }
+
+    /// Render colour as seen through `map` (a frame's appearance,
+    /// `Model::frame_appearance`) instead of the model's neutral colour.
+    pub fn with_appearance(mut self, map: Affine) -> Self {
+        self.appearance = map;
+        self
+    }
+
+    /// An 8-bit colour from a rendered one, through the appearance map.
+    #[inline]
+    fn colour_u8(&self, rgb: [f32; 3]) -> [u8; 3] {
+        apply(&self.appearance, rgb).map(to_u8)
     }
 
     /// The occupancy grid rays are marched through.
@@ -101,7 +119,7 @@ impl<'a> ViewRenderer<'a> {
         let opts = self.model.render_options(color);
         let out = render_pixels(&self.model.field, self.grid(), &opts, camera, pixels);
         let rgb = if color {
-            out.iter().map(|o| o.rgb.map(to_u8)).collect()
+            out.iter().map(|o| self.colour_u8(o.rgb)).collect()
         } else {
             Vec::new()
         };
@@ -128,7 +146,7 @@ impl<'a> ViewRenderer<'a> {
         let out = render_image(&self.model.field, self.grid(), &opts, &camera);
         let w = width.max(1) as usize;
         let rgb = if color {
-            out.iter().flat_map(|o| o.rgb.map(to_u8)).collect()
+            out.iter().flat_map(|o| self.colour_u8(o.rgb)).collect()
         } else {
             Vec::new()
         };

@@ -66,6 +66,31 @@ impl Adam {
         }
     }
 
+    /// [`Adam::step_dense`] with one second moment per block of `block`
+    /// consecutive parameters (the mean square of the block's gradient), so
+    /// a block moves along its gradient instead of every entry by about the
+    /// learning rate whatever its share of the gradient.
+    pub fn step_blocks(&mut self, params: &mut [f32], grads: &[f32], block: usize, lr: f32, weight_decay: f32) {
+        let (c1, c2) = self.corrections();
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let block = block.max(1);
+        for start in (0..params.len()).step_by(block) {
+            let range = start..(start + block).min(params.len());
+            let g: Vec<f32> = range
+                .clone()
+                .map(|i| clamp_gradient(grads[i] + weight_decay * params[i]))
+                .collect();
+            let mean_square = g.iter().map(|x| x * x).sum::<f32>() / g.len() as f32;
+            for (i, g) in range.zip(g) {
+                let m = b1 * self.m[i] + (1.0 - b1) * g;
+                let v = b2 * self.v[i] + (1.0 - b2) * mean_square;
+                self.m[i] = m;
+                self.v[i] = v;
+                params[i] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+            }
+        }
+    }
+
     /// RMS over all parameters of the step the next [`Adam::step_dense`]
     /// would take at learning rate 1, without changing any state.
     pub fn dense_step_rms(&self, params: &[f32], grads: &[f32], weight_decay: f32) -> f32 {
@@ -123,6 +148,20 @@ fn clamp_gradient(g: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_block_steps_along_its_gradient() {
+        // Per-entry Adam would move both entries by the learning rate; with
+        // one second moment per block the step keeps the gradient's ratio.
+        let mut adam = Adam::new(4);
+        let mut params = [0.0f32; 4];
+        adam.step_blocks(&mut params, &[1.0, 0.1, -2.0, 0.0], 2, 0.01, 0.0);
+        assert!((params[0] / params[1] - 10.0).abs() < 1e-3, "{params:?}");
+        assert!(params[0] < 0.0 && params[2] > 0.0 && params[3] == 0.0);
+        // The block's RMS step is the learning rate.
+        let rms = ((params[0] * params[0] + params[1] * params[1]) / 2.0).sqrt();
+        assert!((rms - 0.01).abs() < 1e-5, "{rms}");
+    }
 
     #[test]
     fn minimises_a_quadratic_and_survives_extreme_gradient_scales() {

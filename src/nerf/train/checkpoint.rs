@@ -9,6 +9,7 @@
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::fit::FitOptions;
 use crate::nerf::train::report::{CurvePoint, Timings};
 use crate::nerf::train::settings::{FitSettings, NerfSettings};
@@ -126,6 +127,42 @@ pub struct CheckpointHeader {
     pub loss_ema_bits: u64,
     /// Lengths of the sections (see `SECTIONS`).
     pub sections: [usize; SECTIONS.len()],
+    /// The appearance maps and their optimiser, when learnt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<AppearanceState>,
+}
+
+/// Appearance maps and Adam state as f32 bit patterns (exact round trip
+/// through JSON; a few hundred numbers per frame at most).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AppearanceState {
+    pub deltas: Vec<u32>,
+    pub m: Vec<u32>,
+    pub v: Vec<u32>,
+    pub steps: u64,
+}
+
+impl AppearanceState {
+    fn of(learner: &AppearanceLearner) -> Self {
+        let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect();
+        let (m, v) = learner.adam.moments();
+        AppearanceState {
+            deltas: bits(&learner.deltas),
+            m: bits(m),
+            v: bits(v),
+            steps: learner.adam.steps(),
+        }
+    }
+
+    /// Restore into `learner`; false when the sizes differ.
+    fn restore(&self, learner: &mut AppearanceLearner) -> bool {
+        let floats = |x: &[u32]| x.iter().map(|&b| f32::from_bits(b)).collect::<Vec<f32>>();
+        if self.deltas.len() != learner.deltas.len() {
+            return false;
+        }
+        learner.deltas = floats(&self.deltas);
+        learner.adam.restore(floats(&self.m), floats(&self.v), self.steps)
+    }
 }
 
 /// A checkpoint read from disk.
@@ -196,6 +233,7 @@ pub fn save(
         lr_scale_bits: lr_scale.to_bits(),
         loss_ema_bits: loss_ema.to_bits(),
         sections: sections.map(|s| s.count()),
+        appearance: trainer.appearance.as_ref().map(AppearanceState::of),
     };
     let write_error = |source| CheckpointError::Write {
         path: path.to_path_buf(),
@@ -318,6 +356,17 @@ impl Checkpoint {
             return Err(damaged(&path, "network or occupancy sizes differ from this fit's"));
         }
         let h = self.header;
+        let appearance_restored = match (&h.appearance, &mut trainer.appearance) {
+            (Some(saved), Some(learner)) => saved.restore(learner),
+            (None, None) => true,
+            _ => false,
+        };
+        if !appearance_restored {
+            return Err(damaged(
+                &path,
+                "appearance maps do not match this fit's training frames",
+            ));
+        }
         let (adams, lr_scale, loss_ema) = trainer.optimiser_mut();
         for ((adam, (m, v)), steps) in adams.into_iter().zip(self.moments).zip(h.adam_steps) {
             if !adam.restore(m, v, steps) {
@@ -344,6 +393,7 @@ mod tests {
         let (field_cfg, train) = small_config(9);
         let field = Field::new(field_cfg, &mut Rng::new(9, 0));
         let mut t = Trainer::new(field, OccupancyGrid::full(16), train, [0.5; 3]);
+        t.learn_appearance(3);
         let views = plane_views(3, 16, true);
         for s in 0..steps {
             t.step(&views, s as f32 / 70.0);
@@ -395,6 +445,7 @@ mod tests {
             train,
             [0.5; 3],
         );
+        b.learn_appearance(3);
         let back = ckpt.restore(&mut b).unwrap();
         assert_eq!((back.train_seconds, back.last_point), (1.5, (1.0, 99)));
         for s in 50..70 {
@@ -404,6 +455,9 @@ mod tests {
         assert_eq!(a.field.grid.params, b.field.grid.params);
         assert_eq!(a.field.density.params, b.field.density.params);
         assert_eq!(a.field.color.params, b.field.color.params);
+        let maps = |t: &Trainer| t.appearance.as_ref().unwrap().deltas.clone();
+        assert_eq!(maps(&a), maps(&b));
+        assert!(maps(&a).iter().any(|&d| d != 0.0), "the maps learnt after warm-up");
         assert_eq!(a.occupancy.densities(), b.occupancy.densities());
         assert_eq!(a.counters.steps, 70);
         assert!(a.counters.occupancy_refreshes >= 3);
@@ -457,6 +511,33 @@ mod tests {
             m.contains("without --no-pose-refine (this run: with --no-pose-refine)"),
             "{m}"
         );
+        let mut other = identity();
+        other.settings.per_frame_appearance = false;
+        let m = msg(other);
+        assert!(
+            m.contains("without --no-appearance (this run: with --no-appearance)"),
+            "{m}"
+        );
+        // Maps for another number of training frames, or none, are damage.
+        for frames in [None, Some(4)] {
+            let (field_cfg, train) = small_config(9);
+            let mut t = Trainer::new(
+                Field::new(field_cfg, &mut Rng::new(1, 0)),
+                OccupancyGrid::full(16),
+                train,
+                [0.5; 3],
+            );
+            if let Some(n) = frames {
+                t.learn_appearance(n);
+            }
+            let m = Checkpoint::load(&path)
+                .unwrap()
+                .restore(&mut t)
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(m.contains("appearance maps do not match"), "{m}");
+        }
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

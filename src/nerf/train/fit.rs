@@ -4,6 +4,7 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
+use crate::nerf::appearance;
 use crate::nerf::field::Field;
 use crate::nerf::model_file::{Model, ModelHeader};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
@@ -11,7 +12,9 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
 use crate::nerf::train::dataset::{self, Dataset};
-use crate::nerf::train::report::{CurvePoint, FitReport, PoseRefinementReport, PoseScaleReport, Timings};
+use crate::nerf::train::report::{
+    AppearanceReport, CurvePoint, FitReport, PoseRefinementReport, PoseScaleReport, Timings,
+};
 use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
 use crate::nerf::train::step::{StepStats, Trainer};
 use crate::nerf::train::validation::{validate, Validation};
@@ -211,6 +214,9 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let mut rng = Rng::new(opts.settings.seed, 0);
     let field = Field::new(settings.field.clone(), &mut rng);
     let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
+    if opts.settings.per_frame_appearance {
+        trainer.learn_appearance(data.train.len());
+    }
     if opts.settings.unseen_objects {
         let measured = dataset::depth_rays(&data.train, 2);
         if !measured.is_empty() {
@@ -365,6 +371,7 @@ fn run(
     // first evaluation tells what finishing will cost.
     let interval = time_budget.map_or(interval, |limit| interval.min(limit / 4.0));
     let mut next_eval = ((state.train_seconds / interval).floor() + 1.0) * interval;
+    let frame_count = scan.frames.len();
     let evaluate_now = |trainer: &mut Trainer, state: &mut FitProgress| -> Option<CurvePoint> {
         if data.holdout.is_empty() {
             return None;
@@ -372,6 +379,11 @@ fn run(
         let wall = spent();
         let t = Instant::now();
         let grid = trainer.rendering_occupancy();
+        // A held-out frame is seen with its training neighbours' appearance.
+        let holdout_maps = trainer.appearance.as_ref().map(|learner| {
+            let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
+            data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
+        });
         let r: Validation = validate(
             &trainer.field,
             &grid,
@@ -379,6 +391,7 @@ fn run(
             &data.holdout,
             metres_per_unit,
             opts.eval_max_side,
+            holdout_maps.as_deref(),
         );
         state.timings.eval_s += t.elapsed().as_secs_f64();
         let samples = trainer.counters.samples;
@@ -480,6 +493,10 @@ fn run(
         scan_fingerprint: Some(captured_fingerprint),
         fitted_poses: (scaled || refinement.is_some())
             .then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
+        appearance: trainer
+            .appearance
+            .as_ref()
+            .map(|learner| appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len())),
         sections: [0; 5],
     };
     let occupancy = trainer.rendering_occupancy();
@@ -507,6 +524,10 @@ fn run(
         occupied_fraction: occupancy.occupied_fraction(),
         pose_scale: scale_report,
         pose_refinement: refinement_report,
+        appearance: trainer.appearance.as_ref().and_then(|learner| {
+            let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
+            AppearanceReport::new(&learner.maps(), &names)
+        }),
         curve: state.curve,
     };
     let model = Model {

@@ -3,6 +3,7 @@
 //! its resumable checkpoint.
 
 pub mod adam;
+pub mod appearance;
 pub mod checkpoint;
 pub mod dataset;
 pub mod fit;

@@ -1,6 +1,7 @@
 //! The fit report (`MODEL.report.json`): settings, phase timings, counters,
 //! pose corrections and the error-against-run-time curve of one fit.
 
+use crate::nerf::appearance::{strength, Affine};
 use crate::nerf::field::FieldConfig;
 use crate::nerf::train::settings::Preset;
 use crate::nerf::train::settings::TrainConfig;
@@ -86,7 +87,37 @@ pub struct FitReport {
     /// too little depth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_refinement: Option<PoseRefinementReport>,
+    /// How far the learnt per-frame appearance strays from neutral; `None`
+    /// when it was not learnt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<AppearanceReport>,
     pub curve: Vec<CurvePoint>,
+}
+
+/// The report's account of the per-frame appearance maps: each map's
+/// strength is the largest change it makes to a colour channel (0-1 scale).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AppearanceReport {
+    pub frames: usize,
+    pub median_strength: f32,
+    pub largest_strength: f32,
+    /// The frame of the largest strength.
+    pub largest_frame: String,
+}
+
+impl AppearanceReport {
+    /// Summary of the training frames' `maps`, named by `names`.
+    pub fn new(maps: &[Affine], names: &[String]) -> Option<AppearanceReport> {
+        let mut strengths: Vec<(f32, usize)> = maps.iter().map(strength).zip(0..).collect();
+        strengths.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let &(largest, frame) = strengths.last()?;
+        Some(AppearanceReport {
+            frames: maps.len(),
+            median_strength: strengths[strengths.len() / 2].0,
+            largest_strength: largest,
+            largest_frame: names.get(frame).cloned().unwrap_or_default(),
+        })
+    }
 }
 
 /// The report's account of the poses' scale.

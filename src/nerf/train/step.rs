@@ -4,12 +4,14 @@
 //! divergence. Chunks map to threads deterministically for a given seed and
 //! thread count.
 
+use crate::nerf::appearance::apply_backward;
 use crate::nerf::field::{Field, FieldGrad, FieldWorkspace};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule};
 use crate::nerf::train::adam::Adam;
+use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::dataset::View;
 use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
@@ -118,6 +120,8 @@ struct RayRecord {
     t_end: f32,
     /// The sensor returned nothing here (see [`View::no_return`]).
     no_return: bool,
+    /// Index of the ray's training view.
+    view: usize,
 }
 
 #[derive(Default)]
@@ -146,6 +150,8 @@ struct Chunk {
     grad_tau: Vec<f32>,
     d_sigma: Vec<f32>,
     d_rgb: Vec<f32>,
+    /// Gradient of the training views' appearance maps (12 per view).
+    grad_appearance: Vec<f32>,
 }
 
 /// Trains a [`Field`] on a set of views.
@@ -170,6 +176,8 @@ pub struct Trainer {
     depth_coverage: Option<f32>,
     /// Surfaces the sensor measured, for the no-return term.
     measured: Option<MeasuredSurfaces>,
+    /// Per-frame appearance maps, when learnt.
+    pub appearance: Option<AppearanceLearner>,
 }
 
 impl Trainer {
@@ -192,6 +200,7 @@ impl Trainer {
                 grad_tau: Vec::new(),
                 d_sigma: Vec::new(),
                 d_rgb: Vec::new(),
+                grad_appearance: Vec::new(),
             })
             .collect();
         let mlp_scale = [rms(&field.density.params), rms(&field.color.params)];
@@ -212,7 +221,13 @@ impl Trainer {
             occupancy_sigmas: Vec::new(),
             depth_coverage: None,
             measured: None,
+            appearance: None,
         }
+    }
+
+    /// Learn an appearance map per training view (`nerf::appearance`).
+    pub fn learn_appearance(&mut self, views: usize) {
+        self.appearance = Some(AppearanceLearner::new(views));
     }
 
     /// Surfaces the sensor measured in the training views: enables the
@@ -260,7 +275,9 @@ impl Trainer {
             colour_only_cap,
             background: self.background,
             measured: self.measured.as_ref().filter(|_| self.config.lambda_no_return > 0.0),
+            appearance: self.appearance.as_ref(),
         };
+        let appearance_len = self.appearance.as_ref().map_or(0, |a| a.deltas.len());
         let seed = self.config.seed;
         let stats: Vec<ChunkStats> = self
             .chunks
@@ -269,6 +286,8 @@ impl Trainer {
             .map(|(c, chunk)| {
                 let mut rng = Rng::new(seed, 1 + step_index * STEP_STREAMS + c as u64);
                 chunk.grad.clear();
+                chunk.grad_appearance.clear();
+                chunk.grad_appearance.resize(appearance_len, 0.0);
                 run_chunk(&ctx, chunk, &mut rng, budget)
             })
             .collect();
@@ -276,6 +295,9 @@ impl Trainer {
         let (first, rest) = self.chunks.split_at_mut(1);
         for other in rest.iter() {
             first[0].grad.merge_from(&other.grad);
+            for (g, o) in first[0].grad_appearance.iter_mut().zip(&other.grad_appearance) {
+                *g += o;
+            }
         }
         let mut total = StepStats::default();
         for s in &stats {
@@ -302,7 +324,8 @@ impl Trainer {
             && total.loss > DIVERGENCE_RATIO * self.loss_ema + DIVERGENCE_FLOOR;
         let lr = self.config.learning_rate * schedule * self.lr_scale;
         total.learning_rate = lr;
-        let finite = total.loss.is_finite() && grad.all_finite();
+        let grad_appearance = &first[0].grad_appearance;
+        let finite = total.loss.is_finite() && grad.all_finite() && grad_appearance.iter().all(|g| g.is_finite());
         if finite {
             let density = self
                 .adam_density
@@ -336,6 +359,15 @@ impl Trainer {
             .step_dense(&mut self.field.density.params, &grad.density, lr, MLP_WEIGHT_DECAY);
         self.adam_color
             .step_dense(&mut self.field.color.params, &grad.color, lr, MLP_WEIGHT_DECAY);
+        // The maps start after the warm-up: until then the field's colour is
+        // far from every frame's, and the maps would chase that instead.
+        if let Some(appearance) = self
+            .appearance
+            .as_mut()
+            .filter(|_| step_index >= self.config.warmup_steps)
+        {
+            appearance.step(grad_appearance, lr);
+        }
         total
     }
 
@@ -448,6 +480,7 @@ struct StepContext<'a> {
     colour_only_cap: usize,
     background: [f32; 3],
     measured: Option<&'a MeasuredSurfaces>,
+    appearance: Option<&'a AppearanceLearner>,
 }
 
 /// Fraction of the pixels of `views` with measured depth.
@@ -505,7 +538,8 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     // Bounded attempts: views that see nothing must not hang the step.
     while chunk.segments.len() < budget && attempts < 4 * budget {
         attempts += 1;
-        let view = &ctx.views[rng.below(ctx.views.len() as u64) as usize];
+        let view_index = rng.below(ctx.views.len() as u64) as usize;
+        let view = &ctx.views[view_index];
         let pixel = rng.below(view.camera.pixels() as u64) as usize;
         let width = view.camera.width as usize;
         let (ray, t_per_z) = view.camera.ray((pixel % width) as f32, (pixel / width) as f32);
@@ -572,6 +606,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             depth_t,
             t_end,
             no_return,
+            view: view_index,
         });
         chunk.ray_origins.push(ray.origin);
         chunk.ray_dirs.push(ray.dir);
@@ -646,13 +681,23 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             }
             depth += w * segs[i].mid();
         }
+        // The frame's appearance map between the field's colour and the photo.
+        let map = ctx.appearance.map(|a| a.map(rec.view));
+        let seen = map.as_ref().map_or(color, |a| crate::nerf::appearance::apply(a, color));
         let err = [
-            color[0] - rec.target[0],
-            color[1] - rec.target[1],
-            color[2] - rec.target[2],
+            seen[0] - rec.target[0],
+            seen[1] - rec.target[1],
+            seen[2] - rec.target[2],
         ];
         stats.loss_rgb += (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]) as f64 / 3.0;
-        let two_err = [2.0 * err[0] / 3.0, 2.0 * err[1] / 3.0, 2.0 * err[2] / 3.0];
+        let mut two_err = [2.0 * err[0] / 3.0, 2.0 * err[1] / 3.0, 2.0 * err[2] / 3.0];
+        if let Some(a) = &map {
+            // From here on, the gradient with respect to the field's colour.
+            let grad_map = &mut chunk.grad_appearance[12 * rec.view..12 * rec.view + 12];
+            let scaled = two_err.map(|g| g * GRAD_SCALE);
+            let back = apply_backward(a, color, scaled, grad_map);
+            two_err = back.map(|g| g / GRAD_SCALE);
+        }
         let mut g_t = two_err[0] * bg[0] + two_err[1] * bg[1] + two_err[2] * bg[2];
         for i in 0..k {
             let j = o + i;

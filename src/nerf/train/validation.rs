@@ -2,6 +2,7 @@
 //! subsample of each held-out view's pixels and compare with its colour and
 //! sensor depth.
 
+use crate::nerf::appearance::{apply, Affine};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
@@ -35,6 +36,8 @@ pub fn subsample_grid(width: u32, height: u32, max_side: u32) -> (usize, usize, 
 }
 
 /// Evaluate on `views`; `metres_per_unit` converts local depth to metres.
+/// With `appearance` (one map per view) the rendered colour goes through
+/// the view's map, as the photo went through its camera's exposure.
 pub fn validate(
     field: &Field,
     grid: &OccupancyGrid,
@@ -42,10 +45,12 @@ pub fn validate(
     views: &[View],
     metres_per_unit: f64,
     max_side: u32,
+    appearance: Option<&[Affine]>,
 ) -> Validation {
     let (mut psnr, mut ssim) = (0.0, 0.0);
     let (mut depth_sum, mut depth_n) = (0.0, 0usize);
-    for view in views {
+    for (i, view) in views.iter().enumerate() {
+        let map = appearance.and_then(|maps| maps.get(i));
         let cam = &view.camera;
         let (w, h, pixels) = subsample_grid(cam.width, cam.height, max_side);
         let out = render_pixels(field, grid, opts, cam, &pixels);
@@ -53,10 +58,9 @@ pub fn validate(
         let mut truth = Vec::with_capacity(w * h * 3);
         for (o, &(u, v)) in out.iter().zip(&pixels) {
             let idx = v as usize * cam.width as usize + u as usize;
-            for c in 0..3 {
-                rendered.push((o.rgb[c] * 255.0).round().clamp(0.0, 255.0) as u8);
-                truth.push(view.rgb[3 * idx + c]);
-            }
+            let rgb = map.map_or(o.rgb, |a| apply(a, o.rgb));
+            rendered.extend(rgb.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8));
+            truth.extend_from_slice(&view.rgb[3 * idx..3 * idx + 3]);
             if let (Some(depth), Some(t)) = (&view.depth, o.depth_median) {
                 let z_true = depth[idx];
                 if z_true > 0.0 {

@@ -10,6 +10,7 @@ use nerflabel::nerf::train::dataset::is_holdout;
 use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::train::settings::Preset;
+use nerflabel::nerf::train::step::PhaseSeconds;
 use nerflabel::scan::{load, LoadOptions};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -50,7 +51,18 @@ fn main() -> anyhow::Result<()> {
         ..FitOptions::default()
     };
     let stop = AtomicBool::new(false);
+    // Where training time goes, summed over every step.
+    let mut phases = PhaseSeconds::default();
+    let (mut samples, mut train_s) = (0usize, 0.0f64);
     let outcome = fit(&mut scan, &options, &stop, &mut |e| {
+        if let FitEvent::Step {
+            stats, train_seconds, ..
+        } = e
+        {
+            phases.add(&stats.phases);
+            samples += stats.samples;
+            train_s = train_seconds;
+        }
         if let FitEvent::Eval(p) = e {
             eprintln!(
                 "  {:6.1} s  step {:5}  PSNR {:5.2}  depth MAE {:?}",
@@ -95,6 +107,19 @@ fn main() -> anyhow::Result<()> {
         score.depth_missing * 100.0
     );
     println!("timings: {:?}", r.timings);
+    let total = phases.total().max(1e-9);
+    println!(
+        "training throughput: {:.0} k samples/s over {:.1} s of training ({} threads); share of thread time: \
+         marching {:.0} %, hash grid {:.0} %, MLPs {:.0} %, compositing and losses {:.0} %, optimiser update {:.0} %",
+        samples as f64 / train_s.max(1e-9) / 1e3,
+        train_s,
+        r.threads,
+        100.0 * phases.march / total,
+        100.0 * phases.grid / total,
+        100.0 * phases.mlp / total,
+        100.0 * phases.composite / total,
+        100.0 * phases.update / total,
+    );
     let c = &r.counters;
     let with_depth = (c.rays - c.rays_without_depth).max(1) as f64;
     println!(

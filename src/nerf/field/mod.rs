@@ -13,6 +13,7 @@ use hash_grid::{GridGrad, HashGrid, HashGridConfig};
 use mlp::{Mlp, MlpConfig, MlpWorkspace};
 use serde::{Deserialize, Serialize};
 use sh::SH_COEFFS;
+use std::time::Instant;
 
 /// Outputs of the density network: raw log-density plus geometry features.
 pub const DENSITY_OUTPUTS: usize = 16;
@@ -117,16 +118,27 @@ impl FieldGrad {
         }
     }
 
-    /// True when every dense gradient is finite (grid checked where touched).
-    pub fn all_finite(&self) -> bool {
+    /// True when every MLP gradient is finite (the grid's are checked by
+    /// [`GridGrad::touched_rms`]).
+    pub fn mlps_finite(&self) -> bool {
         self.density.iter().chain(&self.color).all(|g| g.is_finite())
-            && self.grid.touched().into_iter().all(|i| self.grid.values[i].is_finite())
     }
+}
+
+/// Thread-seconds a workspace's passes spent in the hash grid and in the
+/// MLPs (with their activations and the direction encoding), for the
+/// training benchmark's breakdown.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FieldSeconds {
+    pub grid: f64,
+    pub mlp: f64,
 }
 
 /// Buffers for one batch of samples, reused across calls.
 #[derive(Default)]
 pub struct FieldWorkspace {
+    /// Time spent so far (callers reset it when they want a fresh count).
+    pub seconds: FieldSeconds,
     encoded: Vec<f32>,
     density_out: Vec<f32>,
     color_in: Vec<f32>,
@@ -245,7 +257,10 @@ impl Field {
             return;
         }
         let enc_dim = self.grid.config.output_dim();
+        let started = Instant::now();
         self.grid.encode(positions, sized(&mut ws.encoded, enc_dim * n));
+        let encoded = Instant::now();
+        ws.seconds.grid += (encoded - started).as_secs_f64();
         sized(&mut ws.density_out, DENSITY_OUTPUTS * n);
         {
             let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
@@ -283,6 +298,7 @@ impl Field {
         for i in 0..3 * n {
             ws.rgb[i] = sigmoid(ws.color_out[i]);
         }
+        ws.seconds.mlp += encoded.elapsed().as_secs_f64();
     }
 
     /// Backward of the last training forward: `d_sigma[n]` and
@@ -300,6 +316,7 @@ impl Field {
             return;
         }
         let color_dim = DENSITY_OUTPUTS + SH_COEFFS;
+        let started = Instant::now();
         let d_color_out = sized(&mut ws.d_color_out, 3 * n);
         for i in 0..3 * n {
             let s = ws.rgb[i];
@@ -333,8 +350,11 @@ impl Field {
                 Some(&mut ws.d_encoded[..enc_dim * n]),
             );
         }
+        let mlp_done = Instant::now();
+        ws.seconds.mlp += (mlp_done - started).as_secs_f64();
         self.grid
             .backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
+        ws.seconds.grid += mlp_done.elapsed().as_secs_f64();
     }
 }
 

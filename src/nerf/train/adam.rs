@@ -135,6 +135,67 @@ impl Adam {
     }
 }
 
+impl Adam {
+    /// [`Adam::step_sparse_decayed`] on parallel threads: the parameters are
+    /// cut into `parts` ranges whose length is a multiple of `block` (itself
+    /// a multiple of 64), and `touched(start, len)` lists the touched
+    /// parameters of a range as `(first index, bitmask)` words of 64. Each
+    /// parameter's update is the sequential one, so results do not depend on
+    /// the number of parts; whole words run as one contiguous loop.
+    // The sequential step's arguments plus how to cut the range.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_sparse_decayed_parallel<F, I>(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        touched: F,
+        block: usize,
+        parts: usize,
+        lr: f32,
+        weight_decay: f32,
+    ) where
+        F: Fn(usize, usize) -> I + Sync,
+        I: Iterator<Item = (usize, u64)>,
+    {
+        use rayon::prelude::*;
+        let (c1, c2) = self.corrections();
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let block = block.max(1);
+        let len = params.len().div_ceil(parts.max(1)).div_ceil(block).max(1) * block;
+        params
+            .par_chunks_mut(len)
+            .zip(self.m.par_chunks_mut(len))
+            .zip(self.v.par_chunks_mut(len))
+            .enumerate()
+            .for_each(|(part, ((params, ms), vs))| {
+                let start = part * len;
+                let update = |k: usize, g: f32, params: &mut [f32], ms: &mut [f32], vs: &mut [f32]| {
+                    let g = clamp_gradient(g + weight_decay * params[k]);
+                    let m = b1 * ms[k] + (1.0 - b1) * g;
+                    let v = b2 * vs[k] + (1.0 - b2) * g * g;
+                    ms[k] = m;
+                    vs[k] = v;
+                    params[k] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+                };
+                for (first, bits) in touched(start, len) {
+                    let k0 = first - start;
+                    if bits == u64::MAX && k0 + 64 <= params.len() {
+                        for k in k0..k0 + 64 {
+                            update(k, grads[start + k], params, ms, vs);
+                        }
+                    } else {
+                        let mut rest = bits;
+                        while rest != 0 {
+                            let k = k0 + rest.trailing_zeros() as usize;
+                            rest &= rest - 1;
+                            update(k, grads[start + k], params, ms, vs);
+                        }
+                    }
+                }
+            });
+    }
+}
+
 /// Keeps g*g finite in f32; Adam is invariant to gradient scale anyway.
 #[inline]
 fn clamp_gradient(g: f32) -> f32 {
@@ -148,6 +209,42 @@ fn clamp_gradient(g: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_parallel_sparse_step_is_the_sequential_one_bit_for_bit() {
+        let mut rng = crate::rng::Rng::new(3, 0);
+        let n = 10_000;
+        // Whole words at the start (the contiguous path), scattered entries after.
+        let touched: Vec<usize> = (0..n).filter(|&i| i < 640 || rng.f32() < 0.3).collect();
+        let grads: Vec<f32> = (0..n).map(|_| rng.f32() - 0.5).collect();
+        let start: Vec<f32> = (0..n).map(|_| rng.f32()).collect();
+        let mut seq = (Adam::new(n), start.clone());
+        for _ in 0..3 {
+            seq.0
+                .step_sparse_decayed(&mut seq.1, &grads, touched.iter().copied(), 0.01, 1e-3);
+        }
+        for parts in [1, 2, 3] {
+            let mut par = (Adam::new(n), start.clone());
+            // Touched indices of a range as 64-wide words.
+            let within = |s: usize, len: usize| {
+                let mut words: Vec<(usize, u64)> = Vec::new();
+                for &i in touched.iter().filter(|&&i| i >= s && i < s + len) {
+                    let first = i / 64 * 64;
+                    match words.last_mut() {
+                        Some((f, bits)) if *f == first => *bits |= 1 << (i - first),
+                        _ => words.push((first, 1 << (i - first))),
+                    }
+                }
+                words.into_iter()
+            };
+            for _ in 0..3 {
+                par.0
+                    .step_sparse_decayed_parallel(&mut par.1, &grads, within, 64, parts, 0.01, 1e-3);
+            }
+            assert_eq!(par.1, seq.1, "{parts} parts");
+            assert_eq!(par.0.moments(), seq.0.moments());
+        }
+    }
 
     #[test]
     fn a_block_steps_along_its_gradient() {

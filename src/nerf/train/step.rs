@@ -5,7 +5,8 @@
 //! thread count.
 
 use crate::nerf::appearance::apply_backward;
-use crate::nerf::field::{Field, FieldGrad, FieldWorkspace};
+use crate::nerf::field::hash_grid::GridGrad;
+use crate::nerf::field::{Field, FieldGrad, FieldSeconds, FieldWorkspace};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
@@ -17,6 +18,7 @@ use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 /// Loss gradients are scaled by this (Adam is scale invariant; it keeps
 /// magnitudes moderate).
@@ -94,6 +96,39 @@ pub struct StepStats {
     /// Learning rate of the step (schedule and back-off applied).
     pub learning_rate: f32,
     pub skipped: bool,
+    /// Where the step's time went.
+    pub phases: PhaseSeconds,
+}
+
+/// Time of a step by phase: thread-seconds summed over the worker threads
+/// for the first four, wall seconds for the optimiser update.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PhaseSeconds {
+    /// Drawing rays and marching them through the occupancy grid.
+    pub march: f64,
+    /// Hash-grid encoding and its backward.
+    pub grid: f64,
+    /// Both MLPs forward and backward (with activations and direction encoding).
+    pub mlp: f64,
+    /// Sample positions, compositing, losses and their gradients.
+    pub composite: f64,
+    /// Merging the threads' gradients and the Adam updates (on one thread
+    /// while the others wait, so wall seconds times the threads).
+    pub update: f64,
+}
+
+impl PhaseSeconds {
+    pub fn add(&mut self, other: &PhaseSeconds) {
+        self.march += other.march;
+        self.grid += other.grid;
+        self.mlp += other.mlp;
+        self.composite += other.composite;
+        self.update += other.update;
+    }
+
+    pub fn total(&self) -> f64 {
+        self.march + self.grid + self.mlp + self.composite + self.update
+    }
 }
 
 /// Counters kept over a whole fit.
@@ -132,6 +167,10 @@ struct ChunkStats {
     samples: usize,
     rays_without_depth: usize,
     samples_without_depth: usize,
+    march_s: f64,
+    /// Whole sub-batches, the field's passes included.
+    sub_batches_s: f64,
+    field: FieldSeconds,
 }
 
 /// Per-thread buffers, allocated once and reused every step.
@@ -288,9 +327,11 @@ impl Trainer {
                 chunk.grad.clear();
                 chunk.grad_appearance.clear();
                 chunk.grad_appearance.resize(appearance_len, 0.0);
+                chunk.ws.seconds = FieldSeconds::default();
                 run_chunk(&ctx, chunk, &mut rng, budget)
             })
             .collect();
+        let update_started = Instant::now();
         // Merge in chunk order so results do not depend on scheduling.
         let (first, rest) = self.chunks.split_at_mut(1);
         for other in rest.iter() {
@@ -307,7 +348,13 @@ impl Trainer {
             total.samples += s.samples;
             total.rays_without_depth += s.rays_without_depth;
             total.samples_without_depth += s.samples_without_depth;
+            total.phases.march += s.march_s;
+            // The field's passes run inside the sub-batches.
+            total.phases.composite += s.sub_batches_s - s.field.grid - s.field.mlp;
+            total.phases.grid += s.field.grid;
+            total.phases.mlp += s.field.mlp;
         }
+
         let rays = total.rays.max(1) as f64;
         total.loss_rgb /= rays;
         total.loss_depth /= rays;
@@ -325,7 +372,11 @@ impl Trainer {
         let lr = self.config.learning_rate * schedule * self.lr_scale;
         total.learning_rate = lr;
         let grad_appearance = &first[0].grad_appearance;
-        let finite = total.loss.is_finite() && grad.all_finite() && grad_appearance.iter().all(|g| g.is_finite());
+        let grid_rms = grad.grid.touched_rms();
+        let finite = total.loss.is_finite()
+            && grad.mlps_finite()
+            && grid_rms.is_some()
+            && grad_appearance.iter().all(|g| g.is_finite());
         if finite {
             let density = self
                 .adam_density
@@ -344,6 +395,7 @@ impl Trainer {
             total.skipped = true;
             self.counters.skipped_batches += 1;
             self.lr_scale = (self.lr_scale * 0.5).max(MIN_LR_SCALE);
+            total.phases.update = update_started.elapsed().as_secs_f64() * threads as f64;
             return total;
         }
         self.loss_ema = if self.loss_ema == 0.0 {
@@ -351,10 +403,17 @@ impl Trainer {
         } else {
             (1.0 - LOSS_EMA_WEIGHT) * self.loss_ema + LOSS_EMA_WEIGHT * total.loss
         };
-        let grid_decay = GRID_PRIOR * touched_rms(&grad.grid.values, grad.grid.touched());
-        let touched = grad.grid.touched();
-        self.adam_grid
-            .step_sparse_decayed(&mut self.field.grid.params, &grad.grid.values, touched, lr, grid_decay);
+        let grid_decay = GRID_PRIOR * grid_rms.unwrap_or(0.0);
+        // The grid's touched entries are updated on every thread.
+        self.adam_grid.step_sparse_decayed_parallel(
+            &mut self.field.grid.params,
+            &grad.grid.values,
+            |start, len| grad.grid.touched_words_in(start, len),
+            GridGrad::BLOCK,
+            threads,
+            lr,
+            grid_decay,
+        );
         self.adam_density
             .step_dense(&mut self.field.density.params, &grad.density, lr, MLP_WEIGHT_DECAY);
         self.adam_color
@@ -368,6 +427,7 @@ impl Trainer {
         {
             appearance.step(grad_appearance, lr);
         }
+        total.phases.update = update_started.elapsed().as_secs_f64() * threads as f64;
         total
     }
 
@@ -413,19 +473,6 @@ impl Trainer {
 fn rms(values: &[f32]) -> f32 {
     let sum: f64 = values.iter().map(|&v| v as f64 * v as f64).sum();
     (sum / values.len().max(1) as f64).sqrt() as f32
-}
-
-/// Root mean square of `values` at the `touched` indices (0 when none).
-fn touched_rms(values: &[f32], touched: impl Iterator<Item = usize>) -> f32 {
-    let (mut sum, mut n) = (0.0f64, 0usize);
-    for i in touched {
-        let v = values[i] as f64;
-        if v.is_finite() {
-            sum += v * v;
-        }
-        n += 1;
-    }
-    (sum / n.max(1) as f64).sqrt() as f32
 }
 
 /// `step / scale`, or 0 when the scale gives no reference (all-zero weights).
@@ -497,12 +544,15 @@ fn depth_coverage(views: &[View]) -> f32 {
 }
 
 fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize) -> ChunkStats {
+    let started = Instant::now();
     draw_rays(ctx, chunk, rng, budget);
     let mut stats = ChunkStats {
         rays: chunk.rays.len(),
         samples: chunk.segments.len(),
+        march_s: started.elapsed().as_secs_f64(),
         ..Default::default()
     };
+    let started = Instant::now();
     for ray in chunk.rays.iter().filter(|r| r.depth_t.is_none()) {
         stats.rays_without_depth += 1;
         stats.samples_without_depth += ray.count;
@@ -519,6 +569,8 @@ fn run_chunk(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
         train_sub_batch(ctx, chunk, start..end, &mut stats);
         start = end;
     }
+    stats.sub_batches_s = started.elapsed().as_secs_f64();
+    stats.field = chunk.ws.seconds;
     stats
 }
 
@@ -1051,6 +1103,13 @@ pub(crate) mod tests {
             last.loss
         );
         assert_eq!(trainer.counters.skipped_batches, 0);
+        // Every phase of a step is timed, and the field's passes are not
+        // counted twice (the compositing share would then go negative).
+        let p = last.phases;
+        assert!(
+            p.march > 0.0 && p.grid > 0.0 && p.mlp > 0.0 && p.composite > 0.0 && p.update > 0.0,
+            "{p:?}"
+        );
         let err = plane_depth_error(&trainer, &views, &train_cfg);
         eprintln!("normal learning rate: mean depth error {err}");
         assert!(err < 0.01, "mean depth error {err} (local units)");

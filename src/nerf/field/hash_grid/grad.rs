@@ -80,6 +80,64 @@ impl GridGrad {
         self.touched_word_indices().map(|w| (w * 64, self.bits[w]))
     }
 
+    /// Touched parameter indices in `start..start + len`, ascending;
+    /// `start` and `len` are multiples of [`GridGrad::BLOCK`], so that each
+    /// block's parameters can be updated by another thread.
+    pub fn touched_in(&self, start: usize, len: usize) -> impl Iterator<Item = usize> + '_ {
+        self.touched_words_in(start, len)
+            .flat_map(|(first, bits)| ones(bits).map(move |b| first + b))
+    }
+
+    /// [`GridGrad::touched_in`] as `(first index, bitmask)` words.
+    pub fn touched_words_in(&self, start: usize, len: usize) -> impl Iterator<Item = (usize, u64)> + '_ {
+        debug_assert!(start.is_multiple_of(Self::BLOCK) && len.is_multiple_of(Self::BLOCK));
+        let first = start / Self::BLOCK;
+        let last = ((start + len) / Self::BLOCK).min(self.summary.len());
+        self.summary[first.min(last)..last]
+            .iter()
+            .enumerate()
+            .flat_map(move |(k, &sw)| ones(sw).map(move |b| (first + k) * 64 + b))
+            .map(move |w| (w * 64, self.bits[w]))
+    }
+
+    /// Root mean square of the touched values, or `None` when one of them
+    /// is not finite; word by word on every thread (untouched values are
+    /// zero, so whole words can be summed).
+    pub fn touched_rms(&self) -> Option<f32> {
+        use rayon::prelude::*;
+        // Fixed chunks, partial sums added in order: the same sum on any
+        // number of threads.
+        const SUMMARY_WORDS: usize = 16;
+        let partials: Vec<(f64, usize, bool)> = self
+            .summary
+            .par_chunks(SUMMARY_WORDS)
+            .enumerate()
+            .map(|(c, chunk)| {
+                let (mut sum, mut count, mut finite) = (0.0f64, 0usize, true);
+                let words = chunk
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(k, &sw)| ones(sw).map(move |b| (c * SUMMARY_WORDS + k) * 64 + b));
+                for w in words {
+                    let end = (w * 64 + 64).min(self.values.len());
+                    let word = &self.values[w * 64..end];
+                    let squares: f32 = word.iter().map(|v| v * v).sum();
+                    finite &= squares.is_finite();
+                    sum += squares as f64;
+                    count += self.bits[w].count_ones() as usize;
+                }
+                (sum, count, finite)
+            })
+            .collect();
+        let (sum, count, finite) = partials
+            .iter()
+            .fold((0.0, 0, true), |a, b| (a.0 + b.0, a.1 + b.1, a.2 && b.2));
+        finite.then(|| (sum / count.max(1) as f64).sqrt() as f32)
+    }
+
+    /// Parameters covered by one summary word (64 words of 64).
+    pub const BLOCK: usize = 64 * 64;
+
     /// Number of touched parameters.
     pub fn touched_count(&self) -> usize {
         self.touched_words().map(|(_, b)| b.count_ones() as usize).sum()
@@ -108,14 +166,28 @@ impl GridGrad {
             other.values.len(),
             "GridGrad::merge_from: buffers of different grids"
         );
-        for w in other.touched_word_indices() {
-            let end = (w * 64 + 64).min(self.values.len());
-            // Untouched values of `other` are zero, so adding the whole word is exact.
-            for (a, b) in self.values[w * 64..end].iter_mut().zip(&other.values[w * 64..end]) {
-                *a += *b;
-            }
-            self.bits[w] |= other.bits[w];
-        }
+        use rayon::prelude::*;
+        // Blocks of summary words on every thread (disjoint parameters).
+        const SUMMARY_WORDS: usize = 16;
+        self.values
+            .par_chunks_mut(SUMMARY_WORDS * Self::BLOCK)
+            .zip(self.bits.par_chunks_mut(SUMMARY_WORDS * 64))
+            .zip(other.summary.par_chunks(SUMMARY_WORDS))
+            .enumerate()
+            .for_each(|(c, ((values, bits), summary))| {
+                let first_word = c * SUMMARY_WORDS * 64;
+                for (k, &sw) in summary.iter().enumerate() {
+                    for w in ones(sw).map(|b| k * 64 + b) {
+                        let (start, end) = (w * 64, (w * 64 + 64).min(values.len()));
+                        let from = (first_word + w) * 64;
+                        // Untouched values of `other` are zero, so adding the whole word is exact.
+                        for (a, b) in values[start..end].iter_mut().zip(&other.values[from..]) {
+                            *a += *b;
+                        }
+                        bits[w] |= other.bits[first_word + w];
+                    }
+                }
+            });
         for (a, b) in self.summary.iter_mut().zip(&other.summary) {
             *a |= *b;
         }

@@ -420,6 +420,45 @@ fn clear_zeroes_everything_touched() {
 }
 
 #[test]
+fn touched_in_a_block_range_is_the_touched_set_cut_to_it() {
+    let g = grid(HashGridConfig::for_scene(2.0, 0.015), 14);
+    let pos = positions(3000, 15);
+    let mut grad = GridGrad::new(g.param_count());
+    g.backward(&pos, &vec![0.5; pos.len() * g.output_dim()], &mut grad);
+    let all: Vec<usize> = grad.touched().collect();
+    let block = GridGrad::BLOCK;
+    let len = 3 * block;
+    let mut joined = Vec::new();
+    for start in (0..g.param_count()).step_by(len) {
+        let part: Vec<usize> = grad.touched_in(start, len).collect();
+        assert!(part.iter().all(|&i| (start..start + len).contains(&i)));
+        joined.extend(part);
+    }
+    assert_eq!(joined, all);
+    assert!(grad
+        .touched_in(g.param_count().next_multiple_of(block), block)
+        .next()
+        .is_none());
+}
+
+#[test]
+fn touched_rms_is_over_the_touched_values_and_refuses_a_nan() {
+    let g = grid(HashGridConfig::for_scene(2.0, 0.015), 14);
+    let pos = positions(3000, 15);
+    let mut rng = Rng::new(3, 0);
+    let d: Vec<f32> = (0..pos.len() * g.output_dim()).map(|_| rng.f32() - 0.5).collect();
+    let mut grad = GridGrad::new(g.param_count());
+    g.backward(&pos, &d, &mut grad);
+    let n = grad.touched_count() as f64;
+    let reference = (grad.touched().map(|i| (grad.values[i] as f64).powi(2)).sum::<f64>() / n).sqrt();
+    let rms = grad.touched_rms().unwrap() as f64;
+    assert!((rms - reference).abs() < 1e-5 * reference, "{rms} vs {reference}");
+    let i = grad.touched().nth(100).unwrap();
+    grad.values[i] = f32::NAN;
+    assert_eq!(grad.touched_rms(), None);
+}
+
+#[test]
 fn zero_gradient_samples_touch_nothing() {
     let g = grid(small_mixed(2), 16);
     let pos = positions(100, 17);

@@ -100,8 +100,8 @@ pub struct StepStats {
     pub phases: PhaseSeconds,
 }
 
-/// Time of a step by phase: thread-seconds summed over the worker threads
-/// for the first four, wall seconds for the optimiser update.
+/// Time of a step by phase, in thread-seconds: summed over the worker
+/// threads for the first four, the update's wall time times the threads.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct PhaseSeconds {
     /// Drawing rays and marching them through the occupancy grid.

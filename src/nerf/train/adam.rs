@@ -46,23 +46,26 @@ impl Adam {
         true
     }
 
-    fn corrections(&mut self) -> (f32, f32) {
+    /// Counts a step and returns the rule every parameter of it follows.
+    fn next_step(&mut self, lr: f32) -> StepRule {
         self.steps += 1;
         let t = self.steps.min(1_000_000) as i32;
-        (1.0 - self.beta1.powi(t), 1.0 - self.beta2.powi(t))
+        StepRule {
+            b1: self.beta1,
+            b2: self.beta2,
+            eps: self.eps,
+            c1: 1.0 - self.beta1.powi(t),
+            c2: 1.0 - self.beta2.powi(t),
+            lr,
+        }
     }
 
     /// Update every parameter; `weight_decay` adds an L2 pull to zero.
     pub fn step_dense(&mut self, params: &mut [f32], grads: &[f32], lr: f32, weight_decay: f32) {
-        let (c1, c2) = self.corrections();
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let rule = self.next_step(lr);
         for i in 0..params.len() {
             let g = clamp_gradient(grads[i] + weight_decay * params[i]);
-            let m = b1 * self.m[i] + (1.0 - b1) * g;
-            let v = b2 * self.v[i] + (1.0 - b2) * g * g;
-            self.m[i] = m;
-            self.v[i] = v;
-            params[i] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], g);
         }
     }
 
@@ -71,8 +74,7 @@ impl Adam {
     /// a block moves along its gradient instead of every entry by about the
     /// learning rate whatever its share of the gradient.
     pub fn step_blocks(&mut self, params: &mut [f32], grads: &[f32], block: usize, lr: f32, weight_decay: f32) {
-        let (c1, c2) = self.corrections();
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let rule = self.next_step(lr);
         let block = block.max(1);
         for start in (0..params.len()).step_by(block) {
             let range = start..(start + block).min(params.len());
@@ -82,11 +84,8 @@ impl Adam {
                 .collect();
             let mean_square = g.iter().map(|x| x * x).sum::<f32>() / g.len() as f32;
             for (i, g) in range.zip(g) {
-                let m = b1 * self.m[i] + (1.0 - b1) * g;
-                let v = b2 * self.v[i] + (1.0 - b2) * mean_square;
-                self.m[i] = m;
-                self.v[i] = v;
-                params[i] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+                let v_term = (1.0 - rule.b2) * mean_square;
+                rule.apply_with(&mut params[i], &mut self.m[i], &mut self.v[i], g, v_term);
             }
         }
     }
@@ -122,15 +121,10 @@ impl Adam {
     where
         I: IntoIterator<Item = usize>,
     {
-        let (c1, c2) = self.corrections();
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let rule = self.next_step(lr);
         for i in touched {
             let g = clamp_gradient(grads[i] + weight_decay * params[i]);
-            let m = b1 * self.m[i] + (1.0 - b1) * g;
-            let v = b2 * self.v[i] + (1.0 - b2) * g * g;
-            self.m[i] = m;
-            self.v[i] = v;
-            params[i] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], g);
         }
     }
 }
@@ -158,8 +152,7 @@ impl Adam {
         I: Iterator<Item = (usize, u64)>,
     {
         use rayon::prelude::*;
-        let (c1, c2) = self.corrections();
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let rule = self.next_step(lr);
         let block = block.max(1);
         let len = params.len().div_ceil(parts.max(1)).div_ceil(block).max(1) * block;
         params
@@ -171,11 +164,7 @@ impl Adam {
                 let start = part * len;
                 let update = |k: usize, g: f32, params: &mut [f32], ms: &mut [f32], vs: &mut [f32]| {
                     let g = clamp_gradient(g + weight_decay * params[k]);
-                    let m = b1 * ms[k] + (1.0 - b1) * g;
-                    let v = b2 * vs[k] + (1.0 - b2) * g * g;
-                    ms[k] = m;
-                    vs[k] = v;
-                    params[k] -= lr * (m / c1) / ((v / c2).sqrt() + eps);
+                    rule.apply(&mut params[k], &mut ms[k], &mut vs[k], g);
                 };
                 for (first, bits) in touched(start, len) {
                     let k0 = first - start;
@@ -193,6 +182,33 @@ impl Adam {
                     }
                 }
             });
+    }
+}
+
+/// One step's constants: decay rates, eps, bias corrections, learning rate.
+#[derive(Clone, Copy)]
+struct StepRule {
+    b1: f32,
+    b2: f32,
+    eps: f32,
+    c1: f32,
+    c2: f32,
+    lr: f32,
+}
+
+impl StepRule {
+    /// Adam on one parameter with its (clamped, decayed) gradient `g`.
+    #[inline(always)]
+    fn apply(&self, param: &mut f32, m: &mut f32, v: &mut f32, g: f32) {
+        self.apply_with(param, m, v, g, (1.0 - self.b2) * g * g);
+    }
+
+    /// [`StepRule::apply`] with the second moment's new term given.
+    #[inline(always)]
+    fn apply_with(&self, param: &mut f32, m: &mut f32, v: &mut f32, g: f32, v_term: f32) {
+        *m = self.b1 * *m + (1.0 - self.b1) * g;
+        *v = self.b2 * *v + v_term;
+        *param -= self.lr * (*m / self.c1) / ((*v / self.c2).sqrt() + self.eps);
     }
 }
 

@@ -144,6 +144,11 @@ impl BoxClassifier {
         }
     }
 
+    /// Instance ids of every box holding `p`, smallest box first.
+    pub fn containing(&self, p: DVec3) -> impl Iterator<Item = u32> + '_ {
+        self.boxes.iter().filter(move |b| b.contains(p)).map(|b| b.instance_id)
+    }
+
     /// Instance id for the surface point at `t` along the unit ray: the
     /// box holding it, else the smallest box the ray enters within
     /// `tolerance` behind it (a surface resolved only to about that much,

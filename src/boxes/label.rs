@@ -8,11 +8,12 @@
 //! boxes, and stop at termination.
 
 use super::boundary::snap_to_colour;
-use super::classify::BoxClassifier;
+use super::classify::{BoxClassifier, Overlap};
 use super::cleanup::clean_mask;
 use super::options::{DepthSource, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
+use super::reach::{self, Contested};
 use super::support::{excluded_planes, ExcludedPlane};
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use super::tsdf::BoxTsdf;
@@ -172,6 +173,13 @@ impl<'a> Labeler<'a> {
         &self.excluded
     }
 
+    /// Whether a point in several boxes goes to the object that reaches it
+    /// ([`reach`]): with the smallest-box rule, unless the boxes are taken
+    /// exactly as drawn.
+    fn contest_overlaps(&self) -> bool {
+        self.options.overlap == Overlap::Smallest && !self.options.exact_boxes && self.classifier.len() > 1
+    }
+
     /// The options in use.
     pub fn options(&self) -> &LabelOptions {
         &self.options
@@ -267,6 +275,7 @@ impl<'a> Labeler<'a> {
                 z_image[j.y as usize * w as usize + j.x as usize] = z;
             }
         }
+        let mut contested = Contested::default();
         let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64) * z);
         for (j, &z) in jobs.iter().zip(&depths) {
             let index = j.y as usize * w as usize + j.x as usize;
@@ -292,13 +301,37 @@ impl<'a> Labeler<'a> {
                             && !surface_normal(&z_image, w, h, j.x, j.y, &point_at)
                                 .is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
                 };
-                let excluded = id > 0
-                    && self
-                        .excluded
+                let excluded_from = |id: u32| {
+                    self.excluded
                         .get(id as usize - 1)
-                        .is_some_and(|planes| planes.iter().any(excluded_by));
+                        .is_some_and(|planes| planes.iter().any(excluded_by))
+                };
+                let excluded = id > 0 && excluded_from(id);
                 mask[index] = if excluded { 0 } else { id as u16 };
+                if id > 0 && !excluded && self.contest_overlaps() {
+                    let holders: Vec<u32> = self
+                        .classifier
+                        .containing(point)
+                        .filter(|&other| other == id || !excluded_from(other))
+                        .collect();
+                    if holders.len() >= 2 && holders[0] == id {
+                        contested.push(mask.len(), index, holders);
+                    }
+                }
             }
+        }
+        if !contested.is_empty() {
+            if z_image.is_empty() {
+                z_image.resize(w as usize * h as usize, 0.0f64);
+                for (j, &z) in jobs.iter().zip(&depths) {
+                    z_image[j.y as usize * w as usize + j.x as usize] = z;
+                }
+            }
+            // One surface seen obliquely steps by a few pixel footprints
+            // between neighbouring pixels, rendered surfaces by up to a cell.
+            let focal = 0.5 * (k.fx + k.fy);
+            let max_step = |z: f64| self.surface_error_m + REACH_STEP_PIXELS * z / focal;
+            reach::resolve(&mut mask, &z_image, w as usize, &contested, max_step);
         }
         if self.options.snap_to_colour {
             mask = snap_to_colour(&mask, &frame.rgb);
@@ -384,6 +417,12 @@ impl<'a> Labeler<'a> {
         depth
     }
 }
+
+/// Largest depth step, in pixel footprints, between neighbouring pixels of
+/// one surface when deciding which object reaches a contested pixel
+/// ([`reach`]): a surface seen at up to 76 degrees from its normal
+/// (tan 76° = 4) steps by less.
+const REACH_STEP_PIXELS: f64 = 4.0;
 
 /// A surface within an excluded plane's band whose normal is at more than
 /// 45 degrees to the plane's belongs to what stands on the plane, not to it.
@@ -631,6 +670,59 @@ mod tests {
     /// Two boxes side by side on the wall, overlapping by 10 cm: the
     /// smallest rule gives the overlap to the smaller box, the deepest rule
     /// splits it where the two boxes' faces are equally far.
+    #[test]
+    fn a_neighbours_face_in_a_boxs_margin_goes_to_the_neighbour_behind_a_depth_step() {
+        let (w, h) = (64u32, 48u32);
+        let k = Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        // Object a (left half of the image) at 1.9 m, object b behind it at 2.4 m.
+        let metres = (0..w * h)
+            .map(|i| if ((i % w) as f64) < k.cx { 1.9 } else { 2.4 })
+            .collect();
+        let depth = DepthMap {
+            width: w,
+            height: h,
+            metres,
+        };
+        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        // Box a: x in [-0.5, 0.05]; box b (larger): x in [-0.05, 0.55]; both hold both depths.
+        let a = Box3 {
+            label: "a".into(),
+            instance_id: 1,
+            center: DVec3::new(-0.225, 0.0, 2.15),
+            size: DVec3::new(0.55, 0.5, 0.9),
+            rotation: DMat3::IDENTITY,
+        };
+        let b = Box3 {
+            label: "b".into(),
+            instance_id: 2,
+            center: DVec3::new(0.25, 0.0, 2.15),
+            size: DVec3::new(0.6, 0.5, 0.9),
+            ..a.clone()
+        };
+        let boxes = BoxSet::from_boxes(vec![a, b]);
+        let ids = |exact_boxes: bool| {
+            let opts = LabelOptions {
+                source: DepthSource::Sensor,
+                exact_boxes,
+                ..LabelOptions::default()
+            };
+            let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
+            let row = (h as usize / 2) * w as usize;
+            // Columns 31 (a's face, x = -0.02) and 32 (b's face, x = 0.03):
+            // both points lie in both boxes.
+            [label.mask[row + 31], label.mask[row + 32]]
+        };
+        // b's face lies in a's margin, behind the step where a ends: b's.
+        assert_eq!(ids(false), [1, 2]);
+        // Boxes taken exactly as drawn: the smallest box takes both.
+        assert_eq!(ids(true), [1, 1]);
+    }
+
     #[test]
     fn overlapping_boxes_follow_the_overlap_rule() {
         let (w, h) = (64u32, 48u32);

@@ -21,6 +21,7 @@ pub mod options;
 pub mod output;
 pub mod parse;
 pub mod project;
+pub mod reach;
 pub mod rle;
 pub mod support;
 pub mod surface;

@@ -137,7 +137,8 @@ pub struct LabelOptions {
     /// than this fraction of their instance (0 = off).
     pub cleanup_fraction: f64,
     /// Label exactly what each box encloses: no support or wall plane is
-    /// excluded (`Labeler::exclude_supports` does nothing).
+    /// excluded (`Labeler::exclude_supports` does nothing), and a point in
+    /// several boxes goes by the overlap rule alone ([`super::reach`] is off).
     pub exact_boxes: bool,
     /// Which box a point inside several boxes belongs to.
     pub overlap: Overlap,

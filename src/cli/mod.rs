@@ -252,6 +252,9 @@ pub struct LabelArgs {
     /// behind it) is excluded from the box, with what lies behind it. An
     /// object lying flat on its support (a sheet) keeps its box whole; one
     /// thinner than the plane's measured noise band is lost to the support.
+    /// Also by default, where boxes overlap, a neighbour's face that a box
+    /// encloses behind a depth step goes to the neighbour, not to the
+    /// smaller box.
     #[arg(long)]
     pub exact_boxes: bool,
     /// Which box a point inside several boxes belongs to.

@@ -1,6 +1,6 @@
-//! Orientation of the local frame: principal axes of a point set (Jacobi
-//! eigen solver for symmetric 3x3 matrices, basis chosen closest to the world
-//! axes), refined by a descent on the volume of the rotated bounding box.
+//! Orientation of the local frame: principal axes of a point set (the
+//! covariance's eigenvectors, basis chosen closest to the world axes),
+//! refined by a descent on the volume of the rotated bounding box.
 
 use glam::{DMat3, DQuat, DVec3};
 
@@ -12,46 +12,18 @@ const LAST_STEP: f64 = 1e-4;
 const VOLUME_PAD: f64 = 0.1;
 
 /// Eigenvalues (descending) and unit eigenvectors (matching columns) of a
-/// symmetric matrix, by cyclic Jacobi rotations.
+/// symmetric matrix (nalgebra's symmetric eigen decomposition).
 pub(crate) fn symmetric_eigen(m: DMat3) -> (DVec3, DMat3) {
-    let mut a = m.transpose().to_cols_array_2d(); // a[row][col]
-    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    let norm2: f64 = a.iter().flatten().map(|x| x * x).sum();
-    for _sweep in 0..64 {
-        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
-        // Relative test keeps the result independent of the matrix's scale.
-        if off.is_nan() || off <= 1e-32 * norm2 {
-            break;
-        }
-        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
-            if a[p][q] == 0.0 {
-                continue;
-            }
-            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-            let c = 1.0 / (t * t + 1.0).sqrt();
-            let s = t * c;
-            for row in a.iter_mut() {
-                let (kp, kq) = (row[p], row[q]);
-                row[p] = c * kp - s * kq;
-                row[q] = s * kp + c * kq;
-            }
-            let (row_p, row_q) = (a[p], a[q]);
-            a[p] = std::array::from_fn(|k| c * row_p[k] - s * row_q[k]);
-            a[q] = std::array::from_fn(|k| s * row_p[k] + c * row_q[k]);
-            a[p][q] = 0.0;
-            a[q][p] = 0.0;
-            for row in v.iter_mut() {
-                let (kp, kq) = (row[p], row[q]);
-                row[p] = c * kp - s * kq;
-                row[q] = s * kp + c * kq;
-            }
-        }
-    }
+    let a = nalgebra::Matrix3::from_column_slice(&m.to_cols_array());
+    // Symmetrise: the solver reads one triangle only.
+    let eigen = nalgebra::SymmetricEigen::new((a + a.transpose()) * 0.5);
     let mut order = [0usize, 1, 2];
-    order.sort_by(|&i, &j| a[j][j].total_cmp(&a[i][i]));
-    let values = DVec3::new(a[order[0]][order[0]], a[order[1]][order[1]], a[order[2]][order[2]]);
-    let col = |i: usize| DVec3::new(v[0][i], v[1][i], v[2][i]);
+    order.sort_by(|&i, &j| eigen.eigenvalues[j].total_cmp(&eigen.eigenvalues[i]));
+    let values = DVec3::from_array(order.map(|i| eigen.eigenvalues[i]));
+    let col = |i: usize| {
+        let c = eigen.eigenvectors.column(i);
+        DVec3::new(c[0], c[1], c[2])
+    };
     (values, DMat3::from_cols(col(order[0]), col(order[1]), col(order[2])))
 }
 
@@ -161,7 +133,7 @@ mod tests {
     use glam::DQuat;
 
     #[test]
-    fn jacobi_diagonalises_random_symmetric_matrices() {
+    fn symmetric_eigen_diagonalises_random_symmetric_matrices() {
         let mut rng = Rng::new(5, 0);
         for _ in 0..200 {
             let r =

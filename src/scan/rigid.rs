@@ -41,25 +41,20 @@ pub fn orthonormality_error(m: &DMat4) -> f64 {
     e.to_cols_array().iter().fold(0.0f64, |acc, v| acc.max(v.abs()))
 }
 
-/// Nearest rotation to the rotation block (polar decomposition by Newton
-/// iteration `R <- (R + R^-T) / 2`), keeping the translation. `None` when
-/// the block is singular or a reflection.
+/// Nearest rotation to the rotation block (its polar factor, from the
+/// SVD), keeping the translation. `None` when the block is singular or a
+/// reflection.
 pub fn orthonormalize(m: &DMat4) -> Option<DMat4> {
-    let mut r = DMat3::from_mat4(*m);
+    let r = DMat3::from_mat4(*m);
     let det = r.determinant();
     if det.is_nan() || det <= 1e-9 {
         return None;
     }
-    for _ in 0..50 {
-        let inv_t = r.inverse().transpose();
-        let next = (r + inv_t) * 0.5;
-        let change = (next - r).to_cols_array().iter().fold(0.0f64, |a, v| a.max(v.abs()));
-        r = next;
-        if change < 1e-15 {
-            break;
-        }
-    }
-    if !r.is_finite() {
+    // The nearest rotation is the polar factor U V^T of the SVD.
+    let svd = nalgebra::Matrix3::from_column_slice(&r.to_cols_array()).svd(true, true);
+    let nearest = svd.u? * svd.v_t?;
+    let r = DMat3::from_cols_slice(nearest.as_slice());
+    if !(r.is_finite() && r.determinant() > 0.0) {
         return None;
     }
     let mut out = DMat4::from_mat3(r);

@@ -180,34 +180,50 @@ impl OccupancyGrid {
     pub fn seed_from_depth(&mut self, rays: &[DepthRay], cameras: &[CameraSpace]) {
         let res = self.res;
         let cells = res * res * res;
-        let mut free_votes = vec![0u16; cells];
         let surface_votes = self.surface_votes(rays);
         let cell = 1.0 / res as f32;
         let step = 0.25 * cell;
         let margin = 2.0 * cell;
-        for ray in rays {
-            if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
-                continue;
-            }
-            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
-                continue;
-            };
-            let t_end = (ray.t_hit - margin).min(t1);
-            let mut t = t0;
-            let mut last = usize::MAX;
-            while t < t_end {
-                let p = along(ray.origin, ray.dir, t);
-                // Only a pass through the core of a cell counts as seeing it
-                // free: a ray grazing a thin object in a corner must not carve it.
-                if let Some(c) = self.cell_of(p) {
-                    if c != last && near_cell_centre(p, res, CORE_RADIUS) {
-                        free_votes[c] = free_votes[c].saturating_add(1);
-                        last = c;
-                    }
+        // One vote array per thread, summed after: saturating sums of the
+        // parts equal the saturating count, so the result is the serial one.
+        let march = |part: &[DepthRay]| {
+            let mut votes = vec![0u16; cells];
+            for ray in part {
+                if !(ray.t_hit.is_finite() && ray.t_hit > 0.0) {
+                    continue;
                 }
-                t += step;
+                let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
+                    continue;
+                };
+                let t_end = (ray.t_hit - margin).min(t1);
+                let mut t = t0;
+                let mut last = usize::MAX;
+                while t < t_end {
+                    let p = along(ray.origin, ray.dir, t);
+                    // Only a pass through the core of a cell counts as seeing it
+                    // free: a ray grazing a thin object in a corner must not carve it.
+                    if let Some(c) = self.cell_of(p) {
+                        if c != last && near_cell_centre(p, res, CORE_RADIUS) {
+                            votes[c] = votes[c].saturating_add(1);
+                            last = c;
+                        }
+                    }
+                    t += step;
+                }
             }
-        }
+            votes
+        };
+        let part_len = rays.len().div_ceil(rayon::current_num_threads().max(1)).max(1);
+        let free_votes = rays
+            .par_chunks(part_len)
+            .map(march)
+            .reduce_with(|mut a, b| {
+                for (x, y) in a.iter_mut().zip(&b) {
+                    *x = x.saturating_add(*y);
+                }
+                a
+            })
+            .unwrap_or_else(|| vec![0u16; cells]);
         let mut seen_free = vec![false; cells];
         for i in 0..cells {
             let free = free_votes[i] as u32;
@@ -279,20 +295,29 @@ impl OccupancyGrid {
         }
         let step = 0.25 / self.res as f32;
         // A depth ray belongs to the camera it starts from (same origin bits).
-        for ray in rays {
-            let Some(&reach) = free_distance.get(&key(ray.origin)) else {
-                continue;
-            };
-            let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
-                continue;
-            };
-            let mut t = t0;
-            while t < reach.min(t1) {
-                if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
-                    free[c] = true;
+        let march = |part: &[DepthRay]| {
+            let mut crossed = Vec::new();
+            for ray in part {
+                let Some(&reach) = free_distance.get(&key(ray.origin)) else {
+                    continue;
+                };
+                let Some((t0, t1)) = unit_cube_interval(ray.origin, ray.dir) else {
+                    continue;
+                };
+                let mut t = t0;
+                while t < reach.min(t1) {
+                    if let Some(c) = self.cell_of(along(ray.origin, ray.dir, t)) {
+                        crossed.push(c);
+                    }
+                    t += step;
                 }
-                t += step;
             }
+            crossed
+        };
+        let part_len = rays.len().div_ceil(4 * rayon::current_num_threads().max(1)).max(1);
+        let crossed: Vec<Vec<usize>> = rays.par_chunks(part_len).map(march).collect();
+        for c in crossed.into_iter().flatten() {
+            free[c] = true;
         }
         free
     }
@@ -655,6 +680,39 @@ mod tests {
             }
         }
         rays
+    }
+
+    #[test]
+    fn seeding_gives_the_same_grid_on_any_number_of_threads() {
+        // Rays from a camera in front of the wall (it vouches for the space
+        // near it), some ending at the wall, some without depth.
+        let mut rays = wall_rays(0.5, |i| i % 3 != 0);
+        rays.extend(wall_rays(f32::INFINITY, |i| i % 3 == 0));
+        for (k, ray) in rays.iter_mut().enumerate() {
+            ray.origin = [0.5, 0.5, 0.05];
+            ray.dir = [((k % 7) as f32 - 3.0) * 0.05, ((k % 5) as f32 - 2.0) * 0.05, 1.0];
+            let n = ray.dir.iter().map(|d| d * d).sum::<f32>().sqrt();
+            ray.dir = ray.dir.map(|d| d / n);
+        }
+        let cameras = [CameraSpace {
+            origin: [0.5, 0.5, 0.05],
+            free_distance: 0.2,
+        }];
+        let seeded = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let mut grid = OccupancyGrid::full(32);
+                grid.seed_from_depth(&rays, &cameras);
+                grid
+            })
+        };
+        let one = seeded(1);
+        assert!(one.occupied_fraction() < 1.0, "something was carved");
+        for threads in [2, 3] {
+            let many = seeded(threads);
+            assert_eq!(one.carved, many.carved, "{threads} threads");
+            assert_eq!(one.density, many.density, "{threads} threads");
+        }
     }
 
     #[test]

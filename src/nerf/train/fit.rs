@@ -70,6 +70,20 @@ const EVAL_COST_RATIO: f64 = 4.0;
 /// renders slowly; the curve still needs its points).
 const MAX_EVAL_SPACING: f64 = 3.0;
 
+/// With a time budget, each periodic held-out evaluation renders as many
+/// pixels as fit in this share of the training time between evaluations,
+/// and the final one as many as fit in `FINAL_EVAL_BUDGET_SHARE` of the
+/// budget: a short fit must not spend its time rendering an untrained model.
+const EVAL_INTERVAL_SHARE: f64 = 0.05;
+const FINAL_EVAL_BUDGET_SHARE: f64 = 0.04;
+/// A time budget's curve gets about this many points (a long budget spaces
+/// its evaluations out; each costs the same).
+const CURVE_POINTS: f64 = 12.0;
+/// The first periodic evaluation's pixel grid (longer side), before its
+/// cost is known; later ones are sized from what it cost.
+const FIRST_EVAL_SIDE: u32 = 64;
+/// Fewest pixels along the longer side of an evaluation grid.
+const MIN_EVAL_SIDE: u32 = 24;
 /// Default training time when neither `time` nor `steps` is given.
 pub const DEFAULT_TIME_S: f64 = 120.0;
 
@@ -172,6 +186,18 @@ pub struct Prepared {
     pub metres_per_unit: f64,
     pub trainer: Trainer,
     pub timings: Timings,
+}
+
+/// The longer side of an evaluation pixel grid whose rendering takes about
+/// `target_s`, given that a grid of `side` took `render_s` (rendering time
+/// grows with the pixel count, the side squared); within
+/// [`MIN_EVAL_SIDE`, `max_side`].
+fn evaluation_side(side: u32, render_s: f64, target_s: f64, max_side: u32) -> u32 {
+    if !(render_s > 0.0 && target_s >= 0.0) {
+        return side;
+    }
+    let scaled = side as f64 * (target_s / render_s).sqrt();
+    (scaled.round() as u32).clamp(MIN_EVAL_SIDE.min(max_side), max_side)
 }
 
 /// Normalise the scene, build the views, seed the occupancy grid from
@@ -368,46 +394,64 @@ fn run(
         DEFAULT_TIME_S
     };
     // A short budget evaluates sooner: the curve gets its points, and the
-    // first evaluation tells what finishing will cost.
-    let interval = time_budget.map_or(interval, |limit| interval.min(limit / 4.0));
+    // first evaluation tells what finishing will cost; a long one later.
+    let interval = time_budget.map_or(interval, |limit| interval.max(limit / CURVE_POINTS).min(limit / 4.0));
     let mut next_eval = ((state.train_seconds / interval).floor() + 1.0) * interval;
     let frame_count = scan.frames.len();
-    let evaluate_now = |trainer: &mut Trainer, state: &mut FitProgress| -> Option<CurvePoint> {
-        if data.holdout.is_empty() {
-            return None;
-        }
-        let wall = spent();
-        let t = Instant::now();
-        let grid = trainer.rendering_occupancy();
-        // A held-out frame is seen with its training neighbours' appearance.
-        let holdout_maps = trainer.appearance.as_ref().map(|learner| {
-            let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
-            data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
-        });
-        let r: Validation = validate(
-            &trainer.field,
-            &grid,
-            &render_opts,
-            &data.holdout,
-            metres_per_unit,
-            opts.eval_max_side,
-            holdout_maps.as_deref(),
-        );
-        state.timings.eval_s += t.elapsed().as_secs_f64();
-        let samples = trainer.counters.samples;
-        let dt = (state.train_seconds - state.last_point.0).max(1e-9);
-        let point = CurvePoint {
-            seconds: wall,
-            step: trainer.counters.steps,
-            psnr: r.psnr,
-            ssim: r.ssim,
-            depth_mae_m: r.depth_mae_m,
-            samples_per_s: samples.saturating_sub(state.last_point.1) as f64 / dt,
-        };
-        state.last_point = (state.train_seconds, samples);
-        state.curve.push(point);
-        Some(point)
+    // Pixel grid of the evaluations: sized to the time budget (see
+    // EVAL_INTERVAL_SHARE); a step budget always renders the full grid.
+    let mut eval_side = match time_budget {
+        Some(_) => opts.eval_max_side.min(FIRST_EVAL_SIDE),
+        None => opts.eval_max_side,
     };
+    let side_for = |side: u32, render_s: f64, target_s: f64| match time_budget {
+        Some(_) => evaluation_side(side, render_s, target_s, opts.eval_max_side),
+        None => side,
+    };
+    let final_eval_s = time_budget.map_or(0.0, |limit| FINAL_EVAL_BUDGET_SHARE * limit);
+    let mut last_render: Option<(u32, f64)> = None;
+    // The rendering grid of the latest evaluation: the model's, when no
+    // step came after it.
+    let mut latest_grid: Option<(u64, OccupancyGrid)> = None;
+    let evaluate_now =
+        |trainer: &mut Trainer, state: &mut FitProgress, side: u32| -> Option<(CurvePoint, f64, OccupancyGrid)> {
+            if data.holdout.is_empty() {
+                return None;
+            }
+            let wall = spent();
+            let t = Instant::now();
+            let grid = trainer.rendering_occupancy();
+            // A held-out frame is seen with its training neighbours' appearance.
+            let holdout_maps = trainer.appearance.as_ref().map(|learner| {
+                let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
+                data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
+            });
+            let rendering = Instant::now();
+            let r: Validation = validate(
+                &trainer.field,
+                &grid,
+                &render_opts,
+                &data.holdout,
+                metres_per_unit,
+                side,
+                holdout_maps.as_deref(),
+            );
+            let render_s = rendering.elapsed().as_secs_f64();
+            state.timings.eval_s += t.elapsed().as_secs_f64();
+            let samples = trainer.counters.samples;
+            let dt = (state.train_seconds - state.last_point.0).max(1e-9);
+            let point = CurvePoint {
+                seconds: wall,
+                step: trainer.counters.steps,
+                psnr: r.psnr,
+                ssim: r.ssim,
+                depth_mae_m: r.depth_mae_m,
+                samples_per_s: samples.saturating_sub(state.last_point.1) as f64 / dt,
+            };
+            state.last_point = (state.train_seconds, samples);
+            state.curve.push(point);
+            Some((point, render_s, grid))
+        };
     let save_checkpoint = |trainer: &Trainer, state: &mut FitProgress, on_event: &mut dyn FnMut(FitEvent)| {
         let Some(path) = &opts.checkpoint else { return };
         let t = Instant::now();
@@ -449,8 +493,11 @@ fn run(
         let near_end = time_budget.is_some_and(|limit| spent() + 2.0 * finish_cost >= limit);
         if state.train_seconds >= next_eval && !near_end {
             let eval_s_before = state.timings.eval_s;
-            if let Some(point) = evaluate_now(&mut trainer, &mut state) {
+            if let Some((point, render_s, grid)) = evaluate_now(&mut trainer, &mut state, eval_side) {
                 on_event(FitEvent::Eval(&point));
+                latest_grid = Some((point.step, grid));
+                last_render = Some((eval_side, render_s));
+                eval_side = side_for(eval_side, render_s, EVAL_INTERVAL_SHARE * interval);
             }
             let checkpoint_s_before = state.timings.checkpoint_s;
             state.timings.wall_s = spent();
@@ -458,8 +505,14 @@ fn run(
             // Evaluation must not dominate a fit: the next one comes after
             // at least four times the last one's cost in training time.
             let last_cost = state.timings.eval_s - eval_s_before;
-            // The model and report together are about half a checkpoint.
-            finish_cost = last_cost + 1.5 * (state.timings.checkpoint_s - checkpoint_s_before);
+            // The final evaluation renders its own grid (rendering time grows
+            // with its pixels); the model and report together are about half
+            // a checkpoint.
+            let final_eval = last_render.map_or(last_cost, |(side, render_s)| {
+                let final_side = side_for(side, render_s, final_eval_s);
+                last_cost + render_s * ((final_side as f64 / side as f64).powi(2) - 1.0)
+            });
+            finish_cost = final_eval + 1.5 * (state.timings.checkpoint_s - checkpoint_s_before);
             let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * interval);
             next_eval = (next_eval + interval).max(state.train_seconds + spacing);
             while next_eval <= state.train_seconds {
@@ -468,8 +521,10 @@ fn run(
         }
     }
     if state.curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
-        if let Some(point) = evaluate_now(&mut trainer, &mut state) {
+        let side = last_render.map_or(eval_side, |(side, render_s)| side_for(side, render_s, final_eval_s));
+        if let Some((point, _, grid)) = evaluate_now(&mut trainer, &mut state, side) {
             on_event(FitEvent::Eval(&point));
+            latest_grid = Some((point.step, grid));
         }
     }
     state.timings.train_s = state.train_seconds;
@@ -499,7 +554,10 @@ fn run(
             .map(|learner| appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len())),
         sections: [0; 5],
     };
-    let occupancy = trainer.rendering_occupancy();
+    let occupancy = match latest_grid {
+        Some((step, grid)) if step == trainer.counters.steps => grid,
+        _ => trainer.rendering_occupancy(),
+    };
     let report = FitReport {
         nerflabel_version: header.nerflabel_version.clone(),
         scan: header.scan.clone(),
@@ -536,4 +594,24 @@ fn run(
         occupancy,
     };
     Ok(FitOutcome { model, report })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn evaluation_grids_are_sized_to_render_in_their_share_of_the_budget() {
+        // 64 px took 2 s; 0.5 s allows a quarter of the pixels: half the side.
+        assert_eq!(evaluation_side(64, 2.0, 0.5, 160), 32);
+        // A fast render grows the grid, up to the full evaluation grid.
+        assert_eq!(evaluation_side(64, 0.1, 0.4, 160), 128);
+        assert_eq!(evaluation_side(64, 0.01, 10.0, 160), 160);
+        // Never below the floor, and unchanged when nothing was measured.
+        assert_eq!(evaluation_side(64, 100.0, 0.01, 160), MIN_EVAL_SIDE);
+        assert_eq!(evaluation_side(64, 0.0, 1.0, 160), 64);
+        assert_eq!(evaluation_side(64, f64::NAN, 1.0, 160), 64);
+        // A grid smaller than the floor stays what was asked for.
+        assert_eq!(evaluation_side(16, 1.0, 0.001, 16), 16);
+    }
 }

@@ -24,9 +24,18 @@ fn fit_on_the_small_fixture_meets_depth_and_colour_bounds() {
             "--model",
         ])
         .arg(&model_path)
+        .env("NERFLABEL_PROGRESS_EVERY", "0.5")
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    // stderr is a pipe here, as under nohup or a scheduler: no bar, but
+    // plain progress lines at the set pace.
+    let progress: Vec<&str> = stderr.lines().filter(|l| l.starts_with("progress ")).collect();
+    assert!(
+        progress.len() >= 3 && progress.iter().all(|l| l.contains("ETA") && l.contains(": step ")),
+        "{stderr}"
+    );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
     assert_eq!(report["counters"]["steps"], 250);

@@ -8,9 +8,11 @@ use nerflabel::nerf::model_file::{Model, ScanMatch};
 use nerflabel::scan::Scan;
 use signal_hook::consts::{SIGINT, SIGTERM};
 use signal_hook::iterator::Signals;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
-use std::time::Duration;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 /// Load and validate a scan, printing its warnings to stderr.
 pub fn load_scan(args: &ScanArgs) -> anyhow::Result<Scan> {
@@ -75,6 +77,66 @@ pub fn progress_bar(len: u64, template: &str) -> ProgressBar {
     bar.set_style(style.progress_chars("=> "));
     bar.enable_steady_tick(Duration::from_millis(250));
     bar
+}
+
+/// Seconds between plain progress lines when stderr is not a terminal;
+/// `NERFLABEL_PROGRESS_EVERY` (seconds) overrides it.
+const PLAIN_PROGRESS_EVERY_S: f64 = 10.0;
+
+/// Progress for logs. The bar draws only on a terminal; under nohup, CI
+/// or a cluster scheduler this prints a plain line instead, at a steady
+/// pace: how far, elapsed, ETA and what the caller adds.
+pub struct PlainProgress {
+    started: Instant,
+    every: Option<Duration>,
+    last: Mutex<Instant>,
+}
+
+impl PlainProgress {
+    /// Silent when stderr is a terminal (the bar shows progress there).
+    pub fn new() -> Self {
+        let seconds = std::env::var("NERFLABEL_PROGRESS_EVERY")
+            .ok()
+            .and_then(|v| v.parse::<f64>().ok())
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .unwrap_or(PLAIN_PROGRESS_EVERY_S);
+        let now = Instant::now();
+        PlainProgress {
+            started: now,
+            every: (!std::io::stderr().is_terminal()).then(|| Duration::from_secs_f64(seconds)),
+            last: Mutex::new(now),
+        }
+    }
+
+    /// Print a line when the last one (or the start) is a period ago;
+    /// `fraction` of the work is done, `detail` describes where it stands.
+    pub fn tick(&self, fraction: f64, detail: impl FnOnce() -> String) {
+        let Some(every) = self.every else { return };
+        let Ok(mut last) = self.last.try_lock() else { return };
+        if last.elapsed() < every {
+            return;
+        }
+        *last = Instant::now();
+        let elapsed = self.started.elapsed().as_secs_f64();
+        let fraction = fraction.clamp(0.0, 1.0);
+        let eta = if fraction > 0.0 {
+            clock(elapsed * (1.0 - fraction) / fraction)
+        } else {
+            "?".into()
+        };
+        eprintln!(
+            "progress {:.0} %, {} elapsed, ETA {eta}: {}",
+            fraction * 100.0,
+            clock(elapsed),
+            detail()
+        );
+    }
+}
+
+/// `h:mm:ss` of a number of seconds.
+fn clock(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    format!("{}:{:02}:{:02}", s / 3600, (s / 60) % 60, s % 60)
 }
 
 static STOP: AtomicBool = AtomicBool::new(false);

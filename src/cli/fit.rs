@@ -1,6 +1,6 @@
 //! `nerflabel fit`: train the NeRF of a scan and write the model and report.
 
-use super::common::{load_scan, model_path, progress_bar, stop_flag};
+use super::common::{load_scan, model_path, progress_bar, stop_flag, PlainProgress};
 use super::FitArgs;
 use anyhow::{bail, Context};
 use nerflabel::nerf::train::checkpoint::{checkpoint_path, Checkpoint};
@@ -65,6 +65,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         args.settings.preset
     );
     let bar = progress_bar(1000, "{spinner} [{elapsed_precise}] [{bar:30}] {msg} (ETA {eta})");
+    let log = PlainProgress::new();
     let stop = stop_flag();
     let mut last_eval = String::new();
     let mut on_event = |event: FitEvent| match event {
@@ -103,6 +104,11 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             if step % 8 == 0 {
                 bar.set_message(format!("step {step}  loss {:.4}  {last_eval}", stats.loss));
             }
+            log.tick(progress, || {
+                format!("step {step}, loss {:.4}  {last_eval}", stats.loss)
+                    .trim_end()
+                    .to_string()
+            });
         }
         FitEvent::Eval(p) => {
             last_eval = format!(

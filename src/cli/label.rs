@@ -1,6 +1,6 @@
 //! `nerflabel label`: 3D boxes to masks, 2D boxes, object poses and COCO.
 
-use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir};
+use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir, PlainProgress};
 use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::{read_boxes, write_labels, FrameRange, LabelOptions, Labeler, OutputOptions};
@@ -69,8 +69,12 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         total as u64,
         "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})",
     );
+    let log = PlainProgress::new();
     let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|done| {
-        bar.set_position(done as u64)
+        bar.set_position(done as u64);
+        log.tick(done as f64 / total.max(1) as f64, || {
+            format!("{done} of {total} frames")
+        });
     })?;
     bar.finish_and_clear();
     for warning in &summary.warnings {

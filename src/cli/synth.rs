@@ -1,6 +1,8 @@
 //! `nerflabel synth`: render novel views to one Parquet file.
 
-use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, stop_flag, work_dir};
+use super::common::{
+    check_model_scan, load_scan, model_path, progress_bar, read_model, stop_flag, work_dir, PlainProgress,
+};
 use super::SynthArgs;
 use anyhow::bail;
 use nerflabel::boxes::read_boxes;
@@ -60,8 +62,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         model_checksum,
         ..SynthOptions::default()
     };
+    let views = options.poses.as_ref().map_or(args.n, |p| p.len());
+    let log = PlainProgress::new();
     let bar = progress_bar(
-        options.poses.as_ref().map_or(args.n, |p| p.len()) as u64,
+        views as u64,
         "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} views {msg} (ETA {eta})",
     );
     let progress = |p: SynthProgress| match p {
@@ -76,6 +80,12 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         SynthProgress::Views { done, seconds, .. } => {
             bar.set_position(done as u64);
             bar.set_message(format!("{:.2} views/s", done as f64 / seconds.max(1e-9)));
+            log.tick(done as f64 / views.max(1) as f64, || {
+                format!(
+                    "{done} of {views} views, {:.2} views/s",
+                    done as f64 / seconds.max(1e-9)
+                )
+            });
         }
     };
     let summary = synthesize(&scan, &model, boxes.as_ref(), &options, &out, &progress, stop_flag())?;

@@ -45,6 +45,39 @@ fn missing_scan_folder_is_one_clear_error_with_nonzero_exit() {
 }
 
 #[test]
+fn threads_sets_the_worker_count_and_zero_is_refused() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model.nlf");
+    let fit = |threads: &str| {
+        let args = [
+            "--threads",
+            threads,
+            "fit",
+            fixture.to_str().unwrap(),
+            "--steps",
+            "2",
+            "--holdout",
+            "0",
+        ];
+        Command::new(env!("CARGO_BIN_EXE_nerflabel"))
+            .args(args)
+            .arg("--model")
+            .arg(&model)
+            .output()
+            .unwrap()
+    };
+    let out = fit("1");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("model.report.json")).unwrap()).unwrap();
+    assert_eq!(report["threads"], 1);
+    let out = fit("0");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--threads must be at least 1"));
+}
+
+#[test]
 fn unknown_format_and_bad_budget_are_rejected_before_work() {
     let out = nerflabel(&["info", ".", "--format", "meshroom"]);
     assert!(!out.status.success());

@@ -26,6 +26,11 @@ use std::path::PathBuf;
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
+    /// Worker threads (default: one per core). Fewer leave cores to other
+    /// jobs on a shared machine or a cluster node; a fit's result depends
+    /// on the count, so compare runs made with the same one.
+    #[arg(long, global = true, value_name = "N")]
+    pub threads: Option<usize>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -315,6 +320,15 @@ pub struct SynthArgs {
 
 /// Run one parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Some(threads) = cli.threads {
+        if threads == 0 {
+            anyhow::bail!("--threads must be at least 1");
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build_global()
+            .map_err(|e| anyhow::anyhow!("cannot start {threads} worker threads (--threads): {e}"))?;
+    }
     match cli.command {
         Command::Info(args) => info::run(&args),
         Command::Cloud(args) => cloud::run(&args),

@@ -267,13 +267,18 @@ impl<'a> Labeler<'a> {
             })
             .collect();
         // Camera z of every job's surface (0 = none), for the surface normals
-        // the excluded planes need; without planes it is never read.
-        let mut z_image = Vec::new();
-        if self.excluded.iter().any(|planes| !planes.is_empty()) {
-            z_image.resize(w as usize * h as usize, 0.0f64);
+        // the excluded planes need and for contested overlaps; built only
+        // when one of them reads it.
+        let z_image_of_jobs = || {
+            let mut z_image = vec![0.0f64; w as usize * h as usize];
             for (j, &z) in jobs.iter().zip(&depths) {
                 z_image[j.y as usize * w as usize + j.x as usize] = z;
             }
+            z_image
+        };
+        let mut z_image = Vec::new();
+        if self.excluded.iter().any(|planes| !planes.is_empty()) {
+            z_image = z_image_of_jobs();
         }
         let mut contested = Contested::default();
         let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64) * z);
@@ -322,10 +327,7 @@ impl<'a> Labeler<'a> {
         }
         if !contested.is_empty() {
             if z_image.is_empty() {
-                z_image.resize(w as usize * h as usize, 0.0f64);
-                for (j, &z) in jobs.iter().zip(&depths) {
-                    z_image[j.y as usize * w as usize + j.x as usize] = z;
-                }
+                z_image = z_image_of_jobs();
             }
             // One surface seen obliquely steps by a few pixel footprints
             // between neighbouring pixels, rendered surfaces by up to a cell.
@@ -667,11 +669,10 @@ mod tests {
         );
     }
 
-    /// Two boxes side by side on the wall, overlapping by 10 cm: the
-    /// smallest rule gives the overlap to the smaller box, the deepest rule
-    /// splits it where the two boxes' faces are equally far.
-    #[test]
-    fn a_neighbours_face_in_a_boxs_margin_goes_to_the_neighbour_behind_a_depth_step() {
+    /// A 64 x 48 frame at the identity pose whose depth in pixel column u is
+    /// `metres(u)`, and two boxes spanning depths `z0..z1`: box 1 with x in
+    /// [-0.5, 0.05], box 2 (larger) with x in [-0.05, 0.55].
+    fn two_boxes_side_by_side(metres: impl Fn(u32) -> f32, (z0, z1): (f64, f64)) -> (Frame, BoxSet) {
         let (w, h) = (64u32, 48u32);
         let k = Intrinsics {
             fx: 40.0,
@@ -679,32 +680,34 @@ mod tests {
             cx: 31.5,
             cy: 23.5,
         };
-        // Object a (left half of the image) at 1.9 m, object b behind it at 2.4 m.
-        let metres = (0..w * h)
-            .map(|i| if ((i % w) as f64) < k.cx { 1.9 } else { 2.4 })
-            .collect();
         let depth = DepthMap {
             width: w,
             height: h,
-            metres,
+            metres: (0..w * h).map(|i| metres(i % w)).collect(),
         };
         let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
-        // Box a: x in [-0.5, 0.05]; box b (larger): x in [-0.05, 0.55]; both hold both depths.
-        let a = Box3 {
+        let left = Box3 {
             label: "a".into(),
             instance_id: 1,
-            center: DVec3::new(-0.225, 0.0, 2.15),
-            size: DVec3::new(0.55, 0.5, 0.9),
+            center: DVec3::new(-0.225, 0.0, 0.5 * (z0 + z1)),
+            size: DVec3::new(0.55, 0.5, z1 - z0),
             rotation: DMat3::IDENTITY,
         };
-        let b = Box3 {
+        let right = Box3 {
             label: "b".into(),
             instance_id: 2,
-            center: DVec3::new(0.25, 0.0, 2.15),
-            size: DVec3::new(0.6, 0.5, 0.9),
-            ..a.clone()
+            center: DVec3::new(0.25, 0.0, 0.5 * (z0 + z1)),
+            size: DVec3::new(0.6, 0.5, z1 - z0),
+            ..left.clone()
         };
-        let boxes = BoxSet::from_boxes(vec![a, b]);
+        (frame, BoxSet::from_boxes(vec![left, right]))
+    }
+
+    #[test]
+    fn a_neighbours_face_in_a_boxs_margin_goes_to_the_neighbour_behind_a_depth_step() {
+        // Object a (left half of the image) at 1.9 m, object b behind it at
+        // 2.4 m; both boxes hold both depths.
+        let (frame, boxes) = two_boxes_side_by_side(|u| if (u as f64) < 31.5 { 1.9 } else { 2.4 }, (1.7, 2.6));
         let ids = |exact_boxes: bool| {
             let opts = LabelOptions {
                 source: DepthSource::Sensor,
@@ -712,7 +715,7 @@ mod tests {
                 ..LabelOptions::default()
             };
             let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
-            let row = (h as usize / 2) * w as usize;
+            let row = 24 * 64;
             // Columns 31 (a's face, x = -0.02) and 32 (b's face, x = 0.03):
             // both points lie in both boxes.
             [label.mask[row + 31], label.mask[row + 32]]
@@ -723,37 +726,13 @@ mod tests {
         assert_eq!(ids(true), [1, 1]);
     }
 
+    /// Two boxes side by side on the wall, overlapping by 10 cm: the
+    /// smallest rule gives the overlap to the smaller box, the deepest rule
+    /// splits it where the two boxes' faces are equally far.
     #[test]
     fn overlapping_boxes_follow_the_overlap_rule() {
-        let (w, h) = (64u32, 48u32);
-        let k = Intrinsics {
-            fx: 40.0,
-            fy: 40.0,
-            cx: 31.5,
-            cy: 23.5,
-        };
-        let depth = DepthMap {
-            width: w,
-            height: h,
-            metres: vec![2.0; (w * h) as usize],
-        };
-        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
-        // Box 1: x in [-0.5, 0.05]; box 2 (larger): x in [-0.05, 0.55].
-        let left = Box3 {
-            label: "a".into(),
-            instance_id: 1,
-            center: DVec3::new(-0.225, 0.0, 2.0),
-            size: DVec3::new(0.55, 0.5, 0.5),
-            rotation: DMat3::IDENTITY,
-        };
-        let right = Box3 {
-            label: "b".into(),
-            instance_id: 2,
-            center: DVec3::new(0.25, 0.0, 2.0),
-            size: DVec3::new(0.6, 0.5, 0.5),
-            ..left.clone()
-        };
-        let boxes = BoxSet::from_boxes(vec![left, right]);
+        let (frame, boxes) = two_boxes_side_by_side(|_| 2.0, (1.75, 2.25));
+        let (w, h, k) = (64usize, 48usize, frame.intrinsics);
         let id_at = |overlap: Overlap, x: f64| {
             let opts = LabelOptions {
                 source: DepthSource::Sensor,
@@ -763,7 +742,7 @@ mod tests {
             let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
             // Wall point x at 2 m: u = cx + fx * x / 2.
             let u = (k.cx + k.fx * x / 2.0).round() as usize;
-            label.mask[(h as usize / 2) * w as usize + u]
+            label.mask[(h / 2) * w + u]
         };
         // The overlap's right part (x = 0.04): the smaller box 1, or box 2 whose faces are farther.
         assert_eq!(id_at(Overlap::Smallest, 0.04), 1);

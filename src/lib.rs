@@ -12,6 +12,7 @@ pub mod boxes;
 pub mod evaluate;
 pub mod fixture;
 pub mod mask;
+pub mod masks;
 pub mod nerf;
 pub mod outputs;
 pub mod plot;

@@ -23,6 +23,9 @@ pub struct CocoInfo {
     pub seed: Option<u64>,
     pub scan: String,
     pub boxes: String,
+    /// Folder of given masks carried to every frame (`label --masks`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub masks: Option<String>,
     pub model: Option<String>,
     /// Training steps of the model.
     pub model_steps: Option<u64>,

@@ -76,6 +76,30 @@ struct Job {
     box_far: Option<f64>,
 }
 
+/// The surface seen behind some pixels of one frame.
+pub struct FrameSurface {
+    jobs: Vec<Job>,
+    /// Camera z of each job's surface in metres (0 = none).
+    depths: Vec<f64>,
+    /// Instance ids whose box projects into the image.
+    pub in_view: Vec<u32>,
+    /// Pixels whose ray meets a box.
+    pub box_pixels: usize,
+    /// Rays handed to the renderer.
+    pub rendered_rays: usize,
+}
+
+impl FrameSurface {
+    /// Pixels with a surface: (x, y, camera z in metres).
+    pub fn points(&self) -> impl Iterator<Item = (u32, u32, f64)> + '_ {
+        self.jobs
+            .iter()
+            .zip(&self.depths)
+            .filter(|(_, &z)| z > 0.0)
+            .map(|(j, &z)| (j.x, j.y, z))
+    }
+}
+
 /// Labels frames of one scan with one box set and depth source.
 pub struct Labeler<'a> {
     boxes: &'a BoxSet,
@@ -107,7 +131,7 @@ impl<'a> Labeler<'a> {
             (true, Some(m)) => {
                 // Whole frames: a grid re-estimated from the field skips more
                 // empty space, well worth its set-up over many frames.
-                let r = if options.full_depth {
+                let r = if options.full_depth && !options.few_frames {
                     ViewRenderer::pruned(m)?
                 } else {
                     ViewRenderer::new(m)?
@@ -180,6 +204,12 @@ impl<'a> Labeler<'a> {
         self.options.overlap == Overlap::Smallest && !self.options.exact_boxes && self.classifier.len() > 1
     }
 
+    /// How far rendered surfaces may lie from the true ones, metres (a
+    /// finest grid cell; 0 for the sensor source).
+    pub fn surface_error_m(&self) -> f64 {
+        self.surface_error_m
+    }
+
     /// The options in use.
     pub fn options(&self) -> &LabelOptions {
         &self.options
@@ -203,8 +233,14 @@ impl<'a> Labeler<'a> {
             .collect()
     }
 
-    /// Label one frame (its rays are rendered in parallel packets).
-    pub fn label_frame(&self, frame: &Frame) -> FrameLabel {
+    /// The surface behind the pixels whose rays can meet a box (every
+    /// pixel with full depth), from the configured depth source.
+    pub fn surface(&self, frame: &Frame) -> FrameSurface {
+        self.surface_where(frame, &|_, _| true)
+    }
+
+    /// [`Self::surface`] of the pixels (x, y) that `keep` accepts.
+    pub fn surface_where(&self, frame: &Frame, keep: &dyn Fn(u32, u32) -> bool) -> FrameSurface {
         let (w, h) = frame.size();
         let c2w = frame.camera_to_world;
         let k = frame.intrinsics;
@@ -231,7 +267,7 @@ impl<'a> Labeler<'a> {
         let mut box_pixels = 0;
         for y in 0..h {
             for x in 0..w {
-                if !full && !candidate[y as usize * w as usize + x as usize] {
+                if (!full && !candidate[y as usize * w as usize + x as usize]) || !keep(x, y) {
                     continue;
                 }
                 let dir = (rot * k.unproject(x as f64, y as f64)).normalize();
@@ -255,8 +291,6 @@ impl<'a> Labeler<'a> {
             }
             None => frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64),
         };
-        let mut mask = vec![0u16; w as usize * h as usize];
-        let mut depth_m = full.then(|| vec![0.0f32; w as usize * h as usize]);
         let depths: Vec<f64> = jobs
             .iter()
             .enumerate()
@@ -266,6 +300,31 @@ impl<'a> Labeler<'a> {
                 _ => sensor(j),
             })
             .collect();
+        FrameSurface {
+            rendered_rays: if rendered.is_some() { jobs.len() } else { 0 },
+            jobs,
+            depths,
+            in_view,
+            box_pixels,
+        }
+    }
+
+    /// Label one frame (its rays are rendered in parallel packets).
+    pub fn label_frame(&self, frame: &Frame) -> FrameLabel {
+        let (w, h) = frame.size();
+        let c2w = frame.camera_to_world;
+        let k = frame.intrinsics;
+        let origin = c2w.w_axis.truncate();
+        let rot = DMat3::from_mat4(c2w);
+        let FrameSurface {
+            jobs,
+            depths,
+            in_view,
+            box_pixels,
+            rendered_rays,
+        } = self.surface(frame);
+        let mut mask = vec![0u16; w as usize * h as usize];
+        let mut depth_m = self.options.full_depth.then(|| vec![0.0f32; w as usize * h as usize]);
         // Camera z of every job's surface (0 = none), for the surface normals
         // the excluded planes need and for contested overlaps; built only
         // when one of them reads it.
@@ -352,7 +411,7 @@ impl<'a> Labeler<'a> {
             instances,
             in_view,
             box_pixels,
-            rendered_rays: if rendered.is_some() { jobs.len() } else { 0 },
+            rendered_rays,
         }
     }
 

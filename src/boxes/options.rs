@@ -145,6 +145,10 @@ pub struct LabelOptions {
     /// Move silhouettes onto the frame's colour edges ([`super::boundary`]);
     /// on by default.
     pub snap_to_colour: bool,
+    /// Full depth of a few frames only: march the model's own occupancy
+    /// grid (re-estimating a finer one pays off over many whole frames,
+    /// not over a few).
+    pub few_frames: bool,
 }
 
 impl Default for LabelOptions {
@@ -159,6 +163,7 @@ impl Default for LabelOptions {
             overlap: Overlap::Smallest,
             cleanup_fraction: 0.02,
             snap_to_colour: true,
+            few_frames: false,
         }
     }
 }

@@ -9,7 +9,7 @@
 
 use super::coco::{assemble, frame_record, yolo_classes, CocoInfo, FrameRecord};
 use super::label::{FrameLabel, Labeler};
-use super::options::{FrameRange, LabelError};
+use super::options::{FrameRange, LabelError, LabelOptions};
 use super::parse::BoxSet;
 use crate::atomic;
 use crate::png_encode::{encode_depth, encode_mask, quantise_depth, MILLIMETRE};
@@ -26,6 +26,21 @@ const OWNED: [&str; 5] = ["masks", "depth", "labels", "classes.txt", "coco.json"
 const PER_FRAME: [&str; 3] = ["masks", "depth", "labels"];
 /// Marks a folder whose owned entries `label` wrote and may replace.
 pub const MARKER: &str = ".nerflabel-labels";
+
+/// Labels one frame at a time: boxes ([`Labeler`]) or carried masks.
+pub trait FrameLabelling: Sync {
+    fn label_frame(&self, frame: &Frame) -> FrameLabel;
+    fn options(&self) -> &LabelOptions;
+}
+
+impl FrameLabelling for Labeler<'_> {
+    fn label_frame(&self, frame: &Frame) -> FrameLabel {
+        Labeler::label_frame(self, frame)
+    }
+    fn options(&self) -> &LabelOptions {
+        Labeler::options(self)
+    }
+}
 
 /// What to write besides masks and COCO.
 #[derive(Clone, Debug, Default)]
@@ -70,9 +85,9 @@ fn write_png(path: &Path, encoded: Result<Vec<u8>, ImageError>) -> Result<(), La
     atomic::write_file(path, &png).map_err(io_err(path))
 }
 
-/// Instance mask: 8-bit when the box set has at most 255 boxes, else 16-bit.
-pub fn write_mask(path: &Path, mask: &[u16], w: u32, h: u32, box_count: usize) -> Result<(), LabelError> {
-    write_png(path, encode_mask(mask, box_count, w, h))
+/// Instance mask: 8-bit when every instance id is at most 255, else 16-bit.
+pub fn write_mask(path: &Path, mask: &[u16], w: u32, h: u32, max_id: usize) -> Result<(), LabelError> {
+    write_png(path, encode_mask(mask, max_id, w, h))
 }
 
 /// Depth in millimetres as 16-bit PNG (0 = no surface); returns how many
@@ -113,7 +128,7 @@ pub fn write_labels(
     out: &Path,
     scan: &Scan,
     boxes: &BoxSet,
-    labeler: &Labeler,
+    labeler: &dyn FrameLabelling,
     options: &OutputOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<LabelSummary, LabelError> {
@@ -286,12 +301,12 @@ fn stage(
     staging: &Path,
     scan: &Scan,
     boxes: &BoxSet,
-    labeler: &Labeler,
+    labeler: &dyn FrameLabelling,
     options: &OutputOptions,
     frames: &[&Frame],
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<LabelSummary, LabelError> {
-    let box_count = boxes.boxes.len();
+    let max_id = boxes.max_instance_id() as usize;
     let done = std::sync::atomic::AtomicUsize::new(0);
     let written: Vec<Written> = frames
         .par_iter()
@@ -303,7 +318,7 @@ fn stage(
                 &label.mask,
                 w,
                 h,
-                box_count,
+                max_id,
             )?;
             let depth_overflow = match &label.depth_m {
                 Some(d) => write_depth_mm(&staging.join("depth").join(format!("{}.png", label.name)), d, w, h)?,
@@ -333,18 +348,17 @@ fn stage(
     let mut frames_in_view = vec![0usize; n];
     for w in &written {
         for &id in &w.visible {
-            if let Some(c) = frames_visible.get_mut(id as usize - 1) {
+            if let Some(c) = boxes.position(id).and_then(|i| frames_visible.get_mut(i)) {
                 *c += 1;
             }
         }
         for &id in &w.in_view {
-            if let Some(c) = frames_in_view.get_mut(id as usize - 1) {
+            if let Some(c) = boxes.position(id).and_then(|i| frames_in_view.get_mut(i)) {
                 *c += 1;
             }
         }
     }
-    for b in &boxes.boxes {
-        let i = b.instance_id as usize - 1;
+    for (i, b) in boxes.boxes.iter().enumerate() {
         if frames_in_view[i] == 0 {
             warnings.push(format!(
                 "box {} (`{}`) is outside the view of every labelled frame",

@@ -114,8 +114,22 @@ impl BoxSet {
 
     /// The box with an instance id.
     pub fn by_instance(&self, instance_id: u32) -> Option<&Box3> {
+        self.position(instance_id).map(|i| &self.boxes[i])
+    }
+
+    /// Index in `boxes` of the box with an instance id (box k of a boxes
+    /// file has id k; objects of given masks keep their own ids).
+    pub fn position(&self, instance_id: u32) -> Option<usize> {
         let i = (instance_id as usize).checked_sub(1)?;
-        self.boxes.get(i).filter(|b| b.instance_id == instance_id)
+        if self.boxes.get(i).is_some_and(|b| b.instance_id == instance_id) {
+            return Some(i);
+        }
+        self.boxes.iter().position(|b| b.instance_id == instance_id)
+    }
+
+    /// The largest instance id (0 when empty).
+    pub fn max_instance_id(&self) -> u32 {
+        self.boxes.iter().map(|b| b.instance_id).max().unwrap_or(0)
     }
 
     /// Non-fatal findings: boxes with zero volume (they can contain nothing).

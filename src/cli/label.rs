@@ -1,16 +1,24 @@
-//! `nerflabel label`: 3D boxes to masks, 2D boxes, object poses and COCO.
+//! `nerflabel label`: 3D boxes (and/or given masks of a few frames) to
+//! masks, 2D boxes, object poses and COCO for every frame.
 
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir, PlainProgress};
 use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
-use nerflabel::boxes::{read_boxes, write_labels, FrameRange, LabelOptions, Labeler, OutputOptions};
+use nerflabel::boxes::output::FrameLabelling;
+use nerflabel::boxes::{
+    read_boxes, write_labels, Box3, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions,
+};
+use nerflabel::masks::{lift, read_masks, MaskLabeler};
+use nerflabel::nerf::model_file::Model;
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
+use nerflabel::scan::Scan;
+use std::path::Path;
 
 pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
     let source = args.source;
     let frames: Option<FrameRange> = args.frames.as_deref().map(str::parse).transpose()?;
-    let boxes = read_boxes(&args.boxes)?;
+    let boxes = args.boxes.as_deref().map(read_boxes).transpose()?;
     let model_path = model_path(scan_dir, args.model.as_ref());
     let model = if source.needs_model() {
         Some(read_model(&model_path)?.0)
@@ -34,14 +42,10 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         snap_to_colour: !args.no_colour_snap,
         ..LabelOptions::default()
     };
-    let mut labeler = Labeler::new(&boxes, model.as_ref(), options)?;
-    let planes = labeler.exclude_supports(&scan)?;
-    if planes > 0 {
-        eprintln!(
-            "excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)"
-        );
-    }
-    labeler.fuse_sensor_depth(&scan);
+    let box_labeler = match &boxes {
+        Some(boxes) => Some(box_labeler(boxes, model.as_ref(), &scan, options)?),
+        None => None,
+    };
     let info = CocoInfo {
         description: "nerflabel instance labels".into(),
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),
@@ -50,7 +54,8 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         colour_snap: !args.no_colour_snap,
         seed: model.as_ref().map(|m| m.header.seed),
         scan: scan_dir.display().to_string(),
-        boxes: args.boxes.display().to_string(),
+        boxes: args.boxes.as_ref().map(|b| b.display().to_string()).unwrap_or_default(),
+        masks: args.masks.as_ref().map(|m| m.display().to_string()),
         model: model.as_ref().map(|_| model_path.display().to_string()),
         model_steps: model.as_ref().map(|m| m.header.steps),
         frames: args.frames.clone(),
@@ -60,23 +65,14 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         yolo: args.yolo,
         info,
     };
-    let total = scan
-        .frames
-        .iter()
-        .filter(|f| frames.is_none_or(|r| r.contains(f.id)))
-        .count();
-    let bar = progress_bar(
-        total as u64,
-        "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})",
-    );
-    let log = PlainProgress::new();
-    let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|done| {
-        bar.set_position(done as u64);
-        log.tick(done as f64 / total.max(1) as f64, || {
-            format!("{done} of {total} frames")
-        });
-    })?;
-    bar.finish_and_clear();
+    let summary = match (&args.masks, &boxes, &box_labeler) {
+        (Some(dir), _, _) => {
+            let boxes = boxes.as_ref().zip(box_labeler.as_ref());
+            label_with_masks(dir, &scan, boxes, model.as_ref(), options, &out, &output)?
+        }
+        (None, Some(boxes), Some(labeler)) => write(&out, &scan, boxes, labeler, &output)?,
+        _ => anyhow::bail!("give --boxes FILE, --masks DIR or both"),
+    };
     for warning in &summary.warnings {
         eprintln!("warning: {warning}");
     }
@@ -84,9 +80,10 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         (true, true) => "rendered every pixel (--depth)".to_string(),
         (true, false) => "wrote every pixel's sensor depth (--depth)".to_string(),
         (false, model) => format!(
-            "{} {:.1} % of the pixels (rays that can meet a box)",
+            "{} {:.1} % of the pixels (rays that can meet {})",
             if model { "rendered" } else { "classified" },
-            summary.box_pixel_fraction * 100.0
+            summary.box_pixel_fraction * 100.0,
+            if args.masks.is_some() { "an object" } else { "a box" }
         ),
     };
     println!(
@@ -97,4 +94,125 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         summary.out.display()
     );
     Ok(())
+}
+
+/// The boxes' labeler, with the support planes excluded and the sensor depth fused.
+fn box_labeler<'a>(
+    boxes: &'a BoxSet,
+    model: Option<&'a Model>,
+    scan: &Scan,
+    options: LabelOptions,
+) -> anyhow::Result<Labeler<'a>> {
+    let mut labeler = Labeler::new(boxes, model, options)?;
+    let planes = labeler.exclude_supports(scan)?;
+    if planes > 0 {
+        eprintln!(
+            "excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)"
+        );
+    }
+    labeler.fuse_sensor_depth(scan);
+    Ok(labeler)
+}
+
+/// Label and write every selected frame with a progress bar (or plain lines).
+fn write(
+    out: &Path,
+    scan: &Scan,
+    objects: &BoxSet,
+    labeler: &dyn FrameLabelling,
+    output: &OutputOptions,
+) -> anyhow::Result<LabelSummary> {
+    let total = scan
+        .frames
+        .iter()
+        .filter(|f| output.frames.is_none_or(|r| r.contains(f.id)))
+        .count();
+    let bar = progress_bar(
+        total as u64,
+        "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} frames (ETA {eta})",
+    );
+    let log = PlainProgress::new();
+    let summary = write_labels(out, scan, objects, labeler, output, &|done| {
+        bar.set_position(done as u64);
+        log.tick(done as f64 / total.max(1) as f64, || {
+            format!("{done} of {total} frames")
+        });
+    })?;
+    bar.finish_and_clear();
+    Ok(summary)
+}
+
+/// Fewer given masks than this are lifted through the model's own grid.
+const FEW_FRAMES: usize = 20;
+
+/// `--masks`: lift the given masks, then label every frame from their votes
+/// (and the boxes, which take the ids after the largest mask id).
+fn label_with_masks(
+    dir: &Path,
+    scan: &Scan,
+    boxes: Option<(&BoxSet, &Labeler)>,
+    model: Option<&Model>,
+    options: LabelOptions,
+    out: &Path,
+    output: &OutputOptions,
+) -> anyhow::Result<LabelSummary> {
+    let given = read_masks(dir, scan)?;
+    for warning in &given.warnings {
+        eprintln!("warning: {warning}");
+    }
+    let no_boxes = BoxSet::from_boxes(Vec::new());
+    let every_pixel = LabelOptions {
+        full_depth: true,
+        exact_boxes: true,
+        few_frames: given.frames.len() < FEW_FRAMES,
+        ..options
+    };
+    let started = std::time::Instant::now();
+    let lift_labeler = Labeler::new(&no_boxes, model, every_pixel)?;
+    let bar = progress_bar(
+        given.frames.len() as u64,
+        "{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} given masks lifted",
+    );
+    let lifted = lift(scan, &given, &lift_labeler, &|done| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    drop(lift_labeler);
+    for warning in &lifted.warnings {
+        eprintln!("warning: {warning}");
+    }
+    eprintln!(
+        "lifted {} masks of {} object(s) in {:.1} s ({} surface points, {:.1} mm voxels)",
+        given.frames.len(),
+        lifted.objects.boxes.len(),
+        started.elapsed().as_secs_f64(),
+        lifted.lifted_points,
+        lifted.votes.voxel_m() * 1000.0
+    );
+    let mut surface = Labeler::new(
+        &lifted.regions,
+        model,
+        LabelOptions {
+            exact_boxes: true,
+            ..options
+        },
+    )?;
+    surface.fuse_sensor_depth(scan);
+    let first_box_id = lifted.objects.max_instance_id() + 1;
+    let mut all: Vec<Box3> = lifted.objects.boxes.clone();
+    if let Some((boxes, _)) = boxes {
+        let last = first_box_id as usize + boxes.boxes.len() - 1;
+        anyhow::ensure!(
+            last <= u16::MAX as usize,
+            "{} boxes after mask ids up to {} exceed the 65535 instance ids a mask can hold",
+            boxes.boxes.len(),
+            first_box_id - 1
+        );
+        all.extend(boxes.boxes.iter().map(|b| Box3 {
+            instance_id: first_box_id + b.instance_id - 1,
+            ..b.clone()
+        }));
+    }
+    let all = BoxSet::from_boxes(all);
+    let boxes = boxes.map(|(_, labeler)| (labeler, first_box_id as u16));
+    let labeler = MaskLabeler::new(scan, &given, &lifted.votes, &surface, boxes, &all, options);
+    write(out, scan, &all, &labeler, output)
 }

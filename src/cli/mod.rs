@@ -228,8 +228,18 @@ pub struct LabelArgs {
     #[command(flatten)]
     pub scan: ScanArgs,
     /// boxes.json with oriented 3D boxes in the scan's world frame.
-    #[arg(long)]
-    pub boxes: PathBuf,
+    #[arg(long, required_unless_present = "masks")]
+    pub boxes: Option<PathBuf>,
+    /// Instance masks of some frames to carry to every frame (e.g. from
+    /// SAM 2 or drawn by hand): DIR/<stem>.png (8-bit palette or grayscale,
+    /// 16-bit for ids above 255; value = object id, 0 = background) or
+    /// DIR/<id>/<stem>.png (one binary mask per object and frame), with an
+    /// optional DIR/labels.json ({"1": "mug"}) naming the objects. Given
+    /// frames are written as given. With --boxes too, the boxes label what
+    /// the masks leave as background and take the ids after the largest
+    /// mask id.
+    #[arg(long, value_name = "DIR")]
+    pub masks: Option<PathBuf>,
     /// Output folder (default SCAN/nerflabel/labels).
     #[arg(long)]
     pub out: Option<PathBuf>,

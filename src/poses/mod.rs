@@ -20,5 +20,6 @@ pub use bounds::{
 pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
 pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
+pub(crate) use orient::symmetric_eigen;
 pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
 pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};

@@ -1,0 +1,414 @@
+//! Carry given masks to every frame: lift each labelled pixel to its surface
+//! point (the depth source's depth), vote in a [`VoteVolume`], then label
+//! each frame's surface points by the votes around them.
+//!
+//! - Pixels near a label change in a given mask vote with less weight (a
+//!   drawn or predicted mask is least certain at its boundary; masks that
+//!   bleed 2-3 px onto the background are outvoted there by other frames).
+//! - Background pixels vote too, so a surface some frames saw as background
+//!   stays background.
+//! - Each object gets a box from its lifted points (principal axes, robust
+//!   extents): its pose in COCO, and, grown by a margin, the region whose
+//!   rays a frame renders.
+
+use super::read::GivenMasks;
+use super::votes::VoteVolume;
+use crate::boxes::boundary::snap_to_colour;
+use crate::boxes::cleanup::clean_mask;
+use crate::boxes::label::instances_of;
+use crate::boxes::output::FrameLabelling;
+use crate::boxes::{Box3, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
+use crate::poses::symmetric_eigen;
+use crate::scan::{Frame, Scan};
+use glam::{DMat3, DVec3};
+use std::collections::{BTreeMap, HashMap};
+
+/// Distance (pixels) to a label change from which a given pixel votes with
+/// full weight; nearer pixels vote with (d + 1) / (this + 1).
+const CERTAIN_FROM_PX: usize = 3;
+/// Extents of an object's box: these quantiles of its lifted points along
+/// each principal axis (a few stray points do not stretch it).
+const EXTENT_QUANTILE: f64 = 0.005;
+/// Lifted points kept per object to fit its box (evenly strided).
+const BOX_POINTS: usize = 200_000;
+/// The rendered region around an object's box grows by this share of the
+/// box's longest side on every side (surfaces the given frames did not see
+/// from the front, which the coarse votes may still claim).
+const REGION_MARGIN_SHARE: f64 = 0.1;
+/// Pixels of background lifted around a given mask's objects beyond the
+/// region margin (silhouettes move by a few pixels between views).
+const SURROUNDING_PX: usize = 16;
+
+/// What lifting the given masks produced.
+pub struct Lifted {
+    pub votes: VoteVolume,
+    /// One box per object (instance id = object id, label = its name).
+    pub objects: BoxSet,
+    /// The objects' boxes grown by a margin: where frames are rendered.
+    pub regions: BoxSet,
+    /// Surface points lifted (pixels with depth in the given frames).
+    pub lifted_points: usize,
+    /// Objects that cannot be carried (no given pixel of theirs has depth).
+    pub warnings: Vec<String>,
+}
+
+/// Lift the given masks: `labeler` must give every pixel's surface
+/// (full depth, no boxes).
+pub fn lift(
+    scan: &Scan,
+    given: &GivenMasks,
+    labeler: &Labeler,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<Lifted, LabelError> {
+    let mut votes: Option<VoteVolume> = None;
+    let mut object_points: BTreeMap<u16, Vec<DVec3>> = given.objects.keys().map(|&id| (id, Vec::new())).collect();
+    let mut lifted_points = 0;
+    for (done, (&index, mask)) in given.frames.iter().enumerate() {
+        let frame = &scan.frames[index];
+        let (w, h) = frame.size();
+        let near_objects = object_surroundings(mask, w as usize, h as usize);
+        let surface = labeler.surface_where(frame, &|x, y| near_objects.contains(x, y));
+        let points: Vec<(u32, u32, f64)> = surface.points().collect();
+        let volume = votes.get_or_insert_with(|| VoteVolume::new(voxel_size(&points, frame, labeler)));
+        let weights = boundary_weights(mask, w as usize, h as usize);
+        for &(x, y, z) in &points {
+            let i = y as usize * w as usize + x as usize;
+            let p = world_point(frame, x, y, z);
+            volume.add(p, mask[i], weights[i]);
+            if mask[i] > 0 && weights[i] >= 1.0 {
+                if let Some(list) = object_points.get_mut(&mask[i]) {
+                    list.push(p);
+                }
+            }
+        }
+        lifted_points += points.len();
+        progress(done + 1);
+    }
+    let votes = votes.ok_or_else(|| LabelError::Option("no given mask names a frame of the scan".into()))?;
+    let voxel = votes.voxel_m();
+    let mut objects = Vec::new();
+    let mut regions = Vec::new();
+    let mut warnings = Vec::new();
+    for (&id, points) in &object_points {
+        let name = given.objects.get(&id).cloned().unwrap_or_default();
+        let Some(mut b) = principal_box(points, voxel) else {
+            warnings.push(format!(
+                "object {id} (`{name}`): no pixel of it in the given masks has a surface depth, so no other frame gets it (the sensor measured none there: fit a model and use the nerf or fused source)"
+            ));
+            continue;
+        };
+        b.label = name;
+        b.instance_id = id as u32;
+        let margin = REGION_MARGIN_SHARE * b.size.max_element();
+        regions.push(Box3 {
+            size: b.size + DVec3::splat(2.0 * margin),
+            instance_id: regions.len() as u32 + 1,
+            ..b.clone()
+        });
+        objects.push(b);
+    }
+    Ok(Lifted {
+        votes,
+        objects: BoxSet::from_boxes(objects),
+        regions: BoxSet::from_boxes(regions),
+        lifted_points,
+        warnings,
+    })
+}
+
+/// Pixels around a given mask's objects whose votes can matter: the
+/// rectangle of its object pixels grown by [`REGION_MARGIN_SHARE`] of its
+/// larger side and [`SURROUNDING_PX`] pixels (background farther away lifts
+/// to points outside every object's region).
+fn object_surroundings(mask: &[u16], w: usize, h: usize) -> PixelRect {
+    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+    for (i, _) in mask.iter().enumerate().filter(|(_, &id)| id > 0) {
+        let (x, y) = (i % w, i / w);
+        (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
+    }
+    if x1 <= x0 {
+        // No object: this frame says where objects are not, anywhere.
+        return PixelRect {
+            x0: 0,
+            y0: 0,
+            x1: w as u32,
+            y1: h as u32,
+        };
+    }
+    let grow = (REGION_MARGIN_SHARE * (x1 - x0).max(y1 - y0) as f64).ceil() as usize + SURROUNDING_PX;
+    PixelRect {
+        x0: x0.saturating_sub(grow) as u32,
+        y0: y0.saturating_sub(grow) as u32,
+        x1: (x1 + grow).min(w) as u32,
+        y1: (y1 + grow).min(h) as u32,
+    }
+}
+
+/// Finest voxel: a finest grid cell of the model (how precisely rendered
+/// surfaces are placed), at least one pixel footprint at the median depth
+/// of the first labelled frame (how densely pixels sample the surface).
+fn voxel_size(points: &[(u32, u32, f64)], frame: &Frame, labeler: &Labeler) -> f64 {
+    let mut z: Vec<f64> = points.iter().map(|p| p.2).collect();
+    let median = if z.is_empty() {
+        1.0
+    } else {
+        let mid = z.len() / 2;
+        *z.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let k = frame.intrinsics;
+    let footprint = median / (0.5 * (k.fx + k.fy)).max(1e-9);
+    let voxel = footprint.max(labeler.surface_error_m());
+    if voxel.is_finite() && voxel > 0.0 {
+        voxel
+    } else {
+        1e-3
+    }
+}
+
+fn world_point(frame: &Frame, x: u32, y: u32, z: f64) -> DVec3 {
+    frame
+        .camera_to_world
+        .transform_point3(frame.intrinsics.unproject(x as f64, y as f64) * z)
+}
+
+/// Vote weight of each pixel from its distance (4-neighbour steps) to the
+/// nearest pixel of another label.
+fn boundary_weights(mask: &[u16], w: usize, h: usize) -> Vec<f32> {
+    let far = CERTAIN_FROM_PX;
+    let mut distance = vec![far; mask.len()];
+    let mut frontier = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let differs = |j: usize| mask[j] != mask[i];
+            let edge = (x > 0 && differs(i - 1))
+                || (x + 1 < w && differs(i + 1))
+                || (y > 0 && differs(i - w))
+                || (y + 1 < h && differs(i + w));
+            if edge {
+                distance[i] = 0;
+                frontier.push(i);
+            }
+        }
+    }
+    let mut step = 0;
+    while !frontier.is_empty() && step + 1 < far {
+        step += 1;
+        let mut next = Vec::new();
+        for &i in &frontier {
+            let (x, y) = (i % w, i / w);
+            let neighbours = [
+                (x > 0).then(|| i - 1),
+                (x + 1 < w).then(|| i + 1),
+                (y > 0).then(|| i - w),
+                (y + 1 < h).then(|| i + w),
+            ];
+            for j in neighbours.into_iter().flatten() {
+                if distance[j] > step {
+                    distance[j] = step;
+                    next.push(j);
+                }
+            }
+        }
+        frontier = next;
+    }
+    distance
+        .into_iter()
+        .map(|d| (d + 1) as f32 / (far + 1) as f32)
+        .map(|v| v.min(1.0))
+        .collect()
+}
+
+/// A box on the points' principal axes spanning their robust extents,
+/// grown by `pad` metres; `None` for fewer than 4 points.
+fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
+    if points.len() < 4 {
+        return None;
+    }
+    let stride = points.len().div_ceil(BOX_POINTS);
+    let sample: Vec<DVec3> = points.iter().step_by(stride).copied().collect();
+    let n = sample.len() as f64;
+    let mean = sample.iter().copied().sum::<DVec3>() / n;
+    let mut cov = DMat3::ZERO;
+    for p in &sample {
+        let d = *p - mean;
+        cov += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    let (_, mut axes) = symmetric_eigen(cov * (1.0 / n));
+    if axes.determinant() < 0.0 {
+        axes.z_axis = -axes.z_axis;
+    }
+    let mut lo = DVec3::ZERO;
+    let mut hi = DVec3::ZERO;
+    for a in 0..3 {
+        let axis = axes.col(a);
+        let mut along: Vec<f64> = sample.iter().map(|p| (*p - mean).dot(axis)).collect();
+        along.sort_by(f64::total_cmp);
+        let at = |q: f64| along[((q * (along.len() - 1) as f64).round() as usize).min(along.len() - 1)];
+        lo[a] = at(EXTENT_QUANTILE);
+        hi[a] = at(1.0 - EXTENT_QUANTILE);
+    }
+    let centre_local = (lo + hi) * 0.5;
+    Some(Box3 {
+        label: String::new(),
+        instance_id: 0,
+        center: mean + axes * centre_local,
+        size: (hi - lo) + DVec3::splat(2.0 * pad),
+        rotation: axes,
+    })
+}
+
+/// Labels every frame from the votes of the given masks (and optionally
+/// boxes, which label what the masks leave as background).
+pub struct MaskLabeler<'a> {
+    given: &'a GivenMasks,
+    /// Frame id -> its given mask.
+    given_by_frame: HashMap<u64, &'a Vec<u16>>,
+    votes: &'a VoteVolume,
+    /// Renders the surface inside the objects' regions.
+    surface: &'a Labeler<'a>,
+    /// Boxes' labeler and the id its box 1 takes in the output.
+    boxes: Option<(&'a Labeler<'a>, u16)>,
+    /// Every object and box, by output instance id.
+    all: &'a BoxSet,
+    options: LabelOptions,
+}
+
+impl<'a> MaskLabeler<'a> {
+    pub fn new(
+        scan: &'a Scan,
+        given: &'a GivenMasks,
+        votes: &'a VoteVolume,
+        surface: &'a Labeler<'a>,
+        boxes: Option<(&'a Labeler<'a>, u16)>,
+        all: &'a BoxSet,
+        options: LabelOptions,
+    ) -> MaskLabeler<'a> {
+        let given_by_frame = given.frames.iter().map(|(&i, m)| (scan.frames[i].id, m)).collect();
+        MaskLabeler {
+            given,
+            given_by_frame,
+            votes,
+            surface,
+            boxes,
+            all,
+            options,
+        }
+    }
+
+    /// The masks this labeler carries.
+    pub fn given(&self) -> &GivenMasks {
+        self.given
+    }
+}
+
+impl FrameLabelling for MaskLabeler<'_> {
+    fn label_frame(&self, frame: &Frame) -> FrameLabel {
+        let (w, h) = frame.size();
+        let surface = self.surface.surface(frame);
+        let given = self.given_by_frame.get(&frame.id);
+        let mut mask = match given {
+            Some(m) => (*m).clone(),
+            None => {
+                let mut mask = vec![0u16; w as usize * h as usize];
+                for (x, y, z) in surface.points() {
+                    let (id, _) = self.votes.classify(world_point(frame, x, y, z));
+                    mask[y as usize * w as usize + x as usize] = id;
+                }
+                mask
+            }
+        };
+        let depth_m = self.options.full_depth.then(|| {
+            let mut d = vec![0.0f32; w as usize * h as usize];
+            for (x, y, z) in surface.points() {
+                d[y as usize * w as usize + x as usize] = z as f32;
+            }
+            d
+        });
+        if let Some((labeler, first_id)) = self.boxes {
+            let boxed = labeler.label_frame(frame);
+            for (m, &b) in mask.iter_mut().zip(&boxed.mask) {
+                if *m == 0 && b > 0 {
+                    *m = first_id + (b - 1);
+                }
+            }
+        }
+        if given.is_none() {
+            if self.options.snap_to_colour {
+                mask = snap_to_colour(&mask, &frame.rgb);
+            }
+            if self.options.cleanup_fraction > 0.0 {
+                clean_mask(&mut mask, w, h, self.options.cleanup_fraction);
+            }
+        }
+        let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.inverse());
+        let in_view = self
+            .all
+            .boxes
+            .iter()
+            .filter(|b| crate::boxes::project_box(b, &frame.camera_to_world, &frame.intrinsics, (w, h)).is_some())
+            .map(|b| b.instance_id)
+            .collect();
+        FrameLabel {
+            frame_id: frame.id,
+            name: frame.name.clone(),
+            width: w,
+            height: h,
+            mask,
+            depth_m,
+            instances,
+            in_view,
+            box_pixels: surface.box_pixels,
+            rendered_rays: surface.rendered_rays,
+        }
+    }
+
+    fn options(&self) -> &LabelOptions {
+        &self.options
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixels_near_a_label_change_vote_with_less_weight() {
+        let (w, h) = (10, 1);
+        let mask: Vec<u16> = (0..w).map(|x| if x < 5 { 0 } else { 2 }).collect();
+        let weights = boundary_weights(&mask, w, h);
+        assert_eq!(weights[4], 0.25);
+        assert_eq!(weights[5], 0.25);
+        assert_eq!(weights[3], 0.5);
+        assert_eq!(weights[6], 0.5);
+        assert_eq!(weights[2], 0.75);
+        assert_eq!(weights[0], 1.0);
+        assert_eq!(weights[9], 1.0);
+    }
+
+    #[test]
+    fn a_principal_box_spans_a_rotated_slab_of_points() {
+        // Points of a 0.4 x 0.2 x 0.1 slab rotated 30 degrees about z.
+        let rot = DMat3::from_rotation_z(30f64.to_radians());
+        let mut points = Vec::new();
+        for i in 0..=40 {
+            for j in 0..=20 {
+                for k in 0..=10 {
+                    let local = DVec3::new(i as f64 * 0.01 - 0.2, j as f64 * 0.01 - 0.1, k as f64 * 0.01 - 0.05);
+                    points.push(DVec3::new(1.0, 2.0, 3.0) + rot * local);
+                }
+            }
+        }
+        let b = principal_box(&points, 0.0).unwrap();
+        assert!((b.center - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-9);
+        let mut size = b.size.to_array();
+        size.sort_by(f64::total_cmp);
+        assert!(
+            (size[0] - 0.1).abs() < 0.002 && (size[1] - 0.2).abs() < 0.003 && (size[2] - 0.4).abs() < 0.005,
+            "{size:?}"
+        );
+        assert!(b.rotation.determinant() > 0.999);
+        // The longest axis is the rotated x axis (up to sign).
+        assert!(b.rotation.col(0).dot(rot.col(0)).abs() > 0.999);
+    }
+}

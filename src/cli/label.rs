@@ -6,9 +6,9 @@ use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::output::FrameLabelling;
 use nerflabel::boxes::{
-    read_boxes, write_labels, Box3, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions,
+    read_boxes, write_labels, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions,
 };
-use nerflabel::masks::{lift, read_masks, MaskLabeler};
+use nerflabel::masks::{lift, objects_and_boxes, read_masks, GivenMasks, Lifted, MaskLabeler};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 use nerflabel::scan::Scan;
@@ -145,17 +145,13 @@ fn write(
 /// Fewer given masks than this are lifted through the model's own grid.
 const FEW_FRAMES: usize = 20;
 
-/// `--masks`: lift the given masks, then label every frame from their votes
-/// (and the boxes, which take the ids after the largest mask id).
-fn label_with_masks(
+/// Read and lift the given masks (`label --masks`, `synth --masks`).
+pub(super) fn lift_masks(
     dir: &Path,
     scan: &Scan,
-    boxes: Option<(&BoxSet, &Labeler)>,
     model: Option<&Model>,
     options: LabelOptions,
-    out: &Path,
-    output: &OutputOptions,
-) -> anyhow::Result<LabelSummary> {
+) -> anyhow::Result<(GivenMasks, Lifted)> {
     let given = read_masks(dir, scan)?;
     for warning in &given.warnings {
         eprintln!("warning: {warning}");
@@ -175,7 +171,6 @@ fn label_with_masks(
     );
     let lifted = lift(scan, &given, &lift_labeler, &|done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
-    drop(lift_labeler);
     for warning in &lifted.warnings {
         eprintln!("warning: {warning}");
     }
@@ -187,6 +182,31 @@ fn label_with_masks(
         lifted.lifted_points,
         lifted.votes.voxel_m() * 1000.0
     );
+    const LISTED: usize = 20;
+    for b in lifted.objects.boxes.iter().take(LISTED) {
+        eprintln!(
+            "  object {} (`{}`): {:.3} x {:.3} x {:.3} m at ({:.3}, {:.3}, {:.3})",
+            b.instance_id, b.label, b.size.x, b.size.y, b.size.z, b.center.x, b.center.y, b.center.z
+        );
+    }
+    if lifted.objects.boxes.len() > LISTED {
+        eprintln!("  ... and {} more", lifted.objects.boxes.len() - LISTED);
+    }
+    Ok((given, lifted))
+}
+
+/// `--masks`: lift the given masks, then label every frame from their votes
+/// (and the boxes, which take the ids after the largest mask id).
+fn label_with_masks(
+    dir: &Path,
+    scan: &Scan,
+    boxes: Option<(&BoxSet, &Labeler)>,
+    model: Option<&Model>,
+    options: LabelOptions,
+    out: &Path,
+    output: &OutputOptions,
+) -> anyhow::Result<LabelSummary> {
+    let (given, lifted) = lift_masks(dir, scan, model, options)?;
     let mut surface = Labeler::new(
         &lifted.regions,
         model,
@@ -196,23 +216,8 @@ fn label_with_masks(
         },
     )?;
     surface.fuse_sensor_depth(scan);
-    let first_box_id = lifted.objects.max_instance_id() + 1;
-    let mut all: Vec<Box3> = lifted.objects.boxes.clone();
-    if let Some((boxes, _)) = boxes {
-        let last = first_box_id as usize + boxes.boxes.len() - 1;
-        anyhow::ensure!(
-            last <= u16::MAX as usize,
-            "{} boxes after mask ids up to {} exceed the 65535 instance ids a mask can hold",
-            boxes.boxes.len(),
-            first_box_id - 1
-        );
-        all.extend(boxes.boxes.iter().map(|b| Box3 {
-            instance_id: first_box_id + b.instance_id - 1,
-            ..b.clone()
-        }));
-    }
-    let all = BoxSet::from_boxes(all);
-    let boxes = boxes.map(|(_, labeler)| (labeler, first_box_id as u16));
+    let (all, first_box_id) = objects_and_boxes(&lifted, boxes.map(|(b, _)| b))?;
+    let boxes = boxes.map(|(_, labeler)| (labeler, first_box_id));
     let labeler = MaskLabeler::new(scan, &given, &lifted.votes, &surface, boxes, &all, options);
     write(out, scan, &all, &labeler, output)
 }

@@ -291,6 +291,12 @@ pub struct SynthArgs {
     /// boxes.json (default SCAN/boxes.json).
     #[arg(long)]
     pub boxes: Option<PathBuf>,
+    /// Instance masks of some frames (the layouts of `label --masks`): their
+    /// objects appear in the synthetic masks. SCAN/boxes.json is then not
+    /// read by default; boxes given with --boxes take the ids after the
+    /// largest mask id.
+    #[arg(long, value_name = "DIR")]
+    pub masks: Option<PathBuf>,
     /// Number of views to sample.
     #[arg(long, default_value_t = 500)]
     pub n: usize,

@@ -3,11 +3,16 @@
 use super::common::{
     check_model_scan, load_scan, model_path, progress_bar, read_model, stop_flag, work_dir, PlainProgress,
 };
+use super::label::lift_masks;
 use super::SynthArgs;
 use anyhow::bail;
-use nerflabel::boxes::read_boxes;
+use glam::DVec3;
+use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
+use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, Output, ProtectedInputs};
-use nerflabel::synth::{read_poses, synthesize, SynthOptions, SynthProgress};
+use nerflabel::synth::{
+    read_poses, synthesize, synthesize_objects, Instances, Objects, SynthOptions, SynthProgress, Target,
+};
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
@@ -18,15 +23,16 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| work_dir(scan_dir).join("synth.parquet"));
     let outputs = [Output::file(&out, "the synthetic views")];
     check_outputs(&outputs, None)?;
-    // Boxes: --boxes, else SCAN/boxes.json when present, else none (scene centre).
+    // Boxes: --boxes, else SCAN/boxes.json when present and no masks are
+    // given (they would label the masks' objects twice), else none.
     let boxes_path = args
         .boxes
         .clone()
-        .or_else(|| Some(scan_dir.join("boxes.json")).filter(|p| p.exists()));
+        .or_else(|| Some(scan_dir.join("boxes.json")).filter(|p| p.exists() && args.masks.is_none()));
     let boxes = boxes_path.as_deref().map(read_boxes).transpose()?;
     let poses = args.poses.as_deref().map(read_poses).transpose()?;
     let (model, model_checksum) = read_model(&model_path)?;
-    if boxes.is_none() {
+    if boxes.is_none() && args.masks.is_none() {
         eprintln!(
             "warning: no boxes (no --boxes, no {}): every mask will be empty",
             scan_dir.join("boxes.json").display()
@@ -88,7 +94,44 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             });
         }
     };
-    let summary = synthesize(&scan, &model, boxes.as_ref(), &options, &out, &progress, stop_flag())?;
+    let summary = match &args.masks {
+        None => synthesize(&scan, &model, boxes.as_ref(), &options, &out, &progress, stop_flag())?,
+        Some(dir) => {
+            let (_, lifted) = lift_masks(dir, &scan, Some(&model), LabelOptions::default())?;
+            let (all, first_box_id) = objects_and_boxes(&lifted, boxes.as_ref())?;
+            let from_masks = PointLabels::new(&lifted);
+            let from_boxes = boxes.as_ref().map(BoxClassifier::new);
+            // A mask object's surface first; the boxes label the rest.
+            let classify = |p: DVec3| -> u32 {
+                match from_masks.classify(p) {
+                    0 => from_boxes.as_ref().map_or(0, |c| match c.classify(p) {
+                        0 => 0,
+                        b => b + first_box_id as u32 - 1,
+                    }),
+                    id => id as u32,
+                }
+            };
+            let mut labels = vec![String::new(); all.max_instance_id() as usize];
+            for b in &all.boxes {
+                labels[b.instance_id as usize - 1].clone_from(&b.label);
+            }
+            let objects = Objects {
+                targets: all
+                    .boxes
+                    .iter()
+                    .map(|b| Target {
+                        center: b.center,
+                        rotation: b.rotation,
+                    })
+                    .collect(),
+                instances: Instances {
+                    classify: &classify,
+                    labels,
+                },
+            };
+            synthesize_objects(&scan, &model, &objects, &options, &out, &progress, stop_flag())?
+        }
+    };
     bar.finish_and_clear();
     println!(
         "wrote {} views to {} ({:.1} MB) in {:.1} s ({:.2} views/s)",

@@ -12,6 +12,6 @@ pub mod propagate;
 pub mod read;
 pub mod votes;
 
-pub use propagate::{lift, Lifted, MaskLabeler};
+pub use propagate::{lift, objects_and_boxes, Lifted, MaskLabeler, PointLabels};
 pub use read::{read_masks, GivenMasks, MaskError, MaskLayout};
 pub use votes::VoteVolume;

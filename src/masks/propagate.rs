@@ -17,7 +17,7 @@ use crate::boxes::boundary::snap_to_colour;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::label::instances_of;
 use crate::boxes::output::FrameLabelling;
-use crate::boxes::{Box3, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
+use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
 use crate::poses::symmetric_eigen;
 use crate::scan::{Frame, Scan};
 use glam::{DMat3, DVec3};
@@ -29,6 +29,9 @@ const CERTAIN_FROM_PX: usize = 3;
 /// Extents of an object's box: these quantiles of its lifted points along
 /// each principal axis (a few stray points do not stretch it).
 const EXTENT_QUANTILE: f64 = 0.005;
+/// Cells (in finest voxels) of the clusters an object's box is fitted to:
+/// gaps of up to about this many voxels join a cluster.
+const CLUSTER_VOXELS: f64 = 2.0;
 /// Lifted points kept per object to fit its box (evenly strided).
 const BOX_POINTS: usize = 200_000;
 /// The rendered region around an object's box grows by this share of the
@@ -91,7 +94,12 @@ pub fn lift(
     let mut warnings = Vec::new();
     for (&id, points) in &object_points {
         let name = given.objects.get(&id).cloned().unwrap_or_default();
-        let Some(mut b) = principal_box(points, voxel) else {
+        // A pixel of the object whose depth missed it (a thin or far object,
+        // depth through to the wall behind) lifts far away: keep the points
+        // the votes confirm, then the largest connected cluster of them.
+        let confirmed: Vec<DVec3> = points.iter().copied().filter(|&p| votes.classify(p).0 == id).collect();
+        let cluster = largest_cluster(&confirmed, CLUSTER_VOXELS * voxel);
+        let Some(mut b) = principal_box(&cluster, voxel) else {
             warnings.push(format!(
                 "object {id} (`{name}`): no pixel of it in the given masks has a surface depth, so no other frame gets it (the sensor measured none there: fit a model and use the nerf or fused source)"
             ));
@@ -114,6 +122,49 @@ pub fn lift(
         lifted_points,
         warnings,
     })
+}
+
+/// Points of `points` in the largest 26-connected cluster of occupied
+/// cells of side `cell` (by point count).
+fn largest_cluster(points: &[DVec3], cell: f64) -> Vec<DVec3> {
+    let key = |p: DVec3| {
+        let q = (p / cell).floor();
+        [q.x as i64, q.y as i64, q.z as i64]
+    };
+    let mut counts: BTreeMap<[i64; 3], usize> = BTreeMap::new();
+    for &p in points {
+        *counts.entry(key(p)).or_default() += 1;
+    }
+    let mut component: BTreeMap<[i64; 3], usize> = BTreeMap::new();
+    let mut sizes: Vec<usize> = Vec::new();
+    for &start in counts.keys() {
+        if component.contains_key(&start) {
+            continue;
+        }
+        let id = sizes.len();
+        let mut size = 0;
+        let mut stack = vec![start];
+        component.insert(start, id);
+        while let Some(c) = stack.pop() {
+            size += counts[&c];
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let n = [c[0] + dx, c[1] + dy, c[2] + dz];
+                        if counts.contains_key(&n) && !component.contains_key(&n) {
+                            component.insert(n, id);
+                            stack.push(n);
+                        }
+                    }
+                }
+            }
+        }
+        sizes.push(size);
+    }
+    let Some(best) = (0..sizes.len()).max_by_key(|&i| (sizes[i], std::cmp::Reverse(i))) else {
+        return Vec::new();
+    };
+    points.iter().copied().filter(|&p| component[&key(p)] == best).collect()
 }
 
 /// Pixels around a given mask's objects whose votes can matter: the
@@ -141,6 +192,52 @@ fn object_surroundings(mask: &[u16], w: usize, h: usize) -> PixelRect {
         y0: y0.saturating_sub(grow) as u32,
         x1: (x1 + grow).min(w) as u32,
         y1: (y1 + grow).min(h) as u32,
+    }
+}
+
+/// Every object of the masks and, after them, the boxes (box k takes id
+/// `first + k - 1` with `first` one above the largest mask id): the set the
+/// outputs describe, and `first`.
+pub fn objects_and_boxes(lifted: &Lifted, boxes: Option<&BoxSet>) -> Result<(BoxSet, u16), LabelError> {
+    let first = lifted.objects.max_instance_id() + 1;
+    let mut all: Vec<Box3> = lifted.objects.boxes.clone();
+    if let Some(boxes) = boxes {
+        let last = first as usize + boxes.boxes.len() - 1;
+        if last > u16::MAX as usize {
+            return Err(LabelError::Option(format!(
+                "{} boxes after mask ids up to {} exceed the 65535 instance ids a mask can hold",
+                boxes.boxes.len(),
+                first - 1
+            )));
+        }
+        all.extend(boxes.boxes.iter().map(|b| Box3 {
+            instance_id: first + b.instance_id - 1,
+            ..b.clone()
+        }));
+    }
+    Ok((BoxSet::from_boxes(all), first.min(u16::MAX as u32) as u16))
+}
+
+/// The object id of a world point from the votes, inside the objects'
+/// regions only (0 elsewhere): what `synth` labels its views with.
+pub struct PointLabels<'a> {
+    lifted: &'a Lifted,
+    regions: BoxClassifier,
+}
+
+impl<'a> PointLabels<'a> {
+    pub fn new(lifted: &'a Lifted) -> PointLabels<'a> {
+        PointLabels {
+            regions: BoxClassifier::new(&lifted.regions),
+            lifted,
+        }
+    }
+
+    pub fn classify(&self, point: DVec3) -> u16 {
+        if self.regions.classify(point) == 0 {
+            return 0;
+        }
+        self.lifted.votes.classify(point).0
     }
 }
 
@@ -384,6 +481,18 @@ mod tests {
         assert_eq!(weights[2], 0.75);
         assert_eq!(weights[0], 1.0);
         assert_eq!(weights[9], 1.0);
+    }
+
+    #[test]
+    fn the_largest_cluster_drops_points_lifted_far_behind_the_object() {
+        let mut points: Vec<DVec3> = (0..200)
+            .map(|i| DVec3::new(0.001 * (i % 20) as f64, 0.001 * (i / 20) as f64, 1.0))
+            .collect();
+        // A few pixels whose depth went through to a wall 2 m behind.
+        points.extend((0..30).map(|i| DVec3::new(0.001 * i as f64, 0.0, 3.0)));
+        let kept = largest_cluster(&points, 0.01);
+        assert_eq!(kept.len(), 200);
+        assert!(kept.iter().all(|p| p.z == 1.0));
     }
 
     #[test]

@@ -3,13 +3,14 @@
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir, PlainProgress};
 use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
-use nerflabel::boxes::{read_boxes, write_labels, FrameRange, LabelOptions, Labeler, OutputOptions};
+use nerflabel::boxes::{read_boxes, write_labels, FrameRange, LabelOptions, Labeler, OutputOptions, YoloOptions};
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 
 pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
     let source = args.source;
     let frames: Option<FrameRange> = args.frames.as_deref().map(str::parse).transpose()?;
+    let yolo = yolo_options(args)?;
     let boxes = read_boxes(&args.boxes)?;
     let model_path = model_path(scan_dir, args.model.as_ref());
     let model = if source.needs_model() {
@@ -55,11 +56,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         model_steps: model.as_ref().map(|m| m.header.steps),
         frames: args.frames.clone(),
     };
-    let output = OutputOptions {
-        frames,
-        yolo: args.yolo,
-        info,
-    };
+    let output = OutputOptions { frames, yolo, info };
     let total = scan
         .frames
         .iter()
@@ -96,5 +93,29 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         summary.annotations,
         summary.out.display()
     );
+    if let Some((train, val)) = summary.yolo_split {
+        println!(
+            "YOLO dataset for ultralytics: {} ({train} training and {val} validation frames)",
+            summary.out.join("yolo").join("data.yaml").display()
+        );
+    }
     Ok(())
+}
+
+/// The YOLO options, or `None` without --yolo / --yolo-seg (whose own
+/// options are then refused rather than ignored).
+fn yolo_options(args: &LabelArgs) -> anyhow::Result<Option<YoloOptions>> {
+    if !(args.yolo || args.yolo_seg) {
+        if args.yolo_images.is_some() || args.yolo_val.is_some() {
+            anyhow::bail!("--yolo-images and --yolo-val shape the YOLO dataset: add --yolo (or --yolo-seg)");
+        }
+        return Ok(None);
+    }
+    let defaults = YoloOptions::default();
+    Ok(Some(YoloOptions {
+        images: args.yolo_images.unwrap_or(defaults.images),
+        segments: args.yolo_seg,
+        val_fraction: args.yolo_val.unwrap_or(defaults.val_fraction),
+        seed: args.seed,
+    }))
 }

@@ -6,7 +6,9 @@
 //! intervals) and [`project`] (pixel rectangles) -> [`label`] (per-frame
 //! depth from [`surface`] and/or the sensor fused over frames in [`tsdf`], mask, [`cleanup`], 2D boxes,
 //! object poses) -> [`rle`], [`coco`], [`contour`] and [`yolo`] and
-//! [`output`] (files, swapped in at the end). [`metrics`] scores masks against ground truth.
+//! [`output`] (files, swapped in at the end). [`metrics`] scores masks
+//! against ground truth; [`interop`] reads boxes placed in other labelling
+//! tools and writes them back.
 //!
 //! Depends on `scan`, `poses` and `nerf` (to render depth); never on `synth`
 //! or the CLI. Never prints.
@@ -16,6 +18,7 @@ pub mod classify;
 pub mod cleanup;
 pub mod coco;
 pub mod contour;
+pub mod interop;
 pub mod label;
 pub mod metrics;
 pub mod options;

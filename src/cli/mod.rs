@@ -1,5 +1,6 @@
 //! Argument definitions and the dispatch of each subcommand.
 
+mod boxes;
 mod cloud;
 mod common;
 mod demo;
@@ -51,6 +52,8 @@ pub enum Command {
     Label(LabelArgs),
     /// Render novel views (colour, depth, mask) to one Parquet file.
     Synth(SynthArgs),
+    /// Import boxes from labelCloud, KITTI or CVAT into a boxes.json, or export one to labelCloud.
+    Boxes(boxes::BoxesArgs),
 }
 
 /// How to read the scan.
@@ -370,5 +373,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Label(args) => label::run(&args),
         Command::Synth(args) => synth::run(&args),
+        Command::Boxes(args) => boxes::run(&args),
     }
 }

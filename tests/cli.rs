@@ -29,7 +29,9 @@ fn help_lists_every_subcommand() {
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout).to_string();
     insta::assert_snapshot!("help", text);
-    for cmd in ["info", "cloud", "fixture", "demo", "fit", "report", "label", "synth"] {
+    for cmd in [
+        "info", "cloud", "fixture", "demo", "fit", "report", "label", "synth", "boxes",
+    ] {
         assert!(text.contains(cmd), "{cmd} missing from --help");
     }
 }

@@ -1,7 +1,8 @@
 //! Seeded byte-mutation fuzzing of every parser that reads outside text or
 //! bytes: native `intrinsics.txt` and pose files, nerfstudio
 //! `transforms.json`, TUM `rgb.txt` / `depth.txt` / `groundtruth.txt`, COLMAP `cameras.txt` / `images.txt`,
-//! `boxes.json`, and model files.
+//! `boxes.json`, the box files `boxes import` reads (labelCloud, KITTI,
+//! CVAT and the KITTI calibration), and model files.
 //!
 //! Each iteration mutates a valid file (bit flips, random bytes, inserted
 //! tokens such as `nan` or `1e400`, deleted or duplicated ranges,
@@ -11,6 +12,7 @@
 //!
 //! `NERFLABEL_FUZZ_ITERS=100000 cargo test --release --test fuzz_parsers -- --ignored`
 
+use nerflabel::boxes::interop::{import_boxes, ImportFormat};
 use nerflabel::boxes::{read_boxes, BoxClassifier};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::rng::Rng;
@@ -435,6 +437,76 @@ fn fuzz_boxes_json() {
     fuzz_boxes(ITERS);
 }
 
+/// Valid files of each `boxes import` format (and a KITTI calibration).
+const IMPORTS: [(&str, ImportFormat, &str); 4] = [
+    (
+        "cloud.json",
+        ImportFormat::Labelcloud,
+        r#"{"folder": "p", "filename": "cloud.ply", "path": "p/cloud.ply", "objects": [
+            {"name": "box", "centroid": {"x": -0.2, "y": 0.15, "z": 0.08}, "dimensions": {"length": 0.31, "width": 0.21, "height": 0.15}, "rotations": {"x": 0, "y": 0.1, "z": 0.52}},
+            {"name": "can", "centroid": {"x": 0, "y": -0.25, "z": 0.13}, "dimensions": {"length": 0.17, "width": 0.17, "height": 0.25}, "rotations": {"x": 0, "y": 0, "z": -3.1}}]}"#,
+    ),
+    (
+        "000001.txt",
+        ImportFormat::Kitti,
+        "Car 0.00 0 1.85 387.63 181.54 423.81 203.12 1.67 1.87 3.69 -16.53 2.39 58.49 1.57\n\
+         DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10\n\
+         Pedestrian 0.00 0 -0.20 712.40 143.00 810.73 307.92 1.89 0.48 1.20 1.84 1.47 8.41 0.01 0.98\n",
+    ),
+    (
+        "c.pcd.json",
+        ImportFormat::Cvat,
+        r#"{"description": "", "key": "k", "tags": [], "objects": [{"key": "o1", "classTitle": "chair", "tags": []}],
+            "figures": [{"key": "f1", "objectKey": "o1", "geometryType": "cuboid_3d", "geometry": {
+              "position": {"x": 1, "y": 2, "z": 0.5}, "rotation": {"x": 0, "y": 0, "z": 1.57}, "dimensions": {"x": 0.5, "y": 0.6, "z": 0.9}}}]}"#,
+    ),
+    (
+        "calib.txt",
+        ImportFormat::Kitti,
+        "0 0 1 1\n-1 0 0 2\n0 -1 0 3\n0 0 0 1\n",
+    ),
+];
+
+fn fuzz_imports(iters: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let kitti = dir.path().join("intact.txt");
+    std::fs::write(&kitti, IMPORTS[1].2).unwrap();
+    for (k, (name, format, text)) in IMPORTS.iter().enumerate() {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        let calib = *name == "calib.txt";
+        // The calibration is fuzzed beside an intact KITTI file.
+        let run = || {
+            if calib {
+                import_boxes(&kitti, *format, Some(&path))
+            } else {
+                import_boxes(&path, *format, None)
+            }
+        };
+        assert!(run().is_ok(), "{name}: the valid file imports");
+        let mut rng = Rng::new(21 + k as u64, 0);
+        for i in 0..iters {
+            let bytes = mutate(text.as_bytes(), &mut rng);
+            std::fs::write(&path, &bytes).unwrap();
+            let what = format!("{name} iteration {i}: {:?}", String::from_utf8_lossy(&bytes));
+            if let Ok(imported) = catch_unwind(AssertUnwindSafe(run)).unwrap_or_else(|_| panic!("{what}: panicked")) {
+                for b in &imported.boxes.boxes {
+                    let r = b.rotation;
+                    assert!(b.center.is_finite() && b.size.min_element() >= 0.0, "{what}");
+                    assert!((r.transpose() * r).abs_diff_eq(glam::DMat3::IDENTITY, 1e-9), "{what}");
+                }
+            } else {
+                no_panic_one_line(&what, run);
+            }
+        }
+    }
+}
+
+#[test]
+fn fuzz_box_imports_and_kitti_calibration() {
+    fuzz_imports(ITERS);
+}
+
 #[test]
 fn fuzz_model_file_bytes() {
     fuzz_model(ITERS);
@@ -468,6 +540,12 @@ fn fuzz_model_long() {
 #[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
 fn fuzz_tum_depth_long() {
     fuzz_tum_depth(long_iters());
+}
+
+#[test]
+#[ignore = "long fuzz run; iterations from NERFLABEL_FUZZ_ITERS"]
+fn fuzz_box_imports_long() {
+    fuzz_imports(long_iters());
 }
 
 #[test]

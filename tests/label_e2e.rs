@@ -5,7 +5,7 @@
 
 use nerflabel::boxes::metrics::MaskScores;
 use nerflabel::boxes::{
-    read_boxes, write_labels, BoxSet, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions,
+    read_boxes, write_labels, BoxSet, DepthSource, FrameRange, LabelOptions, Labeler, OutputOptions, YoloOptions,
 };
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
 use nerflabel::nerf::model_file::Model;
@@ -196,7 +196,7 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
     let labeler = Labeler::new(&boxes, None, opts).unwrap();
     let output = OutputOptions {
         frames: Some("1..7".parse().unwrap()),
-        yolo: true,
+        yolo: Some(YoloOptions::default()),
         ..OutputOptions::default()
     };
     let summary = write_labels(&out, &scan, &boxes, &labeler, &output, &|_| {}).unwrap();
@@ -227,7 +227,7 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
         assert_eq!((w, h, sixteen), (160, 120, false), "8-bit mask at the rgb size");
         let (dw, dh, _, depth16) = read_ids(&out.join("depth").join(format!("{name}.png")));
         assert_eq!((dw, dh, depth16), (160, 120, true));
-        let yolo = std::fs::read_to_string(out.join("labels").join(format!("{name}.txt"))).unwrap();
+        let yolo = std::fs::read_to_string(out.join("yolo/labels").join(format!("{name}.txt"))).unwrap();
         let anns: Vec<&Value> = coco["annotations"]
             .as_array()
             .unwrap()
@@ -265,12 +265,11 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
         }
     }
     assert_eq!(checked, summary.annotations);
+    let yaml = std::fs::read_to_string(out.join("yolo/data.yaml")).unwrap();
     assert_eq!(
-        std::fs::read_to_string(out.join("classes.txt"))
-            .unwrap()
-            .lines()
-            .count(),
-        boxes.categories.len()
+        yaml.lines().filter(|l| l.starts_with("  ")).count(),
+        boxes.categories.len(),
+        "{yaml}"
     );
     pycocotools_check(&out.join("coco.json"));
 
@@ -306,20 +305,13 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
         partial
             .warnings
             .iter()
-            .any(|w| w.contains("depth and labels files were removed")),
+            .any(|w| w.contains("depth and YOLO files were removed")),
         "{:?}",
         partial.warnings
     );
     assert_eq!(
         listing(&out),
-        vec![
-            ".nerflabel-labels",
-            "classes.txt",
-            "coco.json",
-            "depth",
-            "labels",
-            "masks"
-        ]
+        vec![".nerflabel-labels", "coco.json", "depth", "masks", "yolo"]
     );
     assert_eq!(listing(&out.join("masks")).len(), frames);
     let depth = listing(&out.join("depth"));
@@ -327,6 +319,19 @@ fn outputs_follow_formats_and_a_rerun_replaces_them() {
     assert!(!depth.contains(&"000002.png".to_string()) && !depth.contains(&"000003.png".to_string()));
     let coco: Value = serde_json::from_slice(&std::fs::read(out.join("coco.json")).unwrap()).unwrap();
     assert_eq!(coco["images"].as_array().unwrap().len(), frames);
+    // The YOLO dataset keeps the other frames: their images and labels, listed once each.
+    assert_eq!(listing(&out.join("yolo/images")).len(), frames - 2);
+    assert_eq!(listing(&out.join("yolo/labels")).len(), frames - 2);
+    let listed: usize = ["train.txt", "val.txt"]
+        .iter()
+        .map(|l| {
+            std::fs::read_to_string(out.join("yolo").join(l))
+                .unwrap()
+                .lines()
+                .count()
+        })
+        .sum();
+    assert_eq!(listed, frames - 2);
 
     // A full re-run without depth or YOLO: nothing stale survives.
     let output = OutputOptions::default();

@@ -236,6 +236,7 @@ fn duplicate_poses_are_refused_or_fit_finite() {
 }
 
 #[test]
+#[allow(clippy::needless_range_loop)] // row-by-row matrix arithmetic
 fn pure_rotation_is_refused_or_fits_finite() {
     let dir = tempfile::tempdir().unwrap();
     let scan = fixture(dir.path(), "rot", 6, &[]);

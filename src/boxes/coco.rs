@@ -191,11 +191,6 @@ pub fn assemble(info: CocoInfo, boxes: &BoxSet, records: &[FrameRecord]) -> Coco
     }
 }
 
-/// `classes.txt` for YOLO: one label per line, class index = line number.
-pub fn yolo_classes(boxes: &BoxSet) -> String {
-    boxes.categories.iter().map(|c| format!("{c}\n")).collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -275,7 +270,6 @@ mod tests {
             vec![(1, 1), (2, 1), (3, 2), (4, 2)]
         );
         assert_eq!(coco.categories.len(), 2);
-        assert_eq!(yolo_classes(&boxes), "mug\nbook\n");
         let json = serde_json::to_value(&coco).unwrap();
         assert_eq!(
             json["annotations"][1]["segmentation"]["counts"],

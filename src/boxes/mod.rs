@@ -5,8 +5,10 @@
 //! Flow: [`parse`] (boxes.json) -> [`classify`] (point in smallest box, ray
 //! intervals) and [`project`] (pixel rectangles) -> [`label`] (per-frame
 //! depth from [`surface`] and/or the sensor fused over frames in [`tsdf`], mask, [`cleanup`], 2D boxes,
-//! object poses) -> [`rle`], [`coco`] and [`output`] (files, swapped in
-//! at the end). [`metrics`] scores masks against ground truth.
+//! object poses) -> [`rle`], [`coco`], [`contour`] and [`yolo`] and
+//! [`output`] (files, swapped in at the end). [`metrics`] scores masks
+//! against ground truth; [`interop`] reads boxes placed in other labelling
+//! tools and writes them back.
 //!
 //! Depends on `scan`, `poses` and `nerf` (to render depth); never on `synth`
 //! or the CLI. Never prints.
@@ -15,6 +17,8 @@ pub mod boundary;
 pub mod classify;
 pub mod cleanup;
 pub mod coco;
+pub mod contour;
+pub mod interop;
 pub mod label;
 pub mod metrics;
 pub mod options;
@@ -26,6 +30,7 @@ pub mod rle;
 pub mod support;
 pub mod surface;
 pub mod tsdf;
+pub mod yolo;
 
 pub use classify::{BoxClassifier, Overlap};
 pub use label::{FrameLabel, InstanceLabel, Labeler};
@@ -33,3 +38,4 @@ pub use options::{DepthSource, FrameRange, LabelError, LabelOptions, DEFAULT_SOU
 pub use output::{write_labels, LabelSummary, OutputOptions};
 pub use parse::{parse_boxes, read_boxes, Box3, BoxError, BoxSet};
 pub use project::{project_box, PixelRect};
+pub use yolo::{ImageMode, YoloOptions};

@@ -1,18 +1,20 @@
 //! Write a labelling run into an output folder exactly as FORMATS.md
 //! section 3: `masks/`, `depth/` (full depth), `coco.json`, and with YOLO
-//! `labels/` and `classes.txt`. Everything is written into a staging folder
-//! inside the output folder and swapped in at the end, so a failed run keeps
-//! the previous outputs and a re-run never leaves a mix of old and new.
+//! the ultralytics dataset `yolo/` ([`super::yolo`]). Everything is
+//! written into a staging folder inside the output folder and swapped in
+//! at the end, so a failed run keeps the previous outputs and a re-run
+//! never leaves a mix of old and new.
 //! A marker file says the folder is ours: entries of a folder without it
 //! are never replaced. A run over some frames (`--frames`) into a labelled
 //! folder keeps every other frame's files and their COCO records.
 
-use super::coco::{assemble, frame_record, yolo_classes, CocoInfo, FrameRecord};
+use super::coco::{assemble, frame_record, CocoInfo, FrameRecord};
 use super::label::{FrameLabel, Labeler};
 use super::options::{FrameRange, LabelError, LabelOptions};
 use super::parse::BoxSet;
+use super::yolo::{self, ImageMode, YoloOptions};
 use crate::atomic;
-use crate::png_encode::{encode_depth, encode_mask, quantise_depth, MILLIMETRE};
+use crate::png_encode::{encode_depth, encode_mask, encode_rgb, quantise_depth, MILLIMETRE};
 use crate::scan::{Frame, Scan};
 use image::ImageError;
 use rayon::prelude::*;
@@ -20,10 +22,12 @@ use std::collections::BTreeSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-/// Entries of the output folder a run owns; replaced as a whole, `coco.json` last.
-const OWNED: [&str; 5] = ["masks", "depth", "labels", "classes.txt", "coco.json"];
+/// Entries of the output folder a run owns; replaced as a whole, `coco.json`
+/// last. `labels` and `classes.txt` are where earlier versions wrote YOLO
+/// files: a run removes them.
+const OWNED: [&str; 6] = ["masks", "depth", "labels", "classes.txt", yolo::DIR, "coco.json"];
 /// Per-frame folders among [`OWNED`] (one file per frame, named by its stem).
-const PER_FRAME: [&str; 3] = ["masks", "depth", "labels"];
+const PER_FRAME: [&str; 5] = ["masks", "depth", "labels", "yolo/images", "yolo/labels"];
 /// Marks a folder whose owned entries `label` wrote and may replace.
 pub const MARKER: &str = ".nerflabel-labels";
 
@@ -47,8 +51,8 @@ impl FrameLabelling for Labeler<'_> {
 pub struct OutputOptions {
     /// Only frames with ids in this range.
     pub frames: Option<FrameRange>,
-    /// Also write YOLO `labels/<stem>.txt` and `classes.txt`.
-    pub yolo: bool,
+    /// Also write the ultralytics YOLO dataset `yolo/`.
+    pub yolo: Option<YoloOptions>,
     /// Provenance for `coco.json` (`source` is filled in from the labeler).
     pub info: CocoInfo,
 }
@@ -67,6 +71,8 @@ pub struct LabelSummary {
     pub rendered_rays: usize,
     /// Non-fatal findings (boxes no frame sees, depth beyond 65.535 m).
     pub warnings: Vec<String>,
+    /// With YOLO: frames in `train.txt` and in `val.txt`.
+    pub yolo_split: Option<(usize, usize)>,
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LabelError + '_ {
@@ -99,17 +105,45 @@ pub fn write_depth_mm(path: &Path, depth_m: &[f32], w: u32, h: u32) -> Result<us
 }
 
 /// The colour file of a frame relative to the scan folder, where a usual
-/// layout keeps it; the frame name with `.png` otherwise.
-fn rgb_file_name(scan: &Scan, frame: &Frame) -> String {
+/// layout keeps it.
+fn rgb_file(scan: &Scan, frame: &Frame) -> Option<String> {
     for dir in ["rgb", "images", "color"] {
         for ext in ["png", "jpg", "jpeg"] {
             let rel = format!("{dir}/{}.{ext}", frame.name);
             if scan.root.join(&rel).is_file() {
-                return rel;
+                return Some(rel);
             }
         }
     }
-    format!("{}.png", frame.name)
+    None
+}
+
+/// The colour file of a frame relative to the scan folder, where a usual
+/// layout keeps it; the frame name with `.png` otherwise.
+fn rgb_file_name(scan: &Scan, frame: &Frame) -> String {
+    rgb_file(scan, frame).unwrap_or_else(|| format!("{}.png", frame.name))
+}
+
+/// Put the frame's colour image into `images/` of the YOLO folder: the
+/// scan's own file, hard-linked or copied, or (a layout that keeps it
+/// elsewhere) the decoded frame as PNG.
+fn place_image(images: &Path, scan: &Scan, frame: &Frame, mode: ImageMode) -> Result<(), LabelError> {
+    fs::create_dir_all(images).map_err(io_err(images))?;
+    let Some(rel) = rgb_file(scan, frame) else {
+        let path = images.join(format!("{}.png", frame.name));
+        let (w, h) = frame.rgb.dimensions();
+        return write_png(&path, encode_rgb(frame.rgb.as_raw(), w, h));
+    };
+    let source = scan.root.join(&rel);
+    let ext = source
+        .extension()
+        .map(|e| e.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let target = images.join(format!("{}.{ext}", frame.name));
+    if mode == ImageMode::Link && fs::hard_link(&source, &target).is_ok() {
+        return Ok(());
+    }
+    fs::copy(&source, &target).map(|_| ()).map_err(io_err(&source))
 }
 
 /// Per-frame results kept after the mask is written.
@@ -148,6 +182,11 @@ pub fn write_labels(
         fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
     }
     let partial = options.frames.is_some() && labelled_before && out.join("coco.json").is_file();
+    if partial {
+        if let Some(yolo) = &options.yolo {
+            check_yolo_kind(out, yolo)?;
+        }
+    }
     let result = stage(&staging, scan, boxes, labeler, options, &frames, progress).and_then(|mut summary| {
         if partial {
             let names: BTreeSet<&str> = frames.iter().map(|f| f.name.as_str()).collect();
@@ -160,6 +199,11 @@ pub fn write_labels(
                 ));
             }
         }
+        summary.yolo_split = match &options.yolo {
+            Some(yolo) => Some(write_yolo_lists(out, &staging, boxes, yolo)?),
+            None if partial => keep_yolo_lists(out, &staging)?,
+            None => None,
+        };
         swap_in(out, &staging)?;
         Ok(LabelSummary { out: out.to_path_buf(), ..summary })
     });
@@ -185,8 +229,11 @@ fn claim(out: &Path) -> Result<bool, LabelError> {
     fs::create_dir_all(out).map_err(io_err(out))?;
     if !marked {
         let marker = out.join(MARKER);
-        atomic::write_file(&marker, b"written by `nerflabel label`: its masks, depth, labels, classes.txt and coco.json are replaced by the next run\n")
-            .map_err(io_err(&marker))?;
+        atomic::write_file(
+            &marker,
+            b"written by `nerflabel label`: its masks, depth, yolo and coco.json are replaced by the next run\n",
+        )
+        .map_err(io_err(&marker))?;
     }
     Ok(marked)
 }
@@ -215,8 +262,9 @@ fn carry_over(out: &Path, staging: &Path, relabelled: &BTreeSet<&str>) -> Result
                 continue;
             }
             if relabelled.contains(stem.as_str()) {
-                if !dropped.contains(&dir) {
-                    dropped.push(dir);
+                let kind = if dir.starts_with(yolo::DIR) { "YOLO" } else { dir };
+                if !dropped.contains(&kind) {
+                    dropped.push(kind);
                 }
                 continue;
             }
@@ -230,6 +278,108 @@ fn carry_over(out: &Path, staging: &Path, relabelled: &BTreeSet<&str>) -> Result
         fs::copy(&old, &new).map_err(io_err(&old))?;
     }
     Ok(dropped)
+}
+
+/// Partial run with YOLO into a folder whose YOLO labels are of the other
+/// kind (boxes against polygons): refused, the two would be mixed.
+fn check_yolo_kind(out: &Path, options: &YoloOptions) -> Result<(), LabelError> {
+    let Ok(yaml) = fs::read_to_string(out.join(yolo::DIR).join("data.yaml")) else {
+        return Ok(());
+    };
+    let segments = yaml.lines().next().is_some_and(|l| l.contains("--yolo-seg"));
+    if segments == options.segments {
+        return Ok(());
+    }
+    let kind = |s: bool| if s { "outline polygons (--yolo-seg)" } else { "boxes" };
+    Err(LabelError::Merge {
+        path: out.to_path_buf(),
+        reason: format!(
+            "its YOLO labels are {}, this run writes {}",
+            kind(segments),
+            kind(options.segments)
+        ),
+    })
+}
+
+/// Images of the staged YOLO folder as (frame order key, file name).
+fn yolo_images(staging: &Path) -> Result<Vec<(u64, String)>, LabelError> {
+    let dir = staging.join(yolo::DIR).join("images");
+    let mut images = Vec::new();
+    if !dir.is_dir() {
+        return Ok(images);
+    }
+    for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
+        let name = entry.map_err(io_err(&dir))?.file_name().to_string_lossy().into_owned();
+        let stem = Path::new(&name)
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        images.push((stem.parse::<u64>().unwrap_or(u64::MAX), name));
+    }
+    images.sort();
+    Ok(images)
+}
+
+/// Write `train.txt`, `val.txt` and `data.yaml` for every image of the
+/// staged YOLO folder (this run's and, after `--frames`, the earlier
+/// ones'); the split is over those frames in frame order. Returns the
+/// train and val counts.
+fn write_yolo_lists(
+    out: &Path,
+    staging: &Path,
+    boxes: &BoxSet,
+    options: &YoloOptions,
+) -> Result<(usize, usize), LabelError> {
+    let images = yolo_images(staging)?;
+    let val = yolo::val_frames(images.len(), options.val_fraction, options.seed);
+    let (mut train_list, mut val_list) = (String::new(), String::new());
+    for ((_, name), is_val) in images.iter().zip(&val) {
+        let list = if *is_val { &mut val_list } else { &mut train_list };
+        list.push_str(&format!("./images/{name}\n"));
+    }
+    let dir = staging.join(yolo::DIR);
+    for (name, text) in [("train.txt", &train_list), ("val.txt", &val_list)] {
+        let path = dir.join(name);
+        atomic::write_file(&path, text.as_bytes()).map_err(io_err(&path))?;
+    }
+    let n_val = val.iter().filter(|&&v| v).count();
+    let root = fs::canonicalize(out).map_err(io_err(out))?.join(yolo::DIR);
+    let yaml = yolo::data_yaml(&root, boxes, options, images.len() - n_val, n_val).ok_or_else(|| {
+        LabelError::Option(format!(
+            "{}: the YOLO data.yaml needs the dataset's path as UTF-8 text; choose an --out path without non-UTF-8 names",
+            root.display()
+        ))
+    })?;
+    let path = dir.join("data.yaml");
+    atomic::write_file(&path, yaml.as_bytes()).map_err(io_err(&path))?;
+    Ok((images.len() - n_val, n_val))
+}
+
+/// Partial run without YOLO into a folder with a YOLO dataset: the other
+/// frames' files were carried over, the relabelled frames' dropped; keep
+/// `data.yaml` and the lists without the dropped frames.
+fn keep_yolo_lists(out: &Path, staging: &Path) -> Result<Option<(usize, usize)>, LabelError> {
+    let (old, new) = (out.join(yolo::DIR), staging.join(yolo::DIR));
+    if !old.join("data.yaml").is_file() {
+        return Ok(None);
+    }
+    fs::create_dir_all(&new).map_err(io_err(&new))?;
+    let yaml = old.join("data.yaml");
+    fs::copy(&yaml, new.join("data.yaml")).map_err(io_err(&yaml))?;
+    let mut counts = [0usize; 2];
+    for (name, count) in ["train.txt", "val.txt"].into_iter().zip(&mut counts) {
+        let path = old.join(name);
+        let text = fs::read_to_string(&path).unwrap_or_default();
+        let kept: String = text
+            .lines()
+            .filter(|line| line.strip_prefix("./").is_some_and(|rel| new.join(rel).is_file()))
+            .map(|line| format!("{line}\n"))
+            .collect();
+        *count = kept.lines().count();
+        let target = new.join(name);
+        atomic::write_file(&target, kept.as_bytes()).map_err(io_err(&target))?;
+    }
+    Ok(Some((counts[0], counts[1])))
 }
 
 /// Partial run: the staged `coco.json` gains the images and annotations of
@@ -325,9 +475,16 @@ fn stage(
                 None => 0,
             };
             let record = frame_record(&label, boxes, rgb_file_name(scan, frame));
-            if options.yolo {
-                let path = staging.join("labels").join(format!("{}.txt", label.name));
-                atomic::write_file(&path, record.yolo.as_bytes()).map_err(io_err(&path))?;
+            if let Some(yolo) = &options.yolo {
+                let dir = staging.join(yolo::DIR);
+                let path = dir.join("labels").join(format!("{}.txt", label.name));
+                let lines = if yolo.segments {
+                    yolo::segment_lines(&label, boxes)
+                } else {
+                    record.yolo.clone()
+                };
+                atomic::write_file(&path, lines.as_bytes()).map_err(io_err(&path))?;
+                place_image(&dir.join("images"), scan, frame, yolo.images)?;
             }
             progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
             Ok(Written {
@@ -376,10 +533,6 @@ fn stage(
         warnings.push(format!("{overflow} depth pixels beyond 65.535 m were written as 0"));
     }
 
-    if options.yolo {
-        let path = staging.join("classes.txt");
-        atomic::write_file(&path, yolo_classes(boxes).as_bytes()).map_err(io_err(&path))?;
-    }
     let records: Vec<FrameRecord> = written.iter().map(|w| w.record.clone()).collect();
     let info = CocoInfo {
         source: labeler.options().source.name().to_string(),
@@ -404,6 +557,7 @@ fn stage(
         box_pixel_fraction: written.iter().map(|w| w.box_pixels).sum::<usize>() as f64 / pixels.max(1) as f64,
         rendered_rays: written.iter().map(|w| w.rendered_rays).sum(),
         warnings,
+        yolo_split: None,
     })
 }
 

@@ -172,6 +172,12 @@ pub enum BoxError {
 
 /// Read and validate a boxes file.
 pub fn read_boxes(path: &Path) -> Result<BoxSet, BoxError> {
+    parse_boxes(&read_text(path)?, path)
+}
+
+/// A text file of at most [`MAX_FILE_BYTES`] (also for devices and pipes,
+/// which report no length), as UTF-8.
+pub(crate) fn read_text(path: &Path) -> Result<String, BoxError> {
     let read_err = |source| BoxError::Read {
         path: path.to_path_buf(),
         source,
@@ -196,11 +202,10 @@ pub fn read_boxes(path: &Path) -> Result<BoxSet, BoxError> {
             bytes: raw.len() as u64,
         });
     }
-    let text = String::from_utf8(raw).map_err(|_| BoxError::Format {
+    String::from_utf8(raw).map_err(|_| BoxError::Format {
         path: path.to_path_buf(),
         problem: "not UTF-8 text".into(),
-    })?;
-    parse_boxes(&text, path)
+    })
 }
 
 /// Parse and validate boxes JSON; `source` only names the file in errors.
@@ -259,7 +264,7 @@ pub fn parse_boxes(text: &str, source: &Path) -> Result<BoxSet, BoxError> {
 }
 
 /// A field name and what is wrong with it.
-type FieldError = (String, String);
+pub(crate) type FieldError = (String, String);
 
 fn field_err(field: &str, problem: impl Into<String>) -> FieldError {
     (field.to_string(), problem.into())
@@ -277,7 +282,7 @@ fn kind(v: &Value) -> &'static str {
 }
 
 /// One box entry; `id` is its 1-based index.
-fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
+pub(crate) fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
     let obj: &Map<String, Value> = v
         .as_object()
         .ok_or_else(|| field_err("", format!("expected an object, found {}", kind(v))))?;

@@ -6,7 +6,7 @@ use super::LabelArgs;
 use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::output::FrameLabelling;
 use nerflabel::boxes::{
-    read_boxes, write_labels, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions,
+    read_boxes, write_labels, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions, YoloOptions,
 };
 use nerflabel::masks::{lift, objects_and_boxes, read_masks, GivenMasks, Lifted, MaskLabeler};
 use nerflabel::nerf::model_file::Model;
@@ -18,6 +18,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
     let source = args.source;
     let frames: Option<FrameRange> = args.frames.as_deref().map(str::parse).transpose()?;
+    let yolo = yolo_options(args)?;
     let boxes = args.boxes.as_deref().map(read_boxes).transpose()?;
     let model_path = model_path(scan_dir, args.model.as_ref());
     let model = if source.needs_model() {
@@ -60,11 +61,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         model_steps: model.as_ref().map(|m| m.header.steps),
         frames: args.frames.clone(),
     };
-    let output = OutputOptions {
-        frames,
-        yolo: args.yolo,
-        info,
-    };
+    let output = OutputOptions { frames, yolo, info };
     let summary = match (&args.masks, &boxes, &box_labeler) {
         (Some(dir), _, _) => {
             let boxes = boxes.as_ref().zip(box_labeler.as_ref());
@@ -93,6 +90,12 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         summary.annotations,
         summary.out.display()
     );
+    if let Some((train, val)) = summary.yolo_split {
+        println!(
+            "YOLO dataset for ultralytics: {} ({train} training and {val} validation frames)",
+            summary.out.join("yolo").join("data.yaml").display()
+        );
+    }
     Ok(())
 }
 
@@ -220,4 +223,22 @@ fn label_with_masks(
     let boxes = boxes.map(|(_, labeler)| (labeler, first_box_id));
     let labeler = MaskLabeler::new(scan, &given, &lifted.votes, &surface, boxes, &all, options);
     write(out, scan, &all, &labeler, output)
+}
+
+/// The YOLO options, or `None` without --yolo / --yolo-seg (whose own
+/// options are then refused rather than ignored).
+fn yolo_options(args: &LabelArgs) -> anyhow::Result<Option<YoloOptions>> {
+    if !(args.yolo || args.yolo_seg) {
+        if args.yolo_images.is_some() || args.yolo_val.is_some() {
+            anyhow::bail!("--yolo-images and --yolo-val shape the YOLO dataset: add --yolo (or --yolo-seg)");
+        }
+        return Ok(None);
+    }
+    let defaults = YoloOptions::default();
+    Ok(Some(YoloOptions {
+        images: args.yolo_images.unwrap_or(defaults.images),
+        segments: args.yolo_seg,
+        val_fraction: args.yolo_val.unwrap_or(defaults.val_fraction),
+        seed: args.seed,
+    }))
 }

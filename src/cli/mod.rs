@@ -1,5 +1,6 @@
 //! Argument definitions and the dispatch of each subcommand.
 
+mod boxes;
 mod cloud;
 mod common;
 mod demo;
@@ -12,7 +13,7 @@ mod synth;
 
 use clap::{Args, Parser, Subcommand};
 pub use common::interrupted_status;
-use nerflabel::boxes::{DepthSource, Overlap, DEFAULT_SOURCE};
+use nerflabel::boxes::{DepthSource, ImageMode, Overlap, DEFAULT_SOURCE};
 use nerflabel::fixture::{FixtureLayout, SceneKind};
 use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::scan::{Layout, LoadOptions};
@@ -51,6 +52,8 @@ pub enum Command {
     Label(LabelArgs),
     /// Render novel views (colour, depth, mask) to one Parquet file.
     Synth(SynthArgs),
+    /// Import boxes from labelCloud, KITTI or CVAT into a boxes.json, or export one to labelCloud.
+    Boxes(boxes::BoxesArgs),
 }
 
 /// How to read the scan.
@@ -255,9 +258,30 @@ pub struct LabelArgs {
     /// Depth source.
     #[arg(long, value_enum, ignore_case = true, default_value_t = DEFAULT_SOURCE)]
     pub source: DepthSource,
-    /// Also write YOLO txt boxes.
+    /// Also write a dataset ultralytics trains on as it is, in OUT/yolo:
+    /// images/ (the colour frames), labels/ (one `class cx cy w h` line per
+    /// visible object, normalised), data.yaml (dataset path and class names),
+    /// train.txt and val.txt (frames split by contiguous blocks, so that
+    /// near-identical neighbouring frames do not straddle the split).
     #[arg(long)]
     pub yolo: bool,
+    /// YOLO segmentation labels: one outline polygon per visible object
+    /// instead of its box (implies --yolo). An object split by an occluder
+    /// gets one polygon whose parts are joined by zero-width bridges, as
+    /// ultralytics joins multi-part COCO polygons; holes are not cut out.
+    #[arg(long)]
+    pub yolo_seg: bool,
+    /// How the colour frames get into OUT/yolo/images [default: link].
+    #[arg(long, value_enum, value_name = "MODE")]
+    pub yolo_images: Option<ImageMode>,
+    /// Share of the labelled frames listed in val.txt, at least 0 and below 1
+    /// [default: 0.2]. The frames are cut into 10 contiguous blocks and this
+    /// share of the blocks, drawn with --seed, is the validation set.
+    #[arg(long, value_name = "FRACTION", value_parser = parse_val_fraction)]
+    pub yolo_val: Option<f64>,
+    /// Seed of the YOLO train/val split.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
     /// Use the model even if it was fitted to another scan or to this scan before its poses changed (warns).
     #[arg(long)]
     pub force: bool,
@@ -334,6 +358,17 @@ pub struct SynthArgs {
     pub appearance: String,
 }
 
+/// `--yolo-val`: a fraction in [0, 1).
+fn parse_val_fraction(text: &str) -> Result<f64, String> {
+    let value: f64 = text.trim().parse().map_err(|_| format!("`{text}` is not a number"))?;
+    if !(0.0..1.0).contains(&value) {
+        return Err(format!(
+            "{value} is not a share of the frames: expected at least 0 and below 1 (e.g. 0.2)"
+        ));
+    }
+    Ok(value)
+}
+
 /// Run one parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     if let Some(threads) = cli.threads {
@@ -354,5 +389,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Label(args) => label::run(&args),
         Command::Synth(args) => synth::run(&args),
+        Command::Boxes(args) => boxes::run(&args),
     }
 }

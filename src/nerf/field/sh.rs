@@ -28,6 +28,7 @@ pub fn encode(d: [f32; 3], out: &mut [f32; SH_COEFFS]) {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // index loops mirror the formulas they check
 mod tests {
     use super::*;
 

@@ -416,7 +416,7 @@ mod tests {
             rng.range(-0.5, 1.5) as f32,
         ];
         let mut d = [rng.f32() - 0.5, rng.f32() - 0.5, rng.f32() - 0.5];
-        if i % 7 == 0 {
+        if i.is_multiple_of(7) {
             d[i % 3] = 0.0;
         }
         let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();

@@ -471,6 +471,7 @@ pub fn render_image(field: &Field, grid: &OccupancyGrid, opts: &RenderOptions, c
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // index loops mirror the formulas they check
 mod tests {
     use super::*;
     use crate::nerf::field::hash_grid::HashGridConfig;

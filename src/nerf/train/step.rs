@@ -849,6 +849,7 @@ fn no_return_term(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // index loops mirror the formulas they check
 pub(crate) mod tests {
     use super::*;
     use crate::nerf::camera::LocalCamera;

@@ -73,7 +73,12 @@ pub fn lift(
         let surface = labeler.surface_where(frame, &|x, y| near_objects.contains(x, y));
         let points: Vec<(u32, u32, f64)> = surface.points().collect();
         let volume = votes.get_or_insert_with(|| VoteVolume::new(voxel_size(&points, frame, labeler)));
-        let weights = boundary_weights(mask, w as usize, h as usize);
+        let mut weights = boundary_weights(mask, w as usize, h as usize);
+        let k = frame.intrinsics;
+        let footprint = 1.0 / (0.5 * (k.fx + k.fy)).max(1e-9);
+        drop_bleeding(mask, &mut weights, &points, w as usize, h as usize, |z, pixels| {
+            labeler.surface_error_m() + STEP_PIXELS * pixels as f64 * z * footprint
+        });
         for &(x, y, z) in &points {
             let i = y as usize * w as usize + x as usize;
             let p = world_point(frame, x, y, z);
@@ -123,6 +128,56 @@ pub fn lift(
         warnings,
     })
 }
+
+/// A mask that bleeds past an object's silhouette labels what lies behind
+/// it: a pixel near the background (within [`CERTAIN_FROM_PX`]) whose surface lies
+/// behind a pixel of the same label within [`CERTAIN_FROM_PX`] by more than
+/// `max_step(z, pixels apart)` (one surface seen obliquely steps by less)
+/// votes not at all (weight 0).
+fn drop_bleeding(
+    mask: &[u16],
+    weights: &mut [f32],
+    points: &[(u32, u32, f64)],
+    w: usize,
+    h: usize,
+    max_step: impl Fn(f64, usize) -> f64,
+) {
+    let mut z = vec![0.0f64; mask.len()];
+    for &(x, y, d) in points {
+        z[y as usize * w + x as usize] = d;
+    }
+    let r = CERTAIN_FROM_PX;
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let (id, depth) = (mask[i], z[i]);
+            if id == 0 || depth <= 0.0 || weights[i] >= 1.0 {
+                continue;
+            }
+            let window = |ny: usize| (x.saturating_sub(r)..(x + r + 1).min(w)).map(move |nx| (nx, ny));
+            let rows = y.saturating_sub(r)..(y + r + 1).min(h);
+            // Bleeding runs onto the background; a pixel beside a
+            // neighbouring object only (a label change between objects) keeps its vote.
+            if !rows.clone().flat_map(window).any(|(nx, ny)| mask[ny * w + nx] == 0) {
+                continue;
+            }
+            let behind = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|ny| {
+                (x.saturating_sub(r)..(x + r + 1).min(w)).any(|nx| {
+                    let j = ny * w + nx;
+                    let apart = nx.abs_diff(x).max(ny.abs_diff(y));
+                    mask[j] == id && z[j] > 0.0 && depth - z[j] > max_step(depth, apart)
+                })
+            });
+            if behind {
+                weights[i] = 0.0;
+            }
+        }
+    }
+}
+
+/// Largest depth step, in pixel footprints per pixel apart, between pixels
+/// of one surface (a surface seen at up to 76 degrees: tan 76 = 4).
+const STEP_PIXELS: f64 = 4.0;
 
 /// Points of `points` in the largest 26-connected cluster of occupied
 /// cells of side `cell` (by point count).
@@ -481,6 +536,23 @@ mod tests {
         assert_eq!(weights[2], 0.75);
         assert_eq!(weights[0], 1.0);
         assert_eq!(weights[9], 1.0);
+    }
+
+    #[test]
+    fn mask_pixels_behind_their_object_vote_not_at_all() {
+        // Object 1 at 1 m in x < 6, its mask bleeding two pixels onto a wall at 2 m.
+        let (w, h) = (10, 1);
+        let mask: Vec<u16> = (0..w).map(|x| if x < 8 { 1 } else { 0 }).collect();
+        let points: Vec<(u32, u32, f64)> = (0..w as u32).map(|x| (x, 0, if x < 6 { 1.0 } else { 2.0 })).collect();
+        let mut weights = boundary_weights(&mask, w, h);
+        drop_bleeding(&mask, &mut weights, &points, w, h, |z, apart| {
+            0.01 + 4.0 * apart as f64 * z / 500.0
+        });
+        assert_eq!(&weights[6..8], &[0.0, 0.0], "the bleed onto the wall");
+        assert!(
+            weights[5] > 0.0 && weights[8] > 0.0,
+            "the object's edge and the wall's own label vote"
+        );
     }
 
     #[test]

@@ -7,10 +7,11 @@
 //! (`--dilate D`, what a bleeding segmenter gives), are written to a masks
 //! folder; the release binary labels the scan from them; the other frames
 //! are scored: mean per-frame mIoU, predicted/true pixels, boundary F (2 px)
-//! and each object's IoU, with the wall time of the label run.
+//! and each object's IoU, with the wall time of the label run. `--drop ID`
+//! erases object ID from the first given mask (a mask missing an object).
 //!
 //! Run after `cargo build --release`:
-//! `cargo run --release --example bench_masks -- [--every 20 | --given 3] [--dilate 2] [--model NAME] [--source S] SCENE...`
+//! `cargo run --release --example bench_masks -- [--every 20 | --given 3] [--dilate 2] [--drop ID] [--model NAME] [--source S] SCENE...`
 //! (MODEL defaults to SCENE/model-120s.nlf.)
 
 use nerflabel::boxes::metrics::MaskScores;
@@ -27,6 +28,8 @@ struct Args {
     dilate: usize,
     model: String,
     source: Option<String>,
+    /// Object id erased from the first given mask (a mask missing an object).
+    drop: Option<u16>,
     scenes: Vec<PathBuf>,
 }
 
@@ -37,6 +40,7 @@ fn parse() -> Result<Args, Error> {
         dilate: 0,
         model: "model-120s.nlf".into(),
         source: None,
+        drop: None,
         scenes: Vec::new(),
     };
     let mut it = std::env::args().skip(1);
@@ -48,6 +52,7 @@ fn parse() -> Result<Args, Error> {
             "--dilate" => a.dilate = value()?.parse()?,
             "--model" => a.model = value()?,
             "--source" => a.source = Some(value()?),
+            "--drop" => a.drop = Some(value()?.parse()?),
             _ => a.scenes.push(PathBuf::from(arg)),
         }
     }
@@ -109,7 +114,10 @@ fn run_scene(args: &Args, scene: &Path, exe: &Path) -> Result<(), Error> {
         let path = truth_dir.join(format!("{}.png", stems[i]));
         let truth = read_gray16(&path)?;
         let (w, h) = image::image_dimensions(&path)?;
-        let given = dilate(&truth, w as usize, h as usize, args.dilate);
+        let mut given = dilate(&truth, w as usize, h as usize, args.dilate);
+        if let (Some(id), true) = (args.drop, i == chosen[0]) {
+            given.iter_mut().filter(|v| **v == id).for_each(|v| *v = 0);
+        }
         let bytes: Vec<u8> = given.iter().map(|&v| v.min(255) as u8).collect();
         image::GrayImage::from_raw(w, h, bytes)
             .ok_or("mask size")?

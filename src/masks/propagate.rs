@@ -26,6 +26,11 @@ use std::collections::{BTreeMap, HashMap};
 /// Distance (pixels) to a label change from which a given pixel votes with
 /// full weight; nearer pixels vote with (d + 1) / (this + 1).
 const CERTAIN_FROM_PX: usize = 3;
+/// A background pixel's vote weighs this much of an object pixel's: a mask
+/// that misses an object in one frame (a segmenter lost it) is outvoted
+/// by one other frame that has it, while a mask's bleed, which votes
+/// with boundary weight, stays outvoted by the background of others.
+const BACKGROUND_WEIGHT: f32 = 0.75;
 /// Extents of an object's box: these quantiles of its lifted points along
 /// each principal axis (a few stray points do not stretch it).
 const EXTENT_QUANTILE: f64 = 0.005;
@@ -82,7 +87,12 @@ pub fn lift(
         for &(x, y, z) in &points {
             let i = y as usize * w as usize + x as usize;
             let p = world_point(frame, x, y, z);
-            volume.add(p, mask[i], weights[i]);
+            let weight = if mask[i] == 0 {
+                BACKGROUND_WEIGHT * weights[i]
+            } else {
+                weights[i]
+            };
+            volume.add(p, mask[i], weight);
             if mask[i] > 0 && weights[i] >= 1.0 {
                 if let Some(list) = object_points.get_mut(&mask[i]) {
                     list.push(p);
@@ -457,8 +467,13 @@ impl<'a> MaskLabeler<'a> {
 impl FrameLabelling for MaskLabeler<'_> {
     fn label_frame(&self, frame: &Frame) -> FrameLabel {
         let (w, h) = frame.size();
-        let surface = self.surface.surface(frame);
         let given = self.given_by_frame.get(&frame.id);
+        // A given frame's mask is kept: its surface is needed only for --depth.
+        let surface = if given.is_none() || self.options.full_depth {
+            self.surface.surface(frame)
+        } else {
+            self.surface.surface_where(frame, &|_, _| false)
+        };
         let mut mask = match given {
             Some(m) => (*m).clone(),
             None => {

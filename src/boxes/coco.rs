@@ -21,7 +21,11 @@ pub struct CocoInfo {
     pub colour_snap: bool,
     /// Seed of the model's fit (`None` without a model).
     pub seed: Option<u64>,
+    /// The scan folder, absolute.
     pub scan: String,
+    /// Folder the images' `file_name`s are relative to, absolute (the scan
+    /// folder unless `label --image-root` names another).
+    pub image_root: String,
     pub boxes: String,
     /// Folder of given masks carried to every frame (`label --masks`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -36,7 +40,8 @@ pub struct CocoInfo {
 #[derive(Clone, Debug, Serialize)]
 pub struct CocoImage {
     pub id: u64,
-    /// The colour frame, relative to the scan folder.
+    /// The colour frame, relative to `info.image_root` (`/`-separated, with
+    /// `..` where the image lies outside that folder).
     pub file_name: String,
     pub width: u32,
     pub height: u32,

@@ -53,8 +53,11 @@ pub struct OutputOptions {
     pub frames: Option<FrameRange>,
     /// Also write the ultralytics YOLO dataset `yolo/`.
     pub yolo: Option<YoloOptions>,
-    /// Provenance for `coco.json` (`source` is filled in from the labeler).
+    /// Provenance for `coco.json` (`source` is filled in from the labeler,
+    /// `scan` and `image_root` as absolute paths from the scan and `image_root`).
     pub info: CocoInfo,
+    /// Folder the COCO `file_name`s are relative to; `None` = the scan folder.
+    pub image_root: Option<PathBuf>,
 }
 
 /// What a run produced.
@@ -122,6 +125,42 @@ fn rgb_file(scan: &Scan, frame: &Frame) -> Option<String> {
 /// layout keeps it; the frame name with `.png` otherwise.
 fn rgb_file_name(scan: &Scan, frame: &Frame) -> String {
     rgb_file(scan, frame).unwrap_or_else(|| format!("{}.png", frame.name))
+}
+
+/// `path` relative to `base` (both absolute), `/`-separated, with a `..`
+/// for each folder of `base` that `path` does not lie in; `None` when they
+/// share no root (another drive).
+fn relative_path(path: &Path, base: &Path) -> Option<String> {
+    let (p, b): (Vec<_>, Vec<_>) = (path.components().collect(), base.components().collect());
+    let common = p.iter().zip(&b).take_while(|(x, y)| x == y).count();
+    if common == 0 {
+        return None;
+    }
+    let up = std::iter::repeat_n("..".to_string(), b.len() - common);
+    let down = p[common..].iter().map(|c| c.as_os_str().to_string_lossy().into_owned());
+    Some(up.chain(down).collect::<Vec<_>>().join("/"))
+}
+
+/// The scan folder and the COCO image root, both canonical (absolute).
+fn image_roots(scan: &Scan, options: &OutputOptions) -> Result<(PathBuf, PathBuf), LabelError> {
+    let scan_root = fs::canonicalize(&scan.root).map_err(io_err(&scan.root))?;
+    let image_root = match &options.image_root {
+        Some(dir) => fs::canonicalize(dir).map_err(io_err(dir))?,
+        None => scan_root.clone(),
+    };
+    Ok((scan_root, image_root))
+}
+
+/// A frame's COCO `file_name`: its colour file relative to `image_root`.
+fn image_file_name(scan: &Scan, scan_root: &Path, image_root: &Path, frame: &Frame) -> Result<String, LabelError> {
+    let image = scan_root.join(rgb_file_name(scan, frame));
+    relative_path(&image, image_root).ok_or_else(|| {
+        LabelError::Option(format!(
+            "{}: no path leads from the image root {} to it (another drive?); choose an --image-root on its drive",
+            image.display(),
+            image_root.display()
+        ))
+    })
 }
 
 /// Put the frame's colour image into `images/` of the YOLO folder: the
@@ -400,6 +439,17 @@ fn merge_coco(old_path: &Path, staged_path: &Path, relabelled: &[&Frame]) -> Res
             "the boxes' labels (COCO categories) changed since it was written".into(),
         ));
     }
+    // A file written before `image_root` was recorded is relative to the scan folder.
+    let info = |doc: &serde_json::Value, key: &str| doc["info"][key].as_str().map(str::to_string);
+    let old_root = info(&old, "image_root").or_else(|| info(&new, "scan"));
+    let new_root = info(&new, "image_root");
+    if old_root != new_root {
+        return Err(merge_err(format!(
+            "its images' file_names are relative to {}, this run's to {} (give --image-root {0} to keep them)",
+            old_root.as_deref().unwrap_or("?"),
+            new_root.as_deref().unwrap_or("?")
+        )));
+    }
     let ids: BTreeSet<u64> = relabelled.iter().map(|f| f.id).collect();
     let frame_of = |image: &serde_json::Value| image.get("frame_id").and_then(|v| v.as_u64());
     let array =
@@ -457,6 +507,7 @@ fn stage(
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<LabelSummary, LabelError> {
     let max_id = boxes.max_instance_id() as usize;
+    let (scan_root, image_root) = image_roots(scan, options)?;
     let done = std::sync::atomic::AtomicUsize::new(0);
     let written: Vec<Written> = frames
         .par_iter()
@@ -474,7 +525,8 @@ fn stage(
                 Some(d) => write_depth_mm(&staging.join("depth").join(format!("{}.png", label.name)), d, w, h)?,
                 None => 0,
             };
-            let record = frame_record(&label, boxes, rgb_file_name(scan, frame));
+            let file_name = image_file_name(scan, &scan_root, &image_root, frame)?;
+            let record = frame_record(&label, boxes, file_name);
             if let Some(yolo) = &options.yolo {
                 let dir = staging.join(yolo::DIR);
                 let path = dir.join("labels").join(format!("{}.txt", label.name));
@@ -538,6 +590,8 @@ fn stage(
         source: labeler.options().source.name().to_string(),
         overlap: labeler.options().overlap.name().to_string(),
         colour_snap: labeler.options().snap_to_colour,
+        scan: scan_root.display().to_string(),
+        image_root: image_root.display().to_string(),
         ..options.info.clone()
     };
     let coco = assemble(info, boxes, &records);
@@ -589,6 +643,21 @@ fn swap_in(out: &Path, staging: &Path) -> Result<(), LabelError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn relative_paths_climb_with_dot_dot_out_of_the_base() {
+        let rel = |p: &str, b: &str| relative_path(Path::new(p), Path::new(b));
+        assert_eq!(rel("/d/scan/rgb/1.png", "/d/scan").as_deref(), Some("rgb/1.png"));
+        assert_eq!(rel("/d/scan/rgb/1.png", "/d").as_deref(), Some("scan/rgb/1.png"));
+        assert_eq!(
+            rel("/d/scan/rgb/1.png", "/d/scan/depth").as_deref(),
+            Some("../rgb/1.png")
+        );
+        assert_eq!(
+            rel("/d/scan/rgb/1.png", "/e/f").as_deref(),
+            Some("../../d/scan/rgb/1.png")
+        );
+    }
 
     #[test]
     fn masks_are_8_or_16_bit_and_depth_is_millimetres() {

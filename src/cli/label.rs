@@ -3,6 +3,7 @@
 
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir, PlainProgress};
 use super::LabelArgs;
+use anyhow::Context;
 use nerflabel::boxes::coco::CocoInfo;
 use nerflabel::boxes::output::FrameLabelling;
 use nerflabel::boxes::{
@@ -54,14 +55,27 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         overlap: args.overlap.name().into(),
         colour_snap: !args.no_colour_snap,
         seed: model.as_ref().map(|m| m.header.seed),
-        scan: scan_dir.display().to_string(),
         boxes: args.boxes.as_ref().map(|b| b.display().to_string()).unwrap_or_default(),
         masks: args.masks.as_ref().map(|m| m.display().to_string()),
         model: model.as_ref().map(|_| model_path.display().to_string()),
         model_steps: model.as_ref().map(|m| m.header.steps),
         frames: args.frames.clone(),
+        ..CocoInfo::default()
     };
-    let output = OutputOptions { frames, yolo, info };
+    let image_root = args
+        .image_root
+        .as_ref()
+        .map(|dir| {
+            std::fs::canonicalize(dir)
+                .with_context(|| format!("{}: --image-root must be an existing folder", dir.display()))
+        })
+        .transpose()?;
+    let output = OutputOptions {
+        frames,
+        yolo,
+        info,
+        image_root,
+    };
     let summary = match (&args.masks, &boxes, &box_labeler) {
         (Some(dir), _, _) => {
             let boxes = boxes.as_ref().zip(box_labeler.as_ref());

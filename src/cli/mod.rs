@@ -246,6 +246,11 @@ pub struct LabelArgs {
     /// Output folder (default SCAN/nerflabel/labels).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Write the images' file_name in coco.json relative to DIR (default:
+    /// the scan folder); an image outside DIR gets `..` components. The
+    /// absolute DIR is recorded as info.image_root.
+    #[arg(long, value_name = "DIR")]
+    pub image_root: Option<PathBuf>,
     /// Also write completed depth for every pixel (depth/*.png, mm).
     #[arg(long)]
     pub depth: bool,

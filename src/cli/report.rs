@@ -6,6 +6,11 @@ use anyhow::Context;
 use nerflabel::nerf::train::report::{legacy_report_path, report_path, CurvePoint, FitReport};
 use nerflabel::plot::{render_panels, write_png, Panel, Series};
 
+/// Series colours of the plot's panels.
+const PSNR: [u8; 3] = [31, 119, 180];
+const SSIM: [u8; 3] = [214, 39, 40];
+const DEPTH: [u8; 3] = [44, 160, 44];
+
 pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
     let model = model_path(&args.scan, args.model.as_ref());
     // Reports of earlier versions sit in `fit_report.json` beside the model.
@@ -51,7 +56,7 @@ pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
                 .filter_map(|p| f(p).map(|v| (p.seconds, v)))
                 .collect()
         };
-        let panel = |title: &str, y: &str, points: Vec<(f64, f64)>, color: [u8; 3]| Panel {
+        let panel = |title: &str, y: &str, points: Vec<(f64, f64)>, color: [u8; 3], log_y: bool| Panel {
             title: title.into(),
             x_label: "wall time of the fit (s)".into(),
             y_label: y.into(),
@@ -60,17 +65,22 @@ pub fn run(args: &ReportArgs) -> anyhow::Result<()> {
                 points,
                 color,
             }],
+            log_y,
         };
+        // Depth error on a log axis: the first points (metres) would flatten
+        // the millimetres of the converged fit on a linear one.
         let panels = [
-            panel("Held-out PSNR", "PSNR (dB)", points(|p| Some(p.psnr)), [31, 119, 180]),
+            panel("Held-out PSNR", "PSNR (dB)", points(|p| Some(p.psnr)), PSNR, false),
+            panel("Held-out SSIM", "SSIM", points(|p| Some(p.ssim)), SSIM, false),
             panel(
                 "Held-out depth error",
-                "depth MAE (mm)",
+                "depth MAE (mm, log)",
                 points(|p| p.depth_mae_m.map(|d| d * 1e3)),
-                [44, 160, 44],
+                DEPTH,
+                true,
             ),
         ];
-        write_png(plot, &render_panels(&panels, 1000, 800))?;
+        write_png(plot, &render_panels(&panels, 1000, 1050))?;
         println!("plot: {}", plot.display());
     }
     Ok(())

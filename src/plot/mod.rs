@@ -1,5 +1,6 @@
 //! Line charts to PNG for `nerflabel report --plot`: the error-against-run-time
-//! curve of a fit (held-out PSNR and depth MAE against training seconds).
+//! curve of a fit (held-out PSNR, SSIM and depth MAE against training
+//! seconds), on linear or logarithmic y axes.
 //!
 //! Self-contained: a built-in bitmap font, 1-2-5 ticks and a pixel canvas on
 //! top of `image::RgbImage`. Knows nothing of NeRFs or reports; the CLI turns
@@ -44,6 +45,9 @@ pub struct Panel {
     pub x_label: String,
     pub y_label: String,
     pub series: Vec<Series>,
+    /// Logarithmic y axis (decades, ticks at 1, 2 and 5 of each); points
+    /// with `y <= 0` are not drawn.
+    pub log_y: bool,
 }
 
 /// Failure to save a rendered plot.

@@ -3,7 +3,7 @@
 
 use super::canvas::{Canvas, Rect};
 use super::font::{draw_text, text_height, text_width, Pen};
-use super::ticks::{format_tick, nice_axis, Axis};
+use super::ticks::{log_axis, nice_axis, Axis};
 use super::Panel;
 
 const TEXT: [u8; 3] = [34, 34, 34];
@@ -31,6 +31,7 @@ impl Frame {
     /// Pixel position (column, row) of a data point; the x-axis maximum lands
     /// on the area's last column and the y-axis maximum on its first row.
     pub fn to_px(&self, x: f64, y: f64) -> (f64, f64) {
+        let (x, y) = (self.x.coord(x), self.y.coord(y));
         let fx = (x - self.x.lo) / (self.x.hi - self.x.lo);
         let fy = (y - self.y.lo) / (self.y.hi - self.y.lo);
         let px = self.area.x as f64 + fx * (self.area.w - 1) as f64;
@@ -39,15 +40,28 @@ impl Frame {
     }
 }
 
-/// Finite points of a series in order; NaN and infinite points are skipped.
-pub fn finite_points(points: &[(f64, f64)]) -> impl Iterator<Item = (f64, f64)> + '_ {
-    points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite())
+/// Finite points of a series in order; NaN and infinite points are skipped,
+/// and with `log_y` those with `y <= 0`, which a log axis cannot show.
+pub fn finite_points(points: &[(f64, f64)], log_y: bool) -> impl Iterator<Item = (f64, f64)> + '_ {
+    points
+        .iter()
+        .copied()
+        .filter(move |(x, y)| x.is_finite() && y.is_finite() && (!log_y || *y > 0.0))
+}
+
+/// The y axis of `panel` over the data range `y0..y1`.
+fn y_axis(panel: &Panel, y0: f64, y1: f64) -> Axis {
+    if panel.log_y {
+        log_axis(y0, y1)
+    } else {
+        nice_axis(y0, y1)
+    }
 }
 
 /// Data range over all finite points of all series, `None` when there is none.
 fn data_range(panel: &Panel) -> Option<((f64, f64), (f64, f64))> {
     let mut range: Option<((f64, f64), (f64, f64))> = None;
-    for (x, y) in panel.series.iter().flat_map(|s| finite_points(&s.points)) {
+    for (x, y) in panel.series.iter().flat_map(|s| finite_points(&s.points, panel.log_y)) {
         range = Some(match range {
             None => ((x, x), (y, y)),
             Some(((x0, x1), (y0, y1))) => ((x0.min(x), x1.max(x)), (y0.min(y), y1.max(y))),
@@ -60,7 +74,7 @@ fn data_range(panel: &Panel) -> Option<((f64, f64), (f64, f64))> {
 fn widest_label(axis: &Axis, scale: i64) -> i64 {
     axis.ticks
         .iter()
-        .map(|&t| text_width(&format_tick(t, axis.step), scale))
+        .map(|&t| text_width(&axis.label(t), scale))
         .max()
         .unwrap_or(0)
 }
@@ -68,7 +82,7 @@ fn widest_label(axis: &Axis, scale: i64) -> i64 {
 /// Width in pixels of the widest y tick label `panel` will have at `scale`,
 /// so stacked panels can share one left edge.
 pub fn y_labels_width(panel: &Panel, scale: i64) -> i64 {
-    data_range(panel).map_or(0, |(_, (y0, y1))| widest_label(&nice_axis(y0, y1), scale))
+    data_range(panel).map_or(0, |(_, (y0, y1))| widest_label(&y_axis(panel, y0, y1), scale))
 }
 
 /// Plot area and axes of `panel` drawn inside `rect` at text `scale`, with at
@@ -76,7 +90,7 @@ pub fn y_labels_width(panel: &Panel, scale: i64) -> i64 {
 /// has no finite data or the area would be too small.
 pub fn layout(panel: &Panel, rect: Rect, scale: i64, y_labels_w: i64) -> Option<Frame> {
     let ((x0, x1), (y0, y1)) = data_range(panel)?;
-    let (x, y) = (nice_axis(x0, x1), nice_axis(y0, y1));
+    let (x, y) = (nice_axis(x0, x1), y_axis(panel, y0, y1));
     let area = plot_area(
         rect,
         scale,
@@ -157,19 +171,22 @@ fn draw_axes(canvas: &mut Canvas, f: &Frame, s: i64) {
     let a = f.area;
     let tick = 3 * s;
     let pen = Pen::new(s, TICK_TEXT);
+    // Ticks are axis coordinates: map them as the pixels of the axis range.
+    let col = |t: f64| a.x as f64 + (t - f.x.lo) / (f.x.hi - f.x.lo) * (a.w - 1) as f64;
+    let row = |t: f64| a.bottom() as f64 - (t - f.y.lo) / (f.y.hi - f.y.lo) * (a.h - 1) as f64;
     for &t in &f.x.ticks {
-        let px = f.to_px(t, f.y.lo).0.round() as i64;
+        let px = col(t).round() as i64;
         canvas.fill_rect(px, a.y, 1, a.h, GRID);
         canvas.fill_rect(px, a.bottom() + 1, 1, tick, AXIS);
-        let label = format_tick(t, f.x.step);
+        let label = f.x.label(t);
         let x = px - text_width(&label, s) / 2;
         draw_text(canvas, x, a.bottom() + 1 + tick + 2 * s, &label, pen);
     }
     for &t in &f.y.ticks {
-        let py = f.to_px(f.x.lo, t).1.round() as i64;
+        let py = row(t).round() as i64;
         canvas.fill_rect(a.x, py, a.w, 1, GRID);
         canvas.fill_rect(a.x - tick, py, tick, 1, AXIS);
-        let label = format_tick(t, f.y.step);
+        let label = f.y.label(t);
         let x = a.x - tick - 2 * s - text_width(&label, s);
         // Cap height is 7 of the 8 font rows; centre the digits on the tick.
         draw_text(canvas, x, py - (7 * s) / 2, &label, pen);
@@ -200,7 +217,7 @@ fn draw_series(canvas: &mut Canvas, panel: &Panel, f: &Frame, s: i64, line_w: i6
     ));
     for series in &panel.series {
         let mut prev: Option<(f64, f64)> = None;
-        for (x, y) in finite_points(&series.points) {
+        for (x, y) in finite_points(&series.points, panel.log_y) {
             let p = f.to_px(x, y);
             if let Some(q) = prev {
                 canvas.line(q, p, line_w, series.color);
@@ -209,11 +226,11 @@ fn draw_series(canvas: &mut Canvas, panel: &Panel, f: &Frame, s: i64, line_w: i6
         }
     }
     for series in &panel.series {
-        let n = finite_points(&series.points).count();
+        let n = finite_points(&series.points, panel.log_y).count();
         if n > MAX_MARKERS {
             continue;
         }
-        for (x, y) in finite_points(&series.points) {
+        for (x, y) in finite_points(&series.points, panel.log_y) {
             let (px, py) = f.to_px(x, y);
             canvas.disc(px, py, r + 1.0, BACKGROUND);
             canvas.disc(px, py, r, series.color);
@@ -251,7 +268,7 @@ fn draw_legend(canvas: &mut Canvas, panel: &Panel, f: &Frame, s: i64, line_w: i6
         panel
             .series
             .iter()
-            .flat_map(|s| finite_points(&s.points))
+            .flat_map(|s| finite_points(&s.points, panel.log_y))
             .filter(|&(dx, dy)| {
                 let (px, py) = f.to_px(dx, dy);
                 b.contains(px.round() as i64, py.round() as i64)

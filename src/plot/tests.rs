@@ -21,6 +21,7 @@ fn panel(series: Vec<Series>) -> Panel {
         x_label: "training time (s)".into(),
         y_label: "PSNR (dB)".into(),
         series,
+        log_y: false,
     }
 }
 
@@ -42,12 +43,14 @@ fn fit_panels() -> Vec<Panel> {
             x_label: "training time (s)".into(),
             y_label: "PSNR (dB)".into(),
             series: vec![series("held-out", psnr, BLUE), series("training", psnr_train, ORANGE)],
+            log_y: false,
         },
         Panel {
             title: "Depth MAE".into(),
             x_label: "training time (s)".into(),
             y_label: "depth MAE (mm)".into(),
             series: vec![series("held-out", mae, [44, 160, 44])],
+            log_y: true,
         },
     ]
 }
@@ -288,11 +291,122 @@ fn fit_curve_renders_both_panels() {
     .area;
     assert_eq!((top.x, top.w), (bottom.x, bottom.w));
     for a in [top, bottom] {
-        let mid = (a.y + a.h / 2) as u32;
+        // Two rows below the middle: the log panel has its 10 mm tick there.
+        let mid = (a.y + a.h / 2 + 2) as u32;
         assert_ne!(img.get_pixel(a.x as u32, mid).0, WHITE, "no frame at x = {}", a.x);
         assert_eq!(img.get_pixel(a.x as u32 - 1, mid).0, WHITE);
     }
     if let Some(path) = std::env::var_os("NERFLABEL_PLOT_PREVIEW") {
         write_png(Path::new(&path), &img).unwrap();
     }
+}
+
+/// The depth panel of a fit whose error falls from metres to millimetres.
+fn depth_panel() -> Panel {
+    let mae = (0..=12)
+        .map(|i| (i as f64 * 10.0, 2.0 + 1500.0 * (-(i as f64) / 1.5).exp()))
+        .collect();
+    Panel {
+        title: "Held-out depth error".into(),
+        x_label: "training time (s)".into(),
+        y_label: "depth MAE (mm, log)".into(),
+        series: vec![series("held-out", mae, [44, 160, 44])],
+        log_y: true,
+    }
+}
+
+/// Rows of the y tick marks (grey runs left of the plot frame) in `a`.
+fn y_tick_rows(img: &RgbImage, a: Rect) -> Vec<i64> {
+    (a.y..=a.bottom())
+        .filter(|&y| img.get_pixel(a.x as u32 - 2, y as u32).0 == [110, 110, 110])
+        .collect()
+}
+
+#[test]
+fn log_depth_axis_places_1_mm_and_10_mm_a_decade_apart() {
+    let p = depth_panel();
+    let (w, h) = (1000, 400);
+    let frame = panel::layout(&p, full_rect(w, h), text_scale(w, h), 0).unwrap();
+    assert!(frame.y.log);
+    // 2 mm .. 1.5 m: decades 1 mm .. 10 m, ticked at 1, 10, 100, 1000, 10000 mm.
+    assert_eq!((frame.y.lo, frame.y.hi), (0.0, 4.0));
+    let labels: Vec<String> = frame.y.ticks.iter().map(|&t| frame.y.label(t)).collect();
+    assert_eq!(labels, ["1", "10", "100", "1000", "10000"]);
+    let a = frame.area;
+    let (_, y1) = frame.to_px(0.0, 1.0);
+    let (_, y10) = frame.to_px(0.0, 10.0);
+    let (_, y100) = frame.to_px(0.0, 100.0);
+    let decade = (a.h - 1) as f64 / 4.0;
+    assert!(
+        (y1 - a.bottom() as f64).abs() < 1e-9,
+        "1 mm at row {y1}, bottom {}",
+        a.bottom()
+    );
+    assert!((y1 - y10 - decade).abs() < 1e-9 && (y10 - y100 - decade).abs() < 1e-9);
+    // In the image: one tick mark per decade, evenly a decade apart, the
+    // lowest at the 1 mm row and the next at the 10 mm row.
+    let img = render_panels(std::slice::from_ref(&p), w, h);
+    let rows = y_tick_rows(&img, a);
+    assert_eq!(rows.len(), 5, "tick rows {rows:?}");
+    assert_eq!(rows[4], y1.round() as i64);
+    assert_eq!(rows[3], y10.round() as i64);
+    for pair in rows.windows(2) {
+        assert!(((pair[1] - pair[0]) as f64 - decade).abs() <= 1.0, "{rows:?}");
+    }
+    // The millimetre range is not flattened: 2 mm sits more than 7 % of the
+    // height above the bottom (on a linear axis up to 1.5 m: 0.13 %).
+    let (_, y_last) = frame.to_px(120.0, 2.0);
+    assert!(a.bottom() as f64 - y_last > 0.07 * a.h as f64);
+    // A point at or below zero is left out rather than drawn at -infinity.
+    let mut zero = depth_panel();
+    zero.series[0].points.push((130.0, 0.0));
+    let frame0 = panel::layout(&zero, full_rect(w, h), text_scale(w, h), 0).unwrap();
+    assert_eq!((frame0.y.lo, frame0.y.hi), (0.0, 4.0));
+    assert!(count_color(&render_panels(&[zero], w, h), [44, 160, 44]) > 500);
+}
+
+#[test]
+fn report_plot_draws_an_ssim_panel_between_psnr_and_depth() {
+    const RED: [u8; 3] = [214, 39, 40];
+    let t: Vec<f64> = (0..=12).map(|i| i as f64 * 10.0).collect();
+    let ssim = t.iter().map(|&s| (s, 0.4 + 0.5 * (1.0 - (-s / 30.0).exp()))).collect();
+    let mut panels = fit_panels();
+    panels.insert(
+        1,
+        Panel {
+            title: "Held-out SSIM".into(),
+            x_label: "training time (s)".into(),
+            y_label: "SSIM".into(),
+            series: vec![series("held-out", ssim, RED)],
+            log_y: false,
+        },
+    );
+    let (w, h) = (1000, 1050);
+    let img = render_panels(&panels, w, h);
+    let third = |y: u32| (y * 3 / h) as usize;
+    // The SSIM curve's colour is inked in the middle third only, plenty of it.
+    let red: Vec<usize> = (0..3)
+        .map(|k| {
+            img.enumerate_pixels()
+                .filter(|(_, y, p)| p.0 == RED && third(*y) == k)
+                .count()
+        })
+        .collect();
+    assert!(red[0] == 0 && red[2] == 0 && red[1] > 500, "{red:?}");
+    // Its frame, tick marks and title are drawn: the title row band at the
+    // top of the middle third holds dark text pixels near the centre.
+    let rect = Rect {
+        x: 0,
+        y: 350,
+        w: 1000,
+        h: 350,
+    };
+    let frame = panel::layout(&panels[1], rect, text_scale(w, 350), 0).unwrap();
+    assert_eq!((frame.y.lo, frame.y.hi), (0.4, 0.9));
+    let title_ink = (350..frame.area.y as u32)
+        .flat_map(|y| (400..600).map(move |x| (x, y)))
+        .filter(|&(x, y)| img.get_pixel(x, y).0 == [34, 34, 34])
+        .count();
+    assert!(title_ink > 100, "{title_ink} title pixels");
+    assert!(y_tick_rows(&img, frame.area).len() >= 3);
 }

@@ -1,5 +1,6 @@
-//! "Nice" axis ranges: ticks on 1-2-5 steps that cover the data, and their
-//! labels printed with just enough decimals.
+//! "Nice" axis ranges: ticks on 1-2-5 steps that cover the data (linear), or
+//! at 1, 2 and 5 times each power of ten (logarithmic), and their labels
+//! printed with just enough decimals.
 
 /// Most ticks an axis gets; the step is the smallest 1-2-5 value that fits.
 const MAX_TICKS: f64 = 7.0;
@@ -13,8 +14,91 @@ pub struct Axis {
     pub hi: f64,
     /// Distance between ticks, 1, 2 or 5 times a power of ten.
     pub step: f64,
-    /// Tick values from `lo` to `hi` inclusive (3 to 10 of them).
+    /// Tick values from `lo` to `hi` inclusive (3 to 10 of them on a linear
+    /// axis).
     pub ticks: Vec<f64>,
+    /// Logarithmic: `lo`, `hi` and `ticks` are base-10 logarithms of the
+    /// values (`step` is one decade).
+    pub log: bool,
+}
+
+/// Decades a logarithmic axis spans at most (its ends are clamped).
+const MAX_DECADES: i32 = 40;
+/// Up to this many decades a log axis ticks 1, 2 and 5 of each; beyond, 1 only.
+const MAX_1_2_5_DECADES: i32 = 3;
+
+impl Axis {
+    /// Where `v` lies on the axis: `v` itself, or its logarithm on a log
+    /// axis (non-finite for `v <= 0`).
+    pub fn coord(&self, v: f64) -> f64 {
+        if self.log {
+            v.log10()
+        } else {
+            v
+        }
+    }
+
+    /// Label of tick `t` (an axis coordinate, see [`Axis::coord`]).
+    pub fn label(&self, t: f64) -> String {
+        if self.log {
+            format_log_tick(t)
+        } else {
+            format_tick(t, self.step)
+        }
+    }
+}
+
+/// A logarithmic axis over the positive range `[lo, hi]` (given in any
+/// order; non-positive or non-finite bounds fall back to 1..10): whole
+/// decades that cover it, ticks at 1, 2 and 5 times each power of ten (the
+/// powers of ten only when it spans more than three decades).
+pub fn log_axis(lo: f64, hi: f64) -> Axis {
+    let ok = |v: f64| v.is_finite() && v > 0.0;
+    let (lo, hi) = if ok(lo) && ok(hi) {
+        (lo.min(hi), lo.max(hi))
+    } else {
+        (1.0, 10.0)
+    };
+    // A hair of slack so 10.000000000000002 does not open a new decade.
+    let first = ((lo.log10() + 1e-9).floor() as i32).clamp(-300, 300);
+    let mut last = ((hi.log10() - 1e-9).ceil() as i32).clamp(-300, 300);
+    if last <= first {
+        last = first + 1;
+    }
+    let last = last.min(first + MAX_DECADES);
+    let multiples: &[f64] = if last - first > MAX_1_2_5_DECADES {
+        &[1.0]
+    } else {
+        &[1.0, 2.0, 5.0]
+    };
+    let mut ticks = Vec::new();
+    for exp in first..last {
+        ticks.extend(multiples.iter().map(|m| f64::from(exp) + m.log10()));
+    }
+    ticks.push(f64::from(last));
+    Axis {
+        lo: f64::from(first),
+        hi: f64::from(last),
+        step: 1.0,
+        ticks,
+        log: true,
+    }
+}
+
+/// Label of the log-axis tick at `10^t`: plain decimals from 0.001 to
+/// 999999 (`0.5`, `20`, `1000`), scientific beyond (`2e-5`, `1e7`).
+pub fn format_log_tick(t: f64) -> String {
+    if !t.is_finite() {
+        return format!("{t}");
+    }
+    let exp = t.floor();
+    // The 1, 2 or 5 in front of the power of ten.
+    let m = 10f64.powf(t - exp).round();
+    if !(-3.0..6.0).contains(&exp) {
+        return format!("{m}e{exp}");
+    }
+    let decimals = (-exp).max(0.0) as usize;
+    format!("{:.decimals$}", tick_value(1.0, m, exp as i32))
 }
 
 /// `x / step` with floating noise next to an integer snapped onto it, so
@@ -77,6 +161,7 @@ pub fn nice_axis(lo: f64, hi: f64) -> Axis {
                     hi: tick_value(last, m, exp),
                     step,
                     ticks,
+                    log: false,
                 };
             }
         }
@@ -87,6 +172,7 @@ pub fn nice_axis(lo: f64, hi: f64) -> Axis {
         hi,
         step: hi * 0.5 - lo * 0.5,
         ticks: vec![lo, mid, hi],
+        log: false,
     }
 }
 
@@ -186,6 +272,30 @@ mod tests {
         let a = nice_axis(f64::NAN, f64::INFINITY);
         assert_eq!((a.lo, a.hi), (0.0, 1.0));
         check(5.0, 1.0);
+    }
+
+    #[test]
+    fn log_axes_tick_1_2_5_per_decade_and_label_the_values() {
+        let a = log_axis(3.2, 1500.0);
+        assert_eq!((a.lo, a.hi, a.log), (0.0, 4.0, true));
+        let labels: Vec<String> = a.ticks.iter().map(|&t| a.label(t)).collect();
+        assert_eq!(labels, ["1", "10", "100", "1000", "10000"]);
+        let a = log_axis(0.8, 40.0);
+        assert_eq!((a.lo, a.hi), (-1.0, 2.0));
+        let labels: Vec<String> = a.ticks.iter().map(|&t| a.label(t)).collect();
+        assert_eq!(labels, ["0.1", "0.2", "0.5", "1", "2", "5", "10", "20", "50", "100"]);
+        // Exact decades stay on their own decade; one value gets one decade.
+        assert_eq!((log_axis(10.0, 100.0).lo, log_axis(10.0, 100.0).hi), (1.0, 2.0));
+        assert_eq!((log_axis(7.0, 7.0).lo, log_axis(7.0, 7.0).hi), (0.0, 1.0));
+        for (lo, hi) in [(0.0, 5.0), (-1.0, f64::NAN), (1e-320, f64::MAX)] {
+            let a = log_axis(lo, hi);
+            assert!(
+                a.hi > a.lo && a.ticks.iter().all(|t| t.is_finite()),
+                "{lo}..{hi}: {a:?}"
+            );
+        }
+        assert_eq!(format_log_tick(-5.0 + 2f64.log10()), "2e-5");
+        assert_eq!(format_log_tick(7.0), "1e7");
     }
 
     #[test]

@@ -5,26 +5,9 @@
 
 mod common;
 
-use common::{run, s, small_scan, stderr};
+use common::{label_sensor, s, small_scan, stderr};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::Output;
-
-fn label(scan: &Path, out: &Path, extra: &[&str]) -> Output {
-    let boxes = scan.join("boxes.json");
-    let mut args = vec![
-        "label",
-        s(scan),
-        "--boxes",
-        s(&boxes),
-        "--source",
-        "sensor",
-        "--out",
-        s(out),
-    ];
-    args.extend_from_slice(extra);
-    run(&args)
-}
 
 fn coco(out: &Path) -> Value {
     serde_json::from_slice(&std::fs::read(out.join("coco.json")).unwrap()).unwrap()
@@ -65,7 +48,7 @@ fn coco_file_names_resolve_against_the_recorded_image_root() {
     let out = dir.path().join("labels");
 
     // Default: relative to the scan folder, which info.scan names absolutely.
-    let o = label(&scan, &out, &[]);
+    let o = label_sensor(&scan, &out, &[]);
     assert!(o.status.success(), "{}", stderr(&o));
     let c = coco(&out);
     assert_eq!(c["info"]["scan"].as_str().unwrap(), scan_abs.to_str().unwrap());
@@ -75,14 +58,14 @@ fn coco_file_names_resolve_against_the_recorded_image_root() {
     assert!(names.iter().all(|(_, n)| n.starts_with("rgb/")), "{names:?}");
 
     // A partial relabel under another root would mix roots: refused, outputs kept.
-    let o = label(&scan, &out, &["--frames", "2..5", "--image-root", s(&parent)]);
+    let o = label_sensor(&scan, &out, &["--frames", "2..5", "--image-root", s(&parent)]);
     assert!(!o.status.success());
     let err = stderr(&o);
     assert!(err.contains("relative to") && err.contains("--image-root"), "{err}");
     assert_eq!(coco(&out), c);
 
     // Every frame under the scan's parent: file_names start with `scan/`.
-    let o = label(&scan, &out, &["--image-root", s(&parent)]);
+    let o = label_sensor(&scan, &out, &["--image-root", s(&parent)]);
     assert!(o.status.success(), "{}", stderr(&o));
     let (root, names) = images(&coco(&out));
     assert_eq!(root, parent);
@@ -90,21 +73,21 @@ fn coco_file_names_resolve_against_the_recorded_image_root() {
     assert!(names.iter().all(|(_, n)| n.starts_with("scan/rgb/")), "{names:?}");
 
     // A partial relabel under the same root merges consistently.
-    let o = label(&scan, &out, &["--frames", "2..5", "--image-root", s(&parent)]);
+    let o = label_sensor(&scan, &out, &["--frames", "2..5", "--image-root", s(&parent)]);
     assert!(o.status.success(), "{}", stderr(&o));
     let (_, merged) = images(&coco(&out));
     assert_eq!(merged, names);
 
     // A root the images are not under: `..` components lead to them.
     let out2 = dir.path().join("labels2");
-    let o = label(&scan, &out2, &["--image-root", s(&scan.join("depth"))]);
+    let o = label_sensor(&scan, &out2, &["--image-root", s(&scan.join("depth"))]);
     assert!(o.status.success(), "{}", stderr(&o));
     let (root, names) = images(&coco(&out2));
     assert_eq!(root, scan_abs.join("depth"));
     assert!(names.iter().all(|(_, n)| n.starts_with("../rgb/")), "{names:?}");
 
     // A missing root is named in the error.
-    let o = label(&scan, &out2, &["--image-root", s(&dir.path().join("nowhere"))]);
+    let o = label_sensor(&scan, &out2, &["--image-root", s(&dir.path().join("nowhere"))]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("nowhere"), "{}", stderr(&o));
 }

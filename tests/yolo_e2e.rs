@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::{run, s, small_scan, stderr};
+use common::{label_sensor, run, small_scan, stderr};
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -325,22 +325,6 @@ print(n)
     );
 }
 
-fn label(scan: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
-    let boxes = scan.join("boxes.json");
-    let mut args = vec![
-        "label",
-        s(scan),
-        "--boxes",
-        s(&boxes),
-        "--source",
-        "sensor",
-        "--out",
-        s(out),
-    ];
-    args.extend_from_slice(extra);
-    run(&args)
-}
-
 fn frame_of(image: &str) -> u64 {
     Path::new(image).file_stem().unwrap().to_str().unwrap().parse().unwrap()
 }
@@ -350,7 +334,7 @@ fn yolo_boxes_dataset_reads_like_ultralytics_with_a_block_split_over_every_frame
     let dir = tempfile::tempdir().unwrap();
     let scan = small_scan(dir.path());
     let out = dir.path().join("labels");
-    let o = label(&scan, &out, &["--yolo"]);
+    let o = label_sensor(&scan, &out, &["--yolo"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -403,7 +387,7 @@ fn yolo_seg_polygons_cover_the_masks_and_copies_split_by_the_seed() {
         "--seed",
         "3",
     ];
-    let o = label(&scan, &out, &args);
+    let o = label_sensor(&scan, &out, &args);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
         !out.join("labels").exists() && !out.join("classes.txt").exists(),
@@ -435,12 +419,12 @@ fn yolo_seg_polygons_cover_the_masks_and_copies_split_by_the_seed() {
     let lists =
         |out: &Path| ["train.txt", "val.txt"].map(|l| std::fs::read_to_string(out.join("yolo").join(l)).unwrap());
     let before = lists(&out);
-    let o = label(&scan, &out, &[&args[..], &["--frames", "3..6"]].concat());
+    let o = label_sensor(&scan, &out, &[&args[..], &["--frames", "3..6"]].concat());
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(lists(&out), before);
     check_like_ultralytics(&out, true);
     // Boxes into a folder of polygons, for some frames only: refused, nothing changed.
-    let o = label(&scan, &out, &["--yolo", "--frames", "3..6"]);
+    let o = label_sensor(&scan, &out, &["--yolo", "--frames", "3..6"]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("outline polygons"), "{}", stderr(&o));
     assert_eq!(lists(&out), before);
@@ -458,7 +442,7 @@ fn yolo_options_are_checked_before_any_work() {
         (vec!["--yolo-images", "copy"], "add --yolo"),
         (vec!["--yolo", "--yolo-images", "symlink"], "symlink"),
     ] {
-        let o = label(&scan, &out, &args);
+        let o = label_sensor(&scan, &out, &args);
         assert!(!o.status.success(), "{args:?}");
         assert!(stderr(&o).contains(words), "{args:?}: {}", stderr(&o));
         assert!(!out.exists(), "{args:?} wrote something");

@@ -6,6 +6,8 @@
 //! several polygons of a COCO object (`merge_multi_segment`). Holes are
 //! not cut out: a YOLO polygon has none.
 
+use crate::mask::Components;
+
 /// A point in pixel units: (0, 0) is the top-left corner of the image,
 /// (w, h) the bottom-right one.
 pub type Point = [f64; 2];
@@ -13,75 +15,34 @@ pub type Point = [f64; 2];
 /// How far (pixels) a simplified outline may stray from the traced one.
 pub const SIMPLIFY_PX: f64 = 0.5;
 
-/// The outline of instance `id` in a row-major `w` x `h` mask: its parts,
-/// largest first, joined into one closed polygon (the first vertex is not
-/// repeated at the end). Empty when no pixel holds `id`.
-pub fn instance_polygon(mask: &[u16], w: usize, h: usize, id: u16) -> Vec<Point> {
-    let parts = outlines(mask, w, h, id);
-    join_parts(parts)
+/// The outline of instance `id` in a row-major `w` x `h` mask, given the
+/// mask's 4-connected components ([`crate::mask::components`], computed once per mask):
+/// its parts, largest first, joined into one closed polygon (the first
+/// vertex is not repeated at the end). Empty when no pixel holds `id`.
+pub(crate) fn instance_polygon(parts: &Components, w: usize, h: usize, id: u16) -> Vec<Point> {
+    join_parts(outlines(parts, w, h, id))
 }
 
 /// Outer outlines of the 4-connected parts of instance `id`, each with the
 /// pixel count of its part, largest part first, simplified by [`SIMPLIFY_PX`].
-pub fn outlines(mask: &[u16], w: usize, h: usize, id: u16) -> Vec<(usize, Vec<Point>)> {
-    if mask.len() != w * h {
+pub(crate) fn outlines(components: &Components, w: usize, h: usize, id: u16) -> Vec<(usize, Vec<Point>)> {
+    if components.label.len() != w * h {
         return Vec::new();
     }
-    let (labels, areas) = components(mask, w, h, id);
     let mut parts: Vec<(usize, Vec<Point>)> = Vec::new();
-    let mut traced = vec![false; areas.len()];
-    for (i, &label) in labels.iter().enumerate() {
-        if label == 0 || traced[label as usize - 1] {
+    let mut traced = vec![false; components.size.len()];
+    for (i, &part) in components.label.iter().enumerate() {
+        let part_index = part as usize;
+        if components.value[part_index] != id || traced[part_index] {
             continue;
         }
-        traced[label as usize - 1] = true;
-        let outline = trace(&labels, w, h, label, i % w, i / w);
-        parts.push((areas[label as usize - 1], simplify(&outline, SIMPLIFY_PX)));
+        traced[part_index] = true;
+        let outline = trace(&components.label, w, h, part, i % w, i / w);
+        parts.push((components.size[part_index], simplify(&outline, SIMPLIFY_PX)));
     }
     // Stable: equal areas keep raster order.
     parts.sort_by_key(|p| std::cmp::Reverse(p.0));
     parts
-}
-
-/// 4-connected components of the pixels equal to `id`: a label per pixel
-/// (0 = not `id`, else 1-based part number in raster order of first pixel)
-/// and each part's pixel count.
-fn components(mask: &[u16], w: usize, h: usize, id: u16) -> (Vec<u32>, Vec<usize>) {
-    let mut labels = vec![0u32; mask.len()];
-    let mut areas = Vec::new();
-    let mut stack = Vec::new();
-    for start in 0..mask.len() {
-        if mask[start] != id || labels[start] != 0 {
-            continue;
-        }
-        areas.push(0usize);
-        let label = areas.len() as u32;
-        labels[start] = label;
-        stack.push(start);
-        while let Some(i) = stack.pop() {
-            areas[label as usize - 1] += 1;
-            let (x, y) = (i % w, i / w);
-            let mut visit = |j: usize| {
-                if mask[j] == id && labels[j] == 0 {
-                    labels[j] = label;
-                    stack.push(j);
-                }
-            };
-            if x > 0 {
-                visit(i - 1);
-            }
-            if x + 1 < w {
-                visit(i + 1);
-            }
-            if y > 0 {
-                visit(i - w);
-            }
-            if y + 1 < h {
-                visit(i + w);
-            }
-        }
-    }
-    (labels, areas)
 }
 
 /// Walk the outer boundary of part `label`, whose first pixel in raster
@@ -249,6 +210,7 @@ fn walk(parts: &[Vec<Point>], children: &[Vec<(usize, usize, usize)>], p: usize,
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mask::components;
 
     /// Pixels whose centre lies inside `polygon` (even-odd rule, as polygon
     /// fills rasterise a YOLO outline back into a mask).
@@ -293,15 +255,15 @@ mod tests {
     fn single_pixel_and_rectangle_outlines_are_their_corners() {
         let (mask, w, h) = mask_from(&["...", ".1.", "..."]);
         assert_eq!(
-            instance_polygon(&mask, w, h, 1),
+            instance_polygon(&components(&mask, w, h), w, h, 1),
             vec![[1.0, 1.0], [2.0, 1.0], [2.0, 2.0], [1.0, 2.0]]
         );
         let (mask, w, h) = mask_from(&["....", ".11.", ".11.", ".11."]);
         assert_eq!(
-            instance_polygon(&mask, w, h, 1),
+            instance_polygon(&components(&mask, w, h), w, h, 1),
             vec![[1.0, 1.0], [3.0, 1.0], [3.0, 4.0], [1.0, 4.0]]
         );
-        assert!(instance_polygon(&mask, w, h, 2).is_empty());
+        assert!(instance_polygon(&components(&mask, w, h), w, h, 2).is_empty());
     }
 
     #[test]
@@ -310,8 +272,8 @@ mod tests {
         let (mask, w, h) = mask_from(&[
             "........", ".1111...", ".1..1...", ".1111.1.", ".111111.", "..11111.", "........",
         ]);
-        let (labels, _) = components(&mask, w, h, 1);
-        let outline = trace(&labels, w, h, 1, 1, 1);
+        let parts = components(&mask, w, h);
+        let outline = trace(&parts.label, w, h, parts.label[w + 1], 1, 1);
         let filled = rasterise(&outline, w, h);
         let mut want: Vec<bool> = mask.iter().map(|&m| m == 1).collect();
         want[2 * w + 2] = true;
@@ -331,9 +293,9 @@ mod tests {
     #[test]
     fn diagonal_neighbours_are_separate_parts_and_the_pinch_is_kept() {
         let (mask, w, h) = mask_from(&["11..", "11..", "..11", "..11"]);
-        let parts = outlines(&mask, w, h, 1);
+        let parts = outlines(&components(&mask, w, h), w, h, 1);
         assert_eq!(parts.len(), 2);
-        let joined = instance_polygon(&mask, w, h, 1);
+        let joined = instance_polygon(&components(&mask, w, h), w, h, 1);
         assert_eq!(
             rasterise(&joined, w, h),
             mask.iter().map(|&m| m == 1).collect::<Vec<_>>()
@@ -344,9 +306,9 @@ mod tests {
     fn parts_split_by_an_occluder_join_into_one_polygon_covering_both() {
         // Instance 1 cut in three by instance 2 (a pole in front of it).
         let (mask, w, h) = mask_from(&["..........", ".112111211", ".112111211", ".112111211", "...2...2.."]);
-        let parts = outlines(&mask, w, h, 1);
+        let parts = outlines(&components(&mask, w, h), w, h, 1);
         assert_eq!(parts.iter().map(|p| p.0).collect::<Vec<_>>(), vec![9, 6, 6]);
-        let joined = instance_polygon(&mask, w, h, 1);
+        let joined = instance_polygon(&components(&mask, w, h), w, h, 1);
         assert!(joined.len() >= 12, "{joined:?}");
         let want: Vec<bool> = mask.iter().map(|&m| m == 1).collect();
         assert_eq!(rasterise(&joined, w, h), want, "bridges add no area: {joined:?}");
@@ -364,10 +326,10 @@ mod tests {
                 u16::from((x - 30.0).powi(2) + (y - 22.0).powi(2) < 18.0f64.powi(2))
             })
             .collect();
-        let (labels, _) = components(&mask, w, h, 1);
-        let first = labels.iter().position(|&l| l == 1).unwrap();
-        let traced = trace(&labels, w, h, 1, first % w, first / w);
-        let polygon = instance_polygon(&mask, w, h, 1);
+        let parts = components(&mask, w, h);
+        let first = mask.iter().position(|&m| m == 1).unwrap();
+        let traced = trace(&parts.label, w, h, parts.label[first], first % w, first / w);
+        let polygon = instance_polygon(&components(&mask, w, h), w, h, 1);
         assert!(
             polygon.len() < traced.len(),
             "{} of {} vertices",

@@ -394,12 +394,7 @@ impl<'a> Labeler<'a> {
             let max_step = |z: f64| self.surface_error_m + REACH_STEP_PIXELS * z / focal;
             reach::resolve(&mut mask, &z_image, w as usize, &contested, max_step);
         }
-        if self.options.snap_to_colour {
-            mask = snap_to_colour(&mask, &frame.rgb);
-        }
-        if self.options.cleanup_fraction > 0.0 {
-            clean_mask(&mut mask, w, h, self.options.cleanup_fraction);
-        }
+        let mask = finish_mask(mask, frame, &self.options);
         let instances = instances_of(&mask, w, h, self.boxes, &c2w.inverse());
         FrameLabel {
             frame_id: frame.id,
@@ -521,6 +516,19 @@ fn surface_normal(
     let n = horizontal.cross(vertical);
     let length = n.length();
     (length > 0.0 && length.is_finite()).then(|| n / length)
+}
+
+/// A frame's mask after the options' boundary steps: silhouettes snapped to
+/// the colour edges, then small holes and specks cleaned up.
+pub(crate) fn finish_mask(mut mask: Vec<u16>, frame: &Frame, options: &LabelOptions) -> Vec<u16> {
+    if options.snap_to_colour {
+        mask = snap_to_colour(&mask, &frame.rgb);
+    }
+    if options.cleanup_fraction > 0.0 {
+        let (w, h) = frame.size();
+        clean_mask(&mut mask, w, h, options.cleanup_fraction);
+    }
+    mask
 }
 
 /// Tight boxes, areas and camera-frame poses of the instances in a mask.

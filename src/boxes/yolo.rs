@@ -9,6 +9,7 @@
 use super::contour::instance_polygon;
 use super::label::FrameLabel;
 use super::parse::BoxSet;
+use crate::mask::components;
 use crate::rng::Rng;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -71,6 +72,7 @@ impl Default for YoloOptions {
 /// the category index (0-based, as in `data.yaml`).
 pub fn segment_lines(label: &FrameLabel, boxes: &BoxSet) -> String {
     let (w, h) = (label.width as usize, label.height as usize);
+    let parts = components(&label.mask, w, h);
     let mut out = String::new();
     for inst in &label.instances {
         let Some(class) = boxes
@@ -82,7 +84,7 @@ pub fn segment_lines(label: &FrameLabel, boxes: &BoxSet) -> String {
         let Ok(id) = u16::try_from(inst.instance_id) else {
             continue;
         };
-        let polygon = instance_polygon(&label.mask, w, h, id);
+        let polygon = instance_polygon(&parts, w, h, id);
         if polygon.len() < 3 {
             continue;
         }

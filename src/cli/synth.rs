@@ -10,9 +10,7 @@ use glam::DVec3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
 use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, Output, ProtectedInputs};
-use nerflabel::synth::{
-    read_poses, synthesize, synthesize_objects, Instances, Objects, SynthOptions, SynthProgress, Target,
-};
+use nerflabel::synth::{read_poses, synthesize, synthesize_objects, Objects, SynthOptions, SynthProgress};
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
@@ -111,24 +109,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
                     id => id as u32,
                 }
             };
-            let mut labels = vec![String::new(); all.max_instance_id() as usize];
-            for b in &all.boxes {
-                labels[b.instance_id as usize - 1].clone_from(&b.label);
-            }
-            let objects = Objects {
-                targets: all
-                    .boxes
-                    .iter()
-                    .map(|b| Target {
-                        center: b.center,
-                        rotation: b.rotation,
-                    })
-                    .collect(),
-                instances: Instances {
-                    classify: &classify,
-                    labels,
-                },
-            };
+            let objects = Objects::of(&all, &classify);
             synthesize_objects(&scan, &model, &objects, &options, &out, &progress, stop_flag())?
         }
     };

@@ -13,9 +13,7 @@
 
 use super::read::GivenMasks;
 use super::votes::VoteVolume;
-use crate::boxes::boundary::snap_to_colour;
-use crate::boxes::cleanup::clean_mask;
-use crate::boxes::label::instances_of;
+use crate::boxes::label::{finish_mask, instances_of};
 use crate::boxes::output::FrameLabelling;
 use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
 use crate::poses::symmetric_eigen;
@@ -164,19 +162,17 @@ fn drop_bleeding(
             if id == 0 || depth <= 0.0 || weights[i] >= 1.0 {
                 continue;
             }
-            let window = |ny: usize| (x.saturating_sub(r)..(x + r + 1).min(w)).map(move |nx| (nx, ny));
-            let rows = y.saturating_sub(r)..(y + r + 1).min(h);
+            let mut window = (y.saturating_sub(r)..(y + r + 1).min(h))
+                .flat_map(|ny| (x.saturating_sub(r)..(x + r + 1).min(w)).map(move |nx| (nx, ny)));
             // Bleeding runs onto the background; a pixel beside a
             // neighbouring object only (a label change between objects) keeps its vote.
-            if !rows.clone().flat_map(window).any(|(nx, ny)| mask[ny * w + nx] == 0) {
+            if !window.clone().any(|(nx, ny)| mask[ny * w + nx] == 0) {
                 continue;
             }
-            let behind = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|ny| {
-                (x.saturating_sub(r)..(x + r + 1).min(w)).any(|nx| {
-                    let j = ny * w + nx;
-                    let apart = nx.abs_diff(x).max(ny.abs_diff(y));
-                    mask[j] == id && z[j] > 0.0 && depth - z[j] > max_step(depth, apart)
-                })
+            let behind = window.any(|(nx, ny)| {
+                let j = ny * w + nx;
+                let apart = nx.abs_diff(x).max(ny.abs_diff(y));
+                mask[j] == id && z[j] > 0.0 && depth - z[j] > max_step(depth, apart)
             });
             if behind {
                 weights[i] = 0.0;
@@ -423,7 +419,6 @@ fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
 /// Labels every frame from the votes of the given masks (and optionally
 /// boxes, which label what the masks leave as background).
 pub struct MaskLabeler<'a> {
-    given: &'a GivenMasks,
     /// Frame id -> its given mask.
     given_by_frame: HashMap<u64, &'a Vec<u16>>,
     votes: &'a VoteVolume,
@@ -448,7 +443,6 @@ impl<'a> MaskLabeler<'a> {
     ) -> MaskLabeler<'a> {
         let given_by_frame = given.frames.iter().map(|(&i, m)| (scan.frames[i].id, m)).collect();
         MaskLabeler {
-            given,
             given_by_frame,
             votes,
             surface,
@@ -456,11 +450,6 @@ impl<'a> MaskLabeler<'a> {
             all,
             options,
         }
-    }
-
-    /// The masks this labeler carries.
-    pub fn given(&self) -> &GivenMasks {
-        self.given
     }
 }
 
@@ -501,12 +490,7 @@ impl FrameLabelling for MaskLabeler<'_> {
             }
         }
         if given.is_none() {
-            if self.options.snap_to_colour {
-                mask = snap_to_colour(&mask, &frame.rgb);
-            }
-            if self.options.cleanup_fraction > 0.0 {
-                clean_mask(&mut mask, w, h, self.options.cleanup_fraction);
-            }
+            mask = finish_mask(mask, frame, &self.options);
         }
         let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.inverse());
         let in_view = self

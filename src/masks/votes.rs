@@ -98,18 +98,6 @@ impl VoteVolume {
         }
     }
 
-    /// Every vote of `other` (a volume with the same voxel size) added to this one.
-    pub fn merge(&mut self, other: VoteVolume) {
-        for (mine, theirs) in self.levels.iter_mut().zip(other.levels) {
-            for (key, votes) in theirs.cells {
-                let cell = mine.cells.entry(key).or_default();
-                for (id, w) in votes.by_id {
-                    cell.add(id, w);
-                }
-            }
-        }
-    }
-
     /// The object id the votes around `point` favour (0 = background or
     /// never seen), and the share of the weight it won.
     pub fn classify(&self, point: DVec3) -> (u16, f32) {

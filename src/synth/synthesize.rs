@@ -101,6 +101,30 @@ pub struct Objects<'a> {
     pub instances: Instances<'a>,
 }
 
+impl<'a> Objects<'a> {
+    /// The objects of a box set (boxes, or given masks' objects): views
+    /// aimed at each box, labels by instance id, points labelled by `classify`.
+    pub fn of(set: &BoxSet, classify: &'a (dyn Fn(DVec3) -> u32 + Sync)) -> Objects<'a> {
+        let mut labels = vec![String::new(); set.max_instance_id() as usize];
+        for b in &set.boxes {
+            if let Some(slot) = (b.instance_id as usize).checked_sub(1).and_then(|i| labels.get_mut(i)) {
+                slot.clone_from(&b.label);
+            }
+        }
+        Objects {
+            targets: set
+                .boxes
+                .iter()
+                .map(|b| Target {
+                    center: b.center,
+                    rotation: b.rotation,
+                })
+                .collect(),
+            instances: Instances { classify, labels },
+        }
+    }
+}
+
 /// What sampling needs from the scan.
 struct Sampling {
     cloud: Cloud,
@@ -168,28 +192,7 @@ pub fn synthesize(
     };
     let classifier = BoxClassifier::new(set);
     let classify = |p: DVec3| classifier.classify(p);
-    let max_id = set.boxes.iter().map(|b| b.instance_id).max().unwrap_or(0) as usize;
-    let mut labels = vec![String::new(); max_id];
-    for b in &set.boxes {
-        if let Some(slot) = (b.instance_id as usize).checked_sub(1).and_then(|i| labels.get_mut(i)) {
-            slot.clone_from(&b.label);
-        }
-    }
-    let objects = Objects {
-        targets: set
-            .boxes
-            .iter()
-            .map(|b| Target {
-                center: b.center,
-                rotation: b.rotation,
-            })
-            .collect(),
-        instances: Instances {
-            classify: &classify,
-            labels,
-        },
-    };
-    synthesize_objects(scan, model, &objects, options, out, progress, stop)
+    synthesize_objects(scan, model, &Objects::of(set, &classify), options, out, progress, stop)
 }
 
 /// [`synthesize`] with the objects given directly (targets and a point classifier).

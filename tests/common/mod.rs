@@ -39,6 +39,23 @@ pub fn run(args: &[&str]) -> Output {
         .expect("the binary runs")
 }
 
+/// `label SCAN --boxes SCAN/boxes.json --source sensor --out OUT EXTRA...`.
+pub fn label_sensor(scan: &Path, out: &Path, extra: &[&str]) -> Output {
+    let boxes = scan.join("boxes.json");
+    let mut args = vec![
+        "label",
+        s(scan),
+        "--boxes",
+        s(&boxes),
+        "--source",
+        "sensor",
+        "--out",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    run(&args)
+}
+
 pub fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }

@@ -17,6 +17,7 @@ pub mod boundary;
 pub mod classify;
 pub mod cleanup;
 pub mod coco;
+pub mod completed;
 pub mod contour;
 pub mod interop;
 pub mod label;
@@ -30,6 +31,7 @@ pub mod rle;
 pub mod support;
 pub mod surface;
 pub mod tsdf;
+pub mod wireframe;
 pub mod yolo;
 
 pub use classify::{BoxClassifier, Overlap};

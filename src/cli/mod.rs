@@ -89,12 +89,25 @@ pub struct InfoArgs {
 pub struct CloudArgs {
     #[command(flatten)]
     pub scan: ScanArgs,
-    /// Output PLY file.
-    #[arg(short, long, default_value = "cloud.ply")]
-    pub output: PathBuf,
+    /// Output PLY file (default: SCAN/nerflabel/cloud.ply).
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
     /// Voxel size in metres (default: derived from the scene size).
     #[arg(long)]
     pub voxel: Option<f64>,
+    /// Fitted model whose surfaces complete the sensor depth, so objects the
+    /// sensor missed appear (default: SCAN/nerflabel/model.nlf when it exists).
+    #[arg(long, value_name = "PATH")]
+    pub model: Option<PathBuf>,
+    /// Sensor depth only, even where a fitted model exists.
+    #[arg(long, conflicts_with = "model")]
+    pub sensor: bool,
+    /// Draw these boxes (boxes.json) into the cloud as points along their edges.
+    #[arg(long, value_name = "FILE")]
+    pub boxes: Option<PathBuf>,
+    /// Use a model that belongs to another scan (or to this one before its poses changed).
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Args, Debug)]

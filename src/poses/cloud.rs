@@ -10,9 +10,10 @@
 
 use super::bounds::depth_intrinsics;
 use super::{scene_bounds, BoundsOptions, DAabb, GeometryError};
-use crate::scan::{Frame, Scan};
+use crate::scan::{DepthMap, Frame, Intrinsics, Scan};
 use glam::{DMat3, DVec3, Mat3, Vec3};
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
@@ -128,15 +129,35 @@ struct Grid {
 
 /// Back-project, colour, crop and voxel-average all depth of `scan`.
 pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, GeometryError> {
+    // Check every frame up front so the parallel part cannot fail.
+    for frame in &scan.frames {
+        depth_intrinsics(frame)?;
+    }
+    fuse_depth_maps(scan, options, &sensor_depth)
+}
+
+/// A frame's own depth map and its intrinsics, where it has one.
+fn sensor_depth(frame: &Frame) -> Option<(Cow<'_, DepthMap>, Intrinsics)> {
+    match (&frame.depth, depth_intrinsics(frame)) {
+        (Some(depth), Ok(Some(k))) => Some((Cow::Borrowed(depth), k)),
+        _ => None,
+    }
+}
+
+/// [`fuse_cloud`] of the depth maps `depth_of` gives for each frame (with
+/// their intrinsics): the sensor's, or depth completed by a fitted model.
+pub fn fuse_depth_maps<'s>(
+    scan: &'s Scan,
+    options: &CloudOptions,
+    depth_of: &(dyn Fn(&'s Frame) -> Option<(Cow<'s, DepthMap>, Intrinsics)> + Sync),
+) -> Result<PointCloud, GeometryError> {
     let bounds = match options.bounds {
         Some(b) => b,
         None => scene_bounds(scan, &options.bounds_options)?.aabb,
     };
     let grid = make_grid(&bounds, options)?;
-    // Check every frame up front so the parallel part cannot fail.
     for frame in &scan.frames {
-        depth_intrinsics(frame)?;
-        if frame.depth.is_some() && !frame.camera_to_world.is_finite() {
+        if !frame.camera_to_world.is_finite() {
             return Err(GeometryError::BadPose {
                 frame: frame.name.clone(),
             });
@@ -145,7 +166,13 @@ pub fn fuse_cloud(scan: &Scan, options: &CloudOptions) -> Result<PointCloud, Geo
     let merged = scan
         .frames
         .par_iter()
-        .fold(VoxelMap::default, |acc, frame| merge(acc, frame_voxels(frame, &grid)))
+        .fold(VoxelMap::default, |acc, frame| {
+            let voxels = match depth_of(frame) {
+                Some((depth, k)) => frame_voxels(frame, &depth, &k, &grid),
+                None => VoxelMap::default(),
+            };
+            merge(acc, voxels)
+        })
         .reduce(VoxelMap::default, merge);
     let mut voxels: Vec<(u64, Acc)> = merged.into_iter().collect();
     voxels.sort_unstable_by_key(|(k, _)| *k);
@@ -208,30 +235,31 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
     })
 }
 
-/// Voxel sums of one frame's valid depth pixels inside the grid.
-fn frame_voxels(frame: &Frame, grid: &Grid) -> VoxelMap {
+/// Voxel sums of the valid pixels of `depth` (with intrinsics `k`, seen
+/// from `frame`'s pose and coloured from its rgb image) inside the grid.
+fn frame_voxels(frame: &Frame, depth: &DepthMap, k: &Intrinsics, grid: &Grid) -> VoxelMap {
     let mut map = VoxelMap::default();
-    let (Some(depth), Ok(Some(k))) = (&frame.depth, depth_intrinsics(frame)) else {
-        return map;
-    };
     let (w, h) = (depth.width as usize, depth.height as usize);
     let (rw, rh) = frame.size();
-    if rw == 0 || rh == 0 {
+    if rw == 0 || rh == 0 || depth.metres.len() != w * h || !(k.fx > 0.0 && k.fy > 0.0) {
         return map;
     }
     // Camera point (x, y, 1) * z to grid coordinates: g = z * (A (x, y, 1)) + b.
     let a: Mat3 = (DMat3::from_mat4(frame.camera_to_world) / grid.voxel).as_mat3();
     let b: Vec3 = ((frame.camera_center() - grid.min) / grid.voxel).as_vec3();
     let dims = Vec3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
-    // Nearest rgb pixel of each depth column / row (pixel centres aligned).
+    // The rgb pixel on each depth pixel's ray (the nearest centre).
+    let rgb_k = frame.intrinsics;
+    let nearest =
+        |t: f64, focal: f64, centre: f64, size: u32| ((t * focal + centre).round().max(0.0) as u32).min(size - 1);
     let rgb_col: Vec<u32> = (0..w)
-        .map(|u| (((u as f64 + 0.5) * f64::from(rw) / w as f64) as u32).min(rw - 1))
+        .map(|u| nearest((u as f64 - k.cx) / k.fx, rgb_k.fx, rgb_k.cx, rw))
         .collect();
     let xs: Vec<Vec3> = (0..w).map(|u| a.x_axis * ((u as f64 - k.cx) / k.fx) as f32).collect();
     // Neighbouring pixels mostly share a voxel: sum runs locally first.
     let mut run: Option<(u64, Acc)> = None;
     for (v, row) in depth.metres.chunks_exact(w).enumerate().take(h) {
-        let rgb_row = (((v as f64 + 0.5) * f64::from(rh) / h as f64) as u32).min(rh - 1);
+        let rgb_row = nearest((v as f64 - k.cy) / k.fy, rgb_k.fy, rgb_k.cy, rh);
         let row_dir = a.y_axis * ((v as f64 - k.cy) / k.fy) as f32 + a.z_axis;
         for (u, &z) in row.iter().enumerate() {
             if !(z > 0.0 && z.is_finite()) {

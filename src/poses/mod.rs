@@ -17,7 +17,7 @@ pub use aabb::{Aabb, DAabb, SlabCrossing};
 pub use bounds::{
     sample_depth_points, scene_bounds, BoundsOptions, BoundsSource, DepthSamples, PointStats, SceneBounds,
 };
-pub use cloud::{fuse_cloud, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
+pub use cloud::{fuse_cloud, fuse_depth_maps, write_ply, CloudOptions, PointCloud, MAX_VOXELS_PER_AXIS};
 pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
 pub(crate) use orient::symmetric_eigen;

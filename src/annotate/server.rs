@@ -1,0 +1,107 @@
+//! Routing of requests to the page's files and the API handlers, and the
+//! HTTP loop (`tiny_http`, a few worker threads, no async runtime).
+
+use super::api::{self, Reply, MAX_BODY_BYTES};
+use super::session::Session;
+use std::io::Read;
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+/// Threads answering requests (a preview may take a second; the page keeps loading).
+const WORKERS: usize = 3;
+
+const INDEX_HTML: &str = include_str!("page/index.html");
+const APP_JS: &str = include_str!("page/app.js");
+const STYLE_CSS: &str = include_str!("page/style.css");
+
+/// Why the server could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("cannot listen on {addr}: {message}")]
+    Bind { addr: String, message: String },
+}
+
+fn text(content_type: &'static str, body: &str) -> Reply {
+    Reply {
+        status: 200,
+        content_type,
+        body: body.as_bytes().to_vec(),
+    }
+}
+
+/// The reply to one request; `body` is the request body.
+pub fn route(session: &Session, method: &str, url: &str, body: &[u8]) -> Reply {
+    let path = url.split(['?', '#']).next().unwrap_or("");
+    match (method, path) {
+        ("GET", "/" | "/index.html") => text("text/html; charset=utf-8", INDEX_HTML),
+        ("GET", "/app.js") => text("text/javascript; charset=utf-8", APP_JS),
+        ("GET", "/style.css") => text("text/css; charset=utf-8", STYLE_CSS),
+        ("GET", "/api/info") => api::info(session),
+        ("GET", "/api/boxes") => api::get_boxes(session),
+        ("PUT", "/api/boxes") => api::put_boxes(session, body),
+        ("POST", "/api/fit") => api::fit(session, body),
+        ("GET", "/api/frames") => api::frames(session),
+        ("GET", "/api/cloud.bin") => api::cloud(session),
+        (m, p) if p.starts_with("/api/frames/") && p.ends_with("/preview.png") => {
+            let stem = &p["/api/frames/".len()..p.len() - "/preview.png".len()];
+            match m {
+                "GET" => api::preview(session, stem, None),
+                "POST" => api::preview(session, stem, Some(body)),
+                _ => Reply::error(405, format!("{m} {p}: use GET or POST")),
+            }
+        }
+        (m, p) => Reply::error(404, format!("no such page or API call: {m} {p}")),
+    }
+}
+
+/// Listen on `host:port` (port 0: a free one); `ready` gets the bound
+/// address before requests are served. Serves until the process ends.
+pub fn serve(session: Arc<Session>, host: &str, port: u16, ready: impl FnOnce(SocketAddr)) -> Result<(), ServeError> {
+    let addr = format!("{host}:{port}");
+    let server = tiny_http::Server::http(addr.as_str()).map_err(|e| ServeError::Bind {
+        addr: addr.clone(),
+        message: e.to_string(),
+    })?;
+    let bound = server.server_addr().to_ip().ok_or_else(|| ServeError::Bind {
+        addr: addr.clone(),
+        message: "not an IP address".into(),
+    })?;
+    ready(bound);
+    let server = Arc::new(server);
+    let workers: Vec<_> = (0..WORKERS)
+        .map(|_| {
+            let (server, session) = (Arc::clone(&server), Arc::clone(&session));
+            std::thread::spawn(move || {
+                for request in server.incoming_requests() {
+                    answer(&session, request);
+                }
+            })
+        })
+        .collect();
+    for w in workers {
+        let _ = w.join();
+    }
+    Ok(())
+}
+
+fn answer(session: &Session, mut request: tiny_http::Request) {
+    let method = request.method().as_str().to_string();
+    let url = request.url().to_string();
+    let mut body = Vec::new();
+    let read = request.as_reader().take(MAX_BODY_BYTES + 1).read_to_end(&mut body);
+    let reply = match read {
+        Err(e) => Reply::error(400, format!("cannot read the request body: {e}")),
+        Ok(_) if body.len() as u64 > MAX_BODY_BYTES => {
+            Reply::error(413, format!("the request body is larger than {MAX_BODY_BYTES} bytes"))
+        }
+        Ok(_) => route(session, &method, &url, &body),
+    };
+    let mut response = tiny_http::Response::from_data(reply.body).with_status_code(reply.status);
+    for (name, value) in [("Content-Type", reply.content_type), ("Cache-Control", "no-store")] {
+        if let Ok(h) = tiny_http::Header::from_bytes(name.as_bytes(), value.as_bytes()) {
+            response.add_header(h);
+        }
+    }
+    // A client that went away needs no answer.
+    let _ = request.respond(response);
+}

@@ -1,0 +1,50 @@
+// Drives the annotate page in headless chromium (playwright-core): waits for
+// the cloud, drags a rectangle around one object in the top view, names the
+// box, saves, waits for the live check and takes a screenshot.
+// Usage: node annotate.js URL CORNERS_JSON SCREENSHOT CHROMIUM
+const { chromium } = require('playwright-core');
+
+(async () => {
+  const [url, cornersJson, shot, exe] = process.argv.slice(2);
+  const browser = await chromium.launch({
+    executablePath: exe,
+    headless: true,
+    args: ['--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run', '--disable-background-networking',
+      '--disable-component-update', '--disable-sync', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
+  });
+  try {
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    page.on('console', (m) => console.error(`page: ${m.text()}`));
+    page.on('pageerror', (e) => console.error(`page error: ${e.message}`));
+    await page.goto(url);
+    await page.waitForFunction(() => document.body.dataset.ready, null, { timeout: 120000 });
+    const ready = await page.evaluate(() => document.body.dataset.ready);
+    if (ready !== '1') throw new Error(`the page did not load: ${await page.textContent('#status')}`);
+    // Gesture 1: the new-box tool (switches to the top view); gesture 2: the drag.
+    await page.click('#tool-box');
+    const corners = JSON.parse(cornersJson);
+    const pts = await page.evaluate((c) => c.map((p) => window.annotate.worldToScreen(p)), corners);
+    const xs = pts.map((p) => p[0]), ys = pts.map((p) => p[1]);
+    const margin = 10;
+    const [x0, x1, y0, y1] = [Math.min(...xs) - margin, Math.max(...xs) + margin, Math.min(...ys) - margin, Math.max(...ys) + margin];
+    await page.mouse.move(x0, y0);
+    await page.mouse.down();
+    await page.mouse.move(x1, y1, { steps: 10 });
+    await page.mouse.up();
+    await page.waitForFunction(() => window.annotate.boxes().length === 1, null, { timeout: 60000 });
+    await page.fill('#box-label', 'box');
+    await page.press('#box-label', 'Enter');
+    await page.click('#save');
+    await page.waitForFunction(() => document.getElementById('status').textContent.startsWith('saved'), null, { timeout: 30000 });
+    await page.click('#view-3d');
+    await page.waitForFunction(() => document.getElementById('preview').src.startsWith('blob:'), null, { timeout: 60000 });
+    await page.waitForTimeout(1500);
+    await page.screenshot({ path: shot });
+    console.log(JSON.stringify({ status: await page.textContent('#status'), rect: [x0, y0, x1, y1] }));
+  } finally {
+    await browser.close();
+  }
+})().catch((e) => {
+  console.error(e);
+  process.exit(1);
+});

@@ -103,7 +103,7 @@ fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     let mut o = FixtureOptions::new(SceneKind::Tabletop);
-    (o.width, o.height, o.frames, o.holdout) = (240, 180, Some(20), Some(0));
+    (o.width, o.height, o.frames, o.holdout) = (320, 240, Some(24), Some(0));
     o.corruptions.no_depth_objects = false;
     generate(&scan, &o).unwrap();
     let truth = read_boxes(&scan.join("gt/boxes_tight.json")).unwrap();

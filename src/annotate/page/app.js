@@ -633,7 +633,7 @@ async function load() {
   for (let i = 0; i < n; i += stride) for (let k = 0; k < 3; k++) xs[k].push(p[3 * i + k]);
   xs.forEach((a, k) => { a.sort((x, y) => x - y); lo[k] = a[Math.floor(a.length * 0.02)] || 0; hi[k] = a[Math.floor(a.length * 0.98)] || 0; });
   state.target = v3.mul(v3.add(lo, hi), 0.5);
-  state.dist = Math.max(0.3, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) * 0.9);
+  state.dist = Math.max(0.3, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) * 0.6);
   for (const f of frames.frames) {
     const o = document.createElement('option');
     o.value = f.stem; o.textContent = `${f.stem} (${f.width}x${f.height})`;

@@ -86,6 +86,21 @@ fn start(scan: &Path, boxes: &Path) -> (Server, String) {
     (server, url)
 }
 
+/// The status line and headers of `GET /api/info` sent with a `Host` header.
+fn answer(url: &str, host: &str) -> String {
+    use std::io::{Read, Write};
+    let addr = url.trim_start_matches("http://").trim_end_matches('/');
+    let mut stream = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET /api/info HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    stream.read_to_string(&mut text).unwrap();
+    text
+}
+
 #[test]
 fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
     let (Some(browser), Ok(node)) = (chromium(), Command::new("node").arg("--version").output()) else {
@@ -113,6 +128,12 @@ fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
 
     let file = dir.path().join("placed.json");
     let (_server, url) = start(&scan, &file);
+    assert!(answer(&url, "127.0.0.1").starts_with("HTTP/1.1 200"));
+    let rebound = answer(&url, "evil.example");
+    assert!(
+        rebound.starts_with("HTTP/1.1 403"),
+        "a foreign Host is refused: {rebound}"
+    );
     let shot = dir.path().join("page.png");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser/annotate.js");
     let out = Command::new("node")

@@ -62,8 +62,8 @@ pub fn render_preview(
     for (pixel, &id) in img.pixels_mut().zip(&label.mask) {
         if id > 0 {
             let c = instance_colour(u32::from(id));
-            for k in 0..3 {
-                pixel.0[k] = (f32::from(pixel.0[k]) * (1.0 - TINT) + f32::from(c[k]) * TINT).round() as u8;
+            for (channel, tint) in pixel.0.iter_mut().zip(c) {
+                *channel = (f32::from(*channel) * (1.0 - TINT) + f32::from(tint) * TINT).round() as u8;
             }
         }
     }

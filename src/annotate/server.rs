@@ -67,13 +67,14 @@ pub fn serve(session: Arc<Session>, host: &str, port: u16, ready: impl FnOnce(So
         message: "not an IP address".into(),
     })?;
     ready(bound);
+    let loopback = bound.ip().is_loopback();
     let server = Arc::new(server);
     let workers: Vec<_> = (0..WORKERS)
         .map(|_| {
             let (server, session) = (Arc::clone(&server), Arc::clone(&session));
             std::thread::spawn(move || {
                 for request in server.incoming_requests() {
-                    answer(&session, request);
+                    answer(&session, request, loopback);
                 }
             })
         })
@@ -84,12 +85,32 @@ pub fn serve(session: Arc<Session>, host: &str, port: u16, ready: impl FnOnce(So
     Ok(())
 }
 
-fn answer(session: &Session, mut request: tiny_http::Request) {
+/// Whether a request's `Host` header names this machine. A server on the
+/// loopback address answers only such requests, so a web page elsewhere
+/// cannot reach it through a DNS name rebound to 127.0.0.1.
+pub fn local_host(host: Option<&str>) -> bool {
+    let Some(host) = host else {
+        return false;
+    };
+    let name = match host.rsplit_once(':') {
+        Some((name, port)) if port.bytes().all(|b| b.is_ascii_digit()) => name,
+        _ => host,
+    };
+    matches!(name.to_ascii_lowercase().as_str(), "127.0.0.1" | "localhost" | "[::1]")
+}
+
+fn answer(session: &Session, mut request: tiny_http::Request, loopback: bool) {
     let method = request.method().as_str().to_string();
     let url = request.url().to_string();
+    let host = (request.headers().iter())
+        .find(|h| h.field.equiv("Host"))
+        .map(|h| h.value.as_str().to_string());
     let mut body = Vec::new();
     let read = request.as_reader().take(MAX_BODY_BYTES + 1).read_to_end(&mut body);
     let reply = match read {
+        _ if loopback && !local_host(host.as_deref()) => {
+            Reply::error(403, "this server answers requests for 127.0.0.1 or localhost only")
+        }
         Err(e) => Reply::error(400, format!("cannot read the request body: {e}")),
         Ok(_) if body.len() as u64 > MAX_BODY_BYTES => {
             Reply::error(413, format!("the request body is larger than {MAX_BODY_BYTES} bytes"))
@@ -104,4 +125,20 @@ fn answer(session: &Session, mut request: tiny_http::Request) {
     }
     // A client that went away needs no answer.
     let _ = request.respond(response);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::local_host;
+
+    #[test]
+    fn only_local_host_names_are_answered_on_loopback() {
+        for ok in ["127.0.0.1:8080", "localhost:1", "LOCALHOST", "[::1]:9000"] {
+            assert!(local_host(Some(ok)), "{ok}");
+        }
+        for bad in ["evil.example:8080", "127.0.0.1.evil.example", "", "10.0.0.1:80"] {
+            assert!(!local_host(Some(bad)), "{bad}");
+        }
+        assert!(!local_host(None));
+    }
 }

@@ -154,9 +154,11 @@ async function createFromRect(a, b) {
   const p = (u, v) => v3.add(v3.add(v3.mul(state.gx, u), v3.mul(state.gy, v)), v3.mul(state.up, h));
   const [u0, u1] = [Math.min(a[0], b[0]), Math.max(a[0], b[0])];
   const [w0, w1] = [Math.min(a[1], b[1]), Math.max(a[1], b[1])];
-  if (u1 - u0 < 0.005 || w1 - w0 < 0.005) return;
   const label = lastLabel();
-  const box = await fitRegion({ polygon: [p(u0, w0), p(u1, w0), p(u1, w1), p(u0, w1)], label });
+  // A click (no drag) fits the object nearest the clicked point.
+  const click = u1 - u0 < 0.005 || w1 - w0 < 0.005;
+  const region = click ? { seed: p(a[0], a[1]) } : { polygon: [p(u0, w0), p(u1, w0), p(u1, w1), p(u0, w1)] };
+  const box = await fitRegion({ ...region, label });
   if (!box) return;
   const before = copyBoxes();
   state.boxes.push(box);

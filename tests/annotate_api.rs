@@ -155,7 +155,6 @@ fn fit_from_a_top_view_rectangle_recovers_the_true_box() {
     let cuboid = truth.boxes.iter().find(|b| b.label == "box").unwrap();
     let (status, body) = call(&session, "POST", "/api/fit", &gesture(cuboid, 0.06));
     assert_eq!(status, 200, "{body}");
-    eprintln!("fitted {body}");
     let (center, size, rotation) = parse_box(&body["box"]);
     assert_eq!(body["box"]["label"], "box");
     let centre_err = center.distance(cuboid.center);
@@ -228,5 +227,59 @@ fn one_gesture_boxes_label_nearly_as_well_as_the_true_boxes() {
         "mIoU: one-gesture boxes {fitted:.4}, true (tight) boxes {true_boxes:.4}, the fixture's drawn boxes {drawn:.4}; ratio {:.4}",
         fitted / true_boxes
     );
-    assert!(fitted >= 0.95 * true_boxes, "{fitted} < 0.95 x {true_boxes}");
+    // The tight boxes cut off the noisy rim of each object's sensor depth;
+    // the fixture's drawn boxes (snug, with a margin) are the harder bar.
+    let bar = true_boxes.max(drawn);
+    assert!(fitted >= 0.95 * bar, "{fitted} < 0.95 x {bar}");
+}
+
+/// The real cabinet scan (TUM fr3/cabinet, Kinect depth; `../shared/data`,
+/// skipped when absent): a rectangle 10 cm around the measured box fits a
+/// box on it (measured: centre 1.4 cm, yaw 0.9°, edges 2.8-4.3 cm longer
+/// than the tight reference, from the Kinect's centimetre noise).
+#[test]
+fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
+    let data = std::env::var_os("NERFLABEL_SHARED_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    let root = data.join("scans/cabinet");
+    if !root.join("reference_box.json").exists() {
+        eprintln!("skipping: {} is absent", root.display());
+        return;
+    }
+    let scan = load(&root, &LoadOptions::default()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let session = Session::open(scan, root.clone(), dir.path().join("boxes.json"), None).unwrap();
+    assert!(
+        session.fit.ground.up.distance(DVec3::Z) < 1e-9,
+        "the floor sets up: {}",
+        session.fit.ground.up
+    );
+    let reference = read_boxes(&root.join("reference_box.json")).unwrap();
+    let cabinet = &reference.boxes[0];
+    let (status, body) = call(&session, "POST", "/api/fit", &gesture(cabinet, 0.1));
+    assert_eq!(status, 200, "{body}");
+    let (center, size, rotation) = parse_box(&body["box"]);
+    let angle = rotation
+        .x_axis
+        .dot(cabinet.rotation.x_axis)
+        .abs()
+        .min(1.0)
+        .acos()
+        .to_degrees();
+    let grown = size - cabinet.size;
+    eprintln!(
+        "cabinet: centre {:.1} cm, yaw {angle:.2}°, edges {:.1} {:.1} {:.1} cm longer",
+        center.distance(cabinet.center) * 100.0,
+        grown.x * 100.0,
+        grown.y * 100.0,
+        grown.z * 100.0
+    );
+    assert!(center.distance(cabinet.center) < 0.025);
+    assert!(angle < 2.0, "yaw off by {angle}°");
+    assert!(
+        grown.min_element() > -0.01 && grown.max_element() < 0.06,
+        "size {size} vs {}",
+        cabinet.size
+    );
 }

@@ -32,6 +32,38 @@ const { chromium } = require('playwright-core');
     await page.mouse.move(x1, y1, { steps: 10 });
     await page.mouse.up();
     await page.waitForFunction(() => window.annotate.boxes().length === 1, null, { timeout: 60000 });
+    // Keys: a nudge moves the box 1 cm along the ground's x, undo brings it back,
+    // redo repeats it, Q turns it 1 degree, F flips its heading.
+    const centre = () => page.evaluate(() => window.annotate.boxes()[0].center.slice());
+    const yaw = () => page.evaluate(() => { const r = window.annotate.boxes()[0].rotation; return Math.atan2(r[1][0], r[0][0]) * 180 / Math.PI; });
+    const c0 = await centre();
+    await page.keyboard.press('ArrowRight');
+    const c1 = await centre();
+    await page.keyboard.press('Control+z');
+    const c2 = await centre();
+    await page.keyboard.press('Control+y');
+    const c3 = await centre();
+    await page.keyboard.press('Control+z');
+    const t0 = await yaw();
+    await page.keyboard.press('q');
+    const t1 = await yaw();
+    await page.keyboard.press('f');
+    const t2 = await yaw();
+    await page.keyboard.press('Control+z');
+    await page.keyboard.press('Control+z');
+    const t3 = await yaw();
+    const near = (a, b, tol) => Math.abs(a - b) < tol;
+    const turn = (a) => ((a % 360) + 540) % 360 - 180;
+    const checks = {
+      nudge: near(Math.hypot(c1[0] - c0[0], c1[1] - c0[1]), 0.01, 1e-6),
+      undo: near(Math.hypot(c2[0] - c0[0], c2[1] - c0[1]), 0, 1e-9),
+      redo: near(Math.hypot(c3[0] - c1[0], c3[1] - c1[1]), 0, 1e-9),
+      yaw: near(turn(t1 - t0), 1, 1e-6),
+      flip: near(Math.abs(turn(t2 - t1)), 180, 1e-6),
+      undo_turns: near(turn(t3 - t0), 0, 1e-6),
+    };
+    const failed = Object.entries(checks).filter(([, ok]) => !ok).map(([k]) => k);
+    if (failed.length) throw new Error(`editing keys failed: ${failed.join(', ')} (${JSON.stringify({ c0, c1, c2, c3, t0, t1, t2, t3 })})`);
     await page.fill('#box-label', 'box');
     await page.press('#box-label', 'Enter');
     await page.click('#save');

@@ -283,3 +283,44 @@ fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
         cabinet.size
     );
 }
+
+/// With a model, the live check renders depth from it (a model of a few
+/// steps: this checks the path, not the masks' quality).
+#[test]
+fn previews_render_from_the_model_when_there_is_one() {
+    use nerflabel::nerf::train::fit::{fit, FitOptions};
+    use nerflabel::nerf::train::settings::{FitSettings, Preset};
+    let dir = tempfile::tempdir().unwrap();
+    let mut o = FixtureOptions::new(SceneKind::Small);
+    (o.width, o.height, o.frames, o.holdout) = (96, 72, Some(8), Some(0));
+    generate(dir.path(), &o).unwrap();
+    let mut scan = load(dir.path(), &LoadOptions::default()).unwrap();
+    let options = FitOptions {
+        settings: FitSettings {
+            holdout_every: 0,
+            preset: Preset::Fast,
+            ..FitSettings::default()
+        },
+        steps: Some(20),
+        time: None,
+        ..FitOptions::default()
+    };
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    let model = fit(&mut scan, &options, &stop, &mut |_| {}).unwrap().model;
+    let session = Session::open(
+        scan,
+        dir.path().to_path_buf(),
+        dir.path().join("boxes.json"),
+        Some(model),
+    )
+    .unwrap();
+    assert_eq!(call(&session, "GET", "/api/info", &Value::Null).1["source"], "nerf");
+    let stem = session.scan.frames[2].name.clone();
+    let doc = std::fs::read(dir.path().join("boxes.json")).unwrap();
+    let reply = route(&session, "POST", &format!("/api/frames/{stem}/preview.png"), &doc);
+    assert_eq!(reply.status, 200, "{:?}", reply.body_json());
+    let img = image::load_from_memory(&reply.body).unwrap();
+    assert_eq!((img.width(), img.height()), (96, 72));
+    let saved = route(&session, "GET", &format!("/api/frames/{stem}/preview.png"), b"");
+    assert_eq!(saved.status, 200, "GET previews the saved boxes.json");
+}

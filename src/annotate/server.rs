@@ -57,7 +57,12 @@ pub fn route(session: &Session, method: &str, url: &str, body: &[u8]) -> Reply {
 /// Listen on `host:port` (port 0: a free one); `ready` gets the bound
 /// address before requests are served. Serves until the process ends.
 pub fn serve(session: Arc<Session>, host: &str, port: u16, ready: impl FnOnce(SocketAddr)) -> Result<(), ServeError> {
-    let addr = format!("{host}:{port}");
+    // An IPv6 address takes brackets before its port.
+    let addr = if host.contains(':') && !host.starts_with('[') {
+        format!("[{host}]:{port}")
+    } else {
+        format!("{host}:{port}")
+    };
     let server = tiny_http::Server::http(addr.as_str()).map_err(|e| ServeError::Bind {
         addr: addr.clone(),
         message: e.to_string(),

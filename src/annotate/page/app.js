@@ -110,7 +110,7 @@ function changed() {
   draw();
   schedulePreview();
 }
-function document_() {
+function boxesDocument() {
   return { boxes: state.boxes.map((b) => ({ label: b.label, center: b.center, size: b.size, rotation: b.rotation })) };
 }
 function yawOf(b) {
@@ -183,7 +183,7 @@ function lastLabel() {
 
 async function save() {
   try {
-    const res = await api('PUT', '/api/boxes', document_());
+    const res = await api('PUT', '/api/boxes', boxesDocument());
     state.dirty = false;
     status(`saved ${res.saved} boxes to ${res.file}`, 'ok');
   } catch (e) {
@@ -461,7 +461,7 @@ async function preview() {
   if (!stem) return;
   const seq = ++previewSeq;
   try {
-    const blob = await api('POST', `/api/frames/${stem}/preview.png`, document_());
+    const blob = await api('POST', `/api/frames/${stem}/preview.png`, boxesDocument());
     if (seq !== previewSeq) return;
     const old = $('preview').src;
     $('preview').src = URL.createObjectURL(blob);

@@ -108,6 +108,7 @@ function changed() {
   state.dirty = true;
   refreshPanel();
   draw();
+  drawOrthos();
   schedulePreview();
 }
 function boxesDocument() {
@@ -319,7 +320,6 @@ function draw() {
   gl.vertexAttribPointer(posLoc, 3, gl.FLOAT, false, 0, 0);
   gl.vertexAttribPointer(colLoc, 3, gl.FLOAT, false, 0, l.pos.byteLength);
   gl.drawArrays(gl.LINES, 0, l.pos.length / 3);
-  drawOrthos();
 }
 
 // ---------- orthographic views of the selected box ----------
@@ -333,12 +333,15 @@ function drawOrthos() {
   const b = state.boxes[state.selected];
   const pos = state.cloud.positions, rgb = state.cloud.colours;
   const reach = b.size.map((s) => s * 0.8);
+  const r2 = v3.dot(reach, reach);
   for (const [id, a, c] of ORTHO) {
     const cv = $(id), ctx = cv.getContext('2d');
     const s = orthoScale(b, a, c, cv), cx = cv.width / 2, cy = cv.height / 2;
     ctx.fillStyle = '#111';
     ctx.fillRect(0, 0, cv.width, cv.height);
     for (let i = 0; i < state.cloud.count; i++) {
+      const dx = pos[3 * i] - b.center[0], dy = pos[3 * i + 1] - b.center[1], dz = pos[3 * i + 2] - b.center[2];
+      if (dx * dx + dy * dy + dz * dz > r2) continue;
       const l = toLocal(b, [pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]]);
       if (Math.abs(l[0]) > reach[0] || Math.abs(l[1]) > reach[1] || Math.abs(l[2]) > reach[2]) continue;
       ctx.fillStyle = `rgb(${rgb[3 * i]},${rgb[3 * i + 1]},${rgb[3 * i + 2]})`;
@@ -392,6 +395,7 @@ function orthoDrag(id, a, c) {
     }
     refreshFields();
     draw();
+    drawOrthos();
   });
   window.addEventListener('mouseup', () => {
     if (!drag) return;
@@ -433,6 +437,7 @@ function select(i) {
   state.selected = i;
   refreshPanel();
   draw();
+  drawOrthos();
 }
 function fieldEdit(id, apply) {
   $(id).addEventListener('change', () => {

@@ -7,8 +7,10 @@
 mod common;
 
 use glam::DVec3;
-use nerflabel::boxes::read_boxes;
+use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
+use nerflabel::evaluate::{evaluate_labels, fixture_truth};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
+use nerflabel::scan::{load, LoadOptions};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -170,6 +172,34 @@ fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
         (b.size - true_size).abs().max_element() < 0.02,
         "size {} vs {true_size}",
         b.size
+    );
+
+    // Done-criterion of issue 17 through the page: the box of one drag labels
+    // its object (instance 1) at >= 0.95 of the IoU the true box gives
+    // (tight, or as the fixture draws it with a margin, whichever is better).
+    let loaded = load(&scan, &LoadOptions::default()).unwrap();
+    let gt = fixture_truth(&scan, &loaded, 2).unwrap();
+    let iou = |b: &nerflabel::boxes::Box3| {
+        let one = BoxSet::from_boxes(vec![nerflabel::boxes::Box3 {
+            instance_id: 1,
+            ..b.clone()
+        }]);
+        let options = LabelOptions {
+            source: DepthSource::Sensor,
+            ..LabelOptions::default()
+        };
+        let scores = evaluate_labels(&loaded, &one, None, &gt, options).unwrap().scores;
+        scores.per_object().get(&1).copied().unwrap_or(0.0)
+    };
+    let drawn = read_boxes(&scan.join("boxes.json")).unwrap();
+    let (placed, tight, margin) = (iou(b), iou(cuboid), iou(&drawn.boxes[0]));
+    eprintln!(
+        "IoU of the box object: placed in the page {placed:.4}, true tight box {tight:.4}, drawn box {margin:.4}"
+    );
+    assert!(
+        placed >= 0.95 * tight.max(margin),
+        "{placed} < 0.95 x {}",
+        tight.max(margin)
     );
 
     let bytes = std::fs::read(&shot).unwrap();

@@ -291,8 +291,11 @@ fn rotate(q: DVec2, angle: f64) -> DVec2 {
     DVec2::new(c * q.x - s * q.y, s * q.x + c * q.y)
 }
 
-/// Value at quantile `t` of `values` (reordered in place).
+/// Value at quantile `t` of `values` (reordered in place); NaN when empty.
 fn quantile(values: &mut [f64], t: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
     let k = ((values.len() - 1) as f64 * t).round() as usize;
     *values.select_nth_unstable_by(k, f64::total_cmp).1
 }

@@ -42,8 +42,8 @@ pub fn route(session: &Session, method: &str, url: &str, body: &[u8]) -> Reply {
         ("POST", "/api/fit") => api::fit(session, body),
         ("GET", "/api/frames") => api::frames(session),
         ("GET", "/api/cloud.bin") => api::cloud(session),
-        (m, p) if p.starts_with("/api/frames/") && p.ends_with("/preview.png") => {
-            let stem = &p["/api/frames/".len()..p.len() - "/preview.png".len()];
+        (m, p) if preview_stem(p).is_some() => {
+            let stem = preview_stem(p).unwrap_or_default();
             match m {
                 "GET" => api::preview(session, stem, None),
                 "POST" => api::preview(session, stem, Some(body)),
@@ -52,6 +52,12 @@ pub fn route(session: &Session, method: &str, url: &str, body: &[u8]) -> Reply {
         }
         (m, p) => Reply::error(404, format!("no such page or API call: {m} {p}")),
     }
+}
+
+/// The frame stem of a `/api/frames/{stem}/preview.png` path.
+fn preview_stem(path: &str) -> Option<&str> {
+    let stem = path.strip_prefix("/api/frames/")?.strip_suffix("/preview.png")?;
+    (!stem.is_empty() && !stem.contains('/')).then_some(stem)
 }
 
 /// Listen on `host:port` (port 0: a free one); `ready` gets the bound
@@ -134,7 +140,19 @@ fn answer(session: &Session, mut request: tiny_http::Request, loopback: bool) {
 
 #[cfg(test)]
 mod tests {
-    use super::local_host;
+    use super::{local_host, preview_stem};
+
+    #[test]
+    fn preview_paths_name_one_stem() {
+        assert_eq!(preview_stem("/api/frames/000012/preview.png"), Some("000012"));
+        for bad in [
+            "/api/frames/preview.png",
+            "/api/frames//preview.png",
+            "/api/frames/a/b/preview.png",
+        ] {
+            assert_eq!(preview_stem(bad), None, "{bad}");
+        }
+    }
 
     #[test]
     fn only_local_host_names_are_answered_on_loopback() {

@@ -2,6 +2,8 @@
 //! scenes: saving valid and invalid boxes, fitting a box from a top-view
 //! gesture, and the masks such boxes give against the exact ones.
 
+mod common;
+
 use glam::{DMat3, DVec3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
@@ -323,4 +325,26 @@ fn previews_render_from_the_model_when_there_is_one() {
     assert_eq!((img.width(), img.height()), (96, 72));
     let saved = route(&session, "GET", &format!("/api/frames/{stem}/preview.png"), b"");
     assert_eq!(saved.status, 200, "GET previews the saved boxes.json");
+}
+
+/// An existing boxes file that `label` would refuse stops `annotate` before
+/// it serves, with the message naming the file, the box and the field.
+#[test]
+fn annotate_refuses_an_invalid_boxes_file_before_serving() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = common::small_scan(dir.path());
+    let bad = dir.path().join("bad.json");
+    std::fs::write(
+        &bad,
+        r#"{"boxes": [{"label": "cup", "center": [0, 0, 0], "size": [0.1, "x", 0.1]}]}"#,
+    )
+    .unwrap();
+    let out = common::run(&["annotate", common::s(&scan), "--boxes", common::s(&bad)]);
+    assert!(!out.status.success());
+    let err = common::stderr(&out);
+    assert!(
+        err.contains("bad.json") && err.contains("box 1") && err.contains("`size`"),
+        "{err}"
+    );
+    assert!(out.stdout.is_empty(), "no URL is printed");
 }

@@ -126,7 +126,9 @@ fn answer(session: &Session, mut request: tiny_http::Request, loopback: bool) {
         Ok(_) if body.len() as u64 > MAX_BODY_BYTES => {
             Reply::error(413, format!("the request body is larger than {MAX_BODY_BYTES} bytes"))
         }
-        Ok(_) => route(session, &method, &url, &body),
+        // A bug in one handler answers 500 and keeps the worker serving.
+        Ok(_) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| route(session, &method, &url, &body)))
+            .unwrap_or_else(|_| Reply::error(500, format!("{method} {url}: internal error (see the server's log)"))),
     };
     let mut response = tiny_http::Response::from_data(reply.body).with_status_code(reply.status);
     for (name, value) in [("Content-Type", reply.content_type), ("Cache-Control", "no-store")] {

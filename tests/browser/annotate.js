@@ -64,6 +64,26 @@ const { chromium } = require('playwright-core');
     };
     const failed = Object.entries(checks).filter(([, ok]) => !ok).map(([k]) => k);
     if (failed.length) throw new Error(`editing keys failed: ${failed.join(', ')} (${JSON.stringify({ c0, c1, c2, c3, t0, t1, t2, t3 })})`);
+    // A drag inside the top ortho view moves the box along its own x axis.
+    const before = await page.evaluate(() => JSON.parse(JSON.stringify(window.annotate.boxes()[0])));
+    const ortho = await page.locator('#ortho-top').boundingBox();
+    const [ox, oy] = [ortho.x + ortho.width / 2, ortho.y + ortho.height / 2];
+    await page.mouse.move(ox, oy);
+    await page.mouse.down();
+    await page.mouse.move(ox + 20, oy, { steps: 5 });
+    await page.mouse.up();
+    const after = await page.evaluate(() => window.annotate.boxes()[0]);
+    const d = after.center.map((c, k) => c - before.center[k]);
+    const axis = [0, 1, 2].map((k) => before.rotation[k][0]);
+    const along = d[0] * axis[0] + d[1] * axis[1] + d[2] * axis[2];
+    const across = Math.hypot(d[0] - along * axis[0], d[1] - along * axis[1], d[2] - along * axis[2]);
+    const sameSize = after.size.every((v, k) => Math.abs(v - before.size[k]) < 1e-9);
+    if (!(along > 0.005 && across < 1e-6 && sameSize)) {
+      throw new Error(`the ortho drag did not move the box along x: ${JSON.stringify({ d, along, across, sameSize })}`);
+    }
+    await page.keyboard.press('Control+z');
+    const undone = await page.evaluate(() => window.annotate.boxes()[0].center);
+    if (Math.hypot(...undone.map((c, k) => c - before.center[k])) > 1e-9) throw new Error('undo after the ortho drag');
     await page.fill('#box-label', 'box');
     await page.press('#box-label', 'Enter');
     await page.click('#save');

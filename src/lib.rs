@@ -7,6 +7,7 @@
 //! project's own procedural scene generator with exact ground truth.
 //! The library never prints; the CLI in `main.rs` owns all output.
 
+pub mod annotate;
 pub mod atomic;
 pub mod boxes;
 pub mod evaluate;

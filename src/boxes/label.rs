@@ -25,7 +25,7 @@ use crate::nerf::render::view::ViewRenderer;
 use crate::poses::sample_depth_points;
 use crate::scan::Frame;
 use crate::scan::Scan;
-use glam::{DMat3, DMat4};
+use glam::{DMat3, DMat4, DVec3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -176,8 +176,18 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        self.excluded = excluded_planes(self.boxes, &samples.points, 0, self.box_tolerance_m);
-        Ok(self.excluded.iter().map(Vec::len).sum())
+        Ok(self.exclude_supports_among(&samples.points))
+    }
+
+    /// [`Self::exclude_supports`] with the scan's surface points (world
+    /// metres) sampled once by the caller (the annotation server labels
+    /// one frame per edit).
+    pub fn exclude_supports_among(&mut self, points: &[DVec3]) -> usize {
+        if self.options.exact_boxes {
+            return 0;
+        }
+        self.excluded = excluded_planes(self.boxes, points, 0, self.box_tolerance_m);
+        self.excluded.iter().map(Vec::len).sum()
     }
 
     /// How far above an excluded plane a surface point still counts as the

@@ -1,5 +1,6 @@
 //! Argument definitions and the dispatch of each subcommand.
 
+mod annotate;
 mod boxes;
 mod cloud;
 mod common;
@@ -52,6 +53,8 @@ pub enum Command {
     Label(LabelArgs),
     /// Render novel views (colour, depth, mask) to one Parquet file.
     Synth(SynthArgs),
+    /// Serve a local page to place 3D boxes on the scan and check the masks they give.
+    Annotate(AnnotateArgs),
     /// Import boxes from labelCloud, KITTI or CVAT into a boxes.json, or export one to labelCloud.
     Boxes(boxes::BoxesArgs),
 }
@@ -327,6 +330,28 @@ pub struct LabelArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct AnnotateArgs {
+    #[command(flatten)]
+    pub scan: ScanArgs,
+    /// boxes.json to edit (default SCAN/boxes.json; created on the first save).
+    #[arg(long, value_name = "FILE")]
+    pub boxes: Option<PathBuf>,
+    /// Model whose rendered depth the previews use (default SCAN/nerflabel/model.nlf
+    /// when it exists; otherwise the sensor depth).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Use the model even if it was fitted to another scan or to this scan before its poses changed (warns).
+    #[arg(long)]
+    pub force: bool,
+    /// Port to listen on (default: a free one).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub port: u16,
+    /// Address to listen on (127.0.0.1: this machine only).
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1")]
+    pub host: String,
+}
+
+#[derive(Args, Debug)]
 pub struct SynthArgs {
     #[command(flatten)]
     pub scan: ScanArgs,
@@ -408,5 +433,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Label(args) => label::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Boxes(args) => boxes::run(&args),
+        Command::Annotate(args) => annotate::run(&args),
     }
 }

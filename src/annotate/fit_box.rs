@@ -1,0 +1,550 @@
+//! A region of the top view (a polygon, a seed point, or an existing box)
+//! to an oriented box around the object inside it.
+//!
+//! The scan's surface points are taken in the ground frame (z along the
+//! scan's up, see [`super::ground`]). Inside the region: the support (the
+//! dominant horizontal surface around the region, below the object) is
+//! measured and removed with its noise band, the largest connected cluster
+//! of what is left is the object; its yaw comes from the 2D principal axes
+//! of the points, refined to the smallest robust footprint; its extents are
+//! robust percentiles plus a margin of the measured noise, and its bottom
+//! reaches down to the support.
+
+use super::ground::Ground;
+use crate::boxes::Box3;
+use glam::{DMat3, DVec2, DVec3};
+use std::collections::{HashMap, VecDeque};
+
+/// Most polygon vertices accepted.
+pub const MAX_POLYGON_VERTICES: usize = 1000;
+/// Horizontal radius (metres) searched around a seed point.
+const SEED_RADIUS: f64 = 0.4;
+/// The ring around a polygon that shows the support: the polygon scaled by this about its centroid.
+const RING_SCALE: f64 = 1.6;
+/// Height histogram bin for finding the support, metres.
+const HEIGHT_BIN: f64 = 0.005;
+/// The support's points: within this of its histogram peak, metres.
+const SUPPORT_WINDOW: f64 = 0.015;
+/// Band above the support removed with it, in robust standard deviations of its points' heights.
+const BAND_SIGMAS: f64 = 3.0;
+/// Share of the support's points inside its band.
+const SUPPORT_KEEP: f64 = 0.99;
+/// Smallest support band, metres.
+const MIN_BAND: f64 = 0.002;
+/// Cell of the grid whose connected cells make the clusters, metres.
+const CLUSTER_CELL: f64 = 0.015;
+/// Share of the points trimmed at each end of an extent.
+const TRIM: f64 = 0.02;
+/// A point is kept when its cell holds this share of the typical point's cell count.
+const CONSISTENT_SHARE: f64 = 0.25;
+/// Fewest object points a box is fitted to.
+const MIN_OBJECT_POINTS: usize = 20;
+
+/// What the user marked in the top view.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Region {
+    /// Vertices in world coordinates; they are projected along the up axis.
+    Polygon(Vec<DVec3>),
+    /// A point on or above the object (a click).
+    Seed(DVec3),
+    /// An existing box: shrink it to the points inside (its yaw is kept).
+    Shrink(Box3),
+}
+
+/// Why no box could be fitted.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FitError {
+    #[error("the region is not usable: {0}")]
+    BadRegion(String),
+    #[error("no scan points inside the region")]
+    Empty,
+    #[error("only {found} points stand above the support inside the region (at least {MIN_OBJECT_POINTS} are needed)")]
+    NoObject { found: usize },
+}
+
+/// A fitted box and what it was fitted to.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FittedBox {
+    pub center: DVec3,
+    /// Edge lengths along the box axes (x the longer horizontal one).
+    pub size: DVec3,
+    /// Box-to-world rotation; its z column is the up axis.
+    pub rotation: DMat3,
+    /// Object points the box was fitted to.
+    pub points: usize,
+    /// Height of the support plane in the ground frame, when one was found.
+    pub support_height: Option<f64>,
+}
+
+/// The scan's surface points in the ground frame, ready for fitting.
+pub struct FitPoints {
+    pub ground: Ground,
+    /// Ground-frame points (x, y horizontal, z up), metres.
+    points: Vec<DVec3>,
+}
+
+impl FitPoints {
+    /// Points (world metres) seen through `ground`, keeping those that
+    /// several views agree on: in cells of edge `cell` (about two depth
+    /// pixels' footprint), a real surface gathers points from every frame
+    /// that sees it, while the mixed depth at silhouettes (between the
+    /// object and what lies behind it) scatters differently in each frame.
+    pub fn new(ground: Ground, world: &[DVec3], cell: f64) -> FitPoints {
+        let points: Vec<DVec3> = world
+            .iter()
+            .map(|&p| ground.to_ground(p))
+            .filter(|p| p.is_finite())
+            .collect();
+        let points = if cell > 0.0 { consistent(points, cell) } else { points };
+        FitPoints { ground, points }
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    /// Whether there are no points.
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    /// Fit a box to the object inside `region`.
+    pub fn fit(&self, region: &Region) -> Result<FittedBox, FitError> {
+        let g = &self.ground;
+        let (inside, ring, fixed_yaw, seed) = match region {
+            Region::Polygon(vertices) => {
+                let poly = polygon_2d(g, vertices)?;
+                let ring_poly = scaled(&poly, RING_SCALE);
+                let (mut inside, mut ring) = (Vec::new(), Vec::new());
+                for &p in &self.points {
+                    let q = p.truncate();
+                    if contains(&poly, q) {
+                        inside.push(p);
+                    } else if contains(&ring_poly, q) {
+                        ring.push(p);
+                    }
+                }
+                (inside, ring, None, None)
+            }
+            Region::Seed(seed) => {
+                if !seed.is_finite() {
+                    return Err(FitError::BadRegion("the seed point is not finite".into()));
+                }
+                let s = g.to_ground(*seed);
+                let near: Vec<DVec3> = (self.points.iter().copied())
+                    .filter(|p| p.truncate().distance(s.truncate()) <= SEED_RADIUS)
+                    .collect();
+                (near.clone(), near, None, Some(s))
+            }
+            Region::Shrink(b) => {
+                let axis = g.to_ground_dir(b.rotation.x_axis);
+                let yaw = axis.y.atan2(axis.x);
+                let c = g.to_ground(b.center);
+                let half = b.size * 0.5;
+                let (mut inside, mut ring) = (Vec::new(), Vec::new());
+                for &p in &self.points {
+                    let q = rotate(p.truncate() - c.truncate(), -yaw);
+                    let h = p.z - c.z;
+                    let (ax, ay) = (q.x.abs(), q.y.abs());
+                    if ax <= half.x && ay <= half.y && h.abs() <= half.z + 0.02 {
+                        inside.push(p);
+                    } else if ax <= half.x * RING_SCALE && ay <= half.y * RING_SCALE && h.abs() <= half.z * RING_SCALE {
+                        ring.push(p);
+                    }
+                }
+                (inside, ring, Some(yaw), None)
+            }
+        };
+        if inside.is_empty() {
+            return Err(FitError::Empty);
+        }
+        let support = support_plane(&ring, &inside);
+        let above: Vec<DVec3> = match support {
+            Some((h, band)) => inside.iter().copied().filter(|p| p.z > h + band).collect(),
+            None => inside,
+        };
+        let object = match seed {
+            Some(s) => cluster_near(&above, s),
+            None => largest_cluster(&above),
+        };
+        if object.len() < MIN_OBJECT_POINTS {
+            return Err(FitError::NoObject { found: object.len() });
+        }
+        let flat: Vec<DVec2> = object.iter().map(|p| p.truncate()).collect();
+        let yaw = fixed_yaw.unwrap_or_else(|| best_yaw(&flat));
+        // Half the support's noise, so the faces' own points stay inside.
+        let margin = support.map_or(MIN_BAND, |(_, band)| band / BAND_SIGMAS).max(MIN_BAND) * 0.5;
+        let (mut u, mut v): (Vec<f64>, Vec<f64>) = flat.iter().map(|&q| rotate(q, -yaw)).map(|q| (q.x, q.y)).unzip();
+        let mut heights: Vec<f64> = object.iter().map(|p| p.z).collect();
+        let (u0, u1) = trimmed(&mut u);
+        let (v0, v1) = trimmed(&mut v);
+        let (h0, h1) = trimmed(&mut heights);
+        let bottom = support.map_or(h0 - margin, |(h, _)| h.min(h0));
+        let (lo, hi) = (
+            DVec3::new(u0 - margin, v0 - margin, bottom),
+            DVec3::new(u1 + margin, v1 + margin, h1 + margin),
+        );
+        let (mut size, mid) = (hi - lo, (hi + lo) * 0.5);
+        let mut yaw_out = yaw;
+        if fixed_yaw.is_none() && size.y > size.x {
+            // x along the longer horizontal edge.
+            size = DVec3::new(size.y, size.x, size.z);
+            yaw_out = yaw + std::f64::consts::FRAC_PI_2;
+        }
+        let yaw_out = wrap_half_turn(yaw_out);
+        let centre_2d = rotate(mid.truncate(), yaw);
+        let center = g.to_world(DVec3::new(centre_2d.x, centre_2d.y, mid.z));
+        let x = g.to_world_dir(DVec3::new(yaw_out.cos(), yaw_out.sin(), 0.0));
+        let z = g.up;
+        let rotation = DMat3::from_cols(x, z.cross(x), z);
+        Ok(FittedBox {
+            center,
+            size,
+            rotation,
+            points: object.len(),
+            support_height: support.map(|(h, _)| h),
+        })
+    }
+}
+
+/// The points whose cell holds at least [`CONSISTENT_SHARE`] of the typical
+/// point's cell count (and more than one point).
+fn consistent(points: Vec<DVec3>, cell: f64) -> Vec<DVec3> {
+    let key = |p: &DVec3| {
+        let c = (*p / cell).floor();
+        (c.x as i64, c.y as i64, c.z as i64)
+    };
+    let mut counts: HashMap<(i64, i64, i64), u32> = HashMap::new();
+    for p in &points {
+        *counts.entry(key(p)).or_default() += 1;
+    }
+    let mut per_point: Vec<f64> = points.iter().map(|p| f64::from(counts[&key(p)])).collect();
+    if per_point.is_empty() {
+        return points;
+    }
+    let typical = quantile(&mut per_point, 0.5);
+    let needed = (typical * CONSISTENT_SHARE).max(2.0);
+    points
+        .into_iter()
+        .filter(|p| f64::from(counts[&key(p)]) >= needed)
+        .collect()
+}
+
+/// Yaw into (-90°, 90°]: a box is the same turned half a turn.
+fn wrap_half_turn(yaw: f64) -> f64 {
+    use std::f64::consts::PI;
+    let mut y = yaw.rem_euclid(PI);
+    if y > PI / 2.0 {
+        y -= PI;
+    }
+    y
+}
+
+/// The polygon's vertices in ground-frame 2D, checked.
+fn polygon_2d(g: &Ground, vertices: &[DVec3]) -> Result<Vec<DVec2>, FitError> {
+    if vertices.len() < 3 || vertices.len() > MAX_POLYGON_VERTICES {
+        return Err(FitError::BadRegion(format!(
+            "a polygon needs 3 to {MAX_POLYGON_VERTICES} vertices, found {}",
+            vertices.len()
+        )));
+    }
+    if vertices.iter().any(|v| !v.is_finite()) {
+        return Err(FitError::BadRegion("a polygon vertex is not finite".into()));
+    }
+    let poly: Vec<DVec2> = vertices.iter().map(|&v| g.to_ground(v).truncate()).collect();
+    let area = (0..poly.len())
+        .map(|i| poly[i].perp_dot(poly[(i + 1) % poly.len()]))
+        .sum::<f64>()
+        .abs()
+        * 0.5;
+    if !(area > 1e-6) {
+        return Err(FitError::BadRegion(format!(
+            "the polygon encloses {area:.2e} m² in the top view: drag a larger area"
+        )));
+    }
+    Ok(poly)
+}
+
+/// Even-odd point-in-polygon test.
+fn contains(poly: &[DVec2], q: DVec2) -> bool {
+    let mut inside = false;
+    let mut j = poly.len() - 1;
+    for i in 0..poly.len() {
+        let (a, b) = (poly[i], poly[j]);
+        if (a.y > q.y) != (b.y > q.y) && q.x < (b.x - a.x) * (q.y - a.y) / (b.y - a.y) + a.x {
+            inside = !inside;
+        }
+        j = i;
+    }
+    inside
+}
+
+/// The polygon scaled about its vertex centroid.
+fn scaled(poly: &[DVec2], factor: f64) -> Vec<DVec2> {
+    let c = poly.iter().copied().sum::<DVec2>() / poly.len() as f64;
+    poly.iter().map(|&p| c + (p - c) * factor).collect()
+}
+
+fn rotate(q: DVec2, angle: f64) -> DVec2 {
+    let (s, c) = angle.sin_cos();
+    DVec2::new(c * q.x - s * q.y, s * q.x + c * q.y)
+}
+
+/// Value at quantile `t` of `values` (reordered in place); NaN when empty.
+fn quantile(values: &mut [f64], t: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let k = ((values.len() - 1) as f64 * t).round() as usize;
+    *values.select_nth_unstable_by(k, f64::total_cmp).1
+}
+
+/// Trimmed low and high ends of a non-empty set.
+fn trimmed(values: &mut [f64]) -> (f64, f64) {
+    (quantile(values, TRIM), quantile(values, 1.0 - TRIM))
+}
+
+/// The support below the region's object: the fullest height bin of the
+/// context points that lies below the middle of the region's points.
+/// Returns its height and band (ground frame, metres).
+fn support_plane(context: &[DVec3], inside: &[DVec3]) -> Option<(f64, f64)> {
+    if context.len() < MIN_OBJECT_POINTS {
+        return None;
+    }
+    let mut heights: Vec<f64> = inside.iter().map(|p| p.z).collect();
+    let middle = quantile(&mut heights, 0.5);
+    let mut bins: HashMap<i64, usize> = HashMap::new();
+    for p in context {
+        if p.z <= middle {
+            *bins.entry((p.z / HEIGHT_BIN).floor() as i64).or_default() += 1;
+        }
+    }
+    // Ties go to the lower bin, so the choice does not depend on hash order.
+    let (&peak, &count) = bins.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))?;
+    if count < MIN_OBJECT_POINTS {
+        return None;
+    }
+    let centre = (peak as f64 + 0.5) * HEIGHT_BIN;
+    let mut near: Vec<f64> = (context.iter().map(|p| p.z))
+        .filter(|z| (z - centre).abs() <= SUPPORT_WINDOW)
+        .collect();
+    let h = quantile(&mut near, 0.5);
+    let mut dev: Vec<f64> = near.iter().map(|z| (z - h).abs()).collect();
+    let sigma = 1.4826 * quantile(&mut dev, 0.5);
+    // Resampled depth has heavier tails than its spread says: the band
+    // also holds all but a hundredth of the support's points.
+    let tail = quantile(&mut dev, SUPPORT_KEEP);
+    Some((h, (BAND_SIGMAS * sigma).max(tail).max(MIN_BAND)))
+}
+
+type Cell = (i64, i64, i64);
+
+fn cell_of(p: DVec3) -> Cell {
+    let c = (p / CLUSTER_CELL).floor();
+    (c.x as i64, c.y as i64, c.z as i64)
+}
+
+/// Connected components of the occupied cells (26-neighbourhood), each as
+/// the indices of its points; sorted by size, largest first.
+fn clusters(points: &[DVec3]) -> Vec<Vec<usize>> {
+    let mut cells: HashMap<Cell, Vec<usize>> = HashMap::new();
+    for (i, &p) in points.iter().enumerate() {
+        cells.entry(cell_of(p)).or_default().push(i);
+    }
+    let mut keys: Vec<Cell> = cells.keys().copied().collect();
+    keys.sort_unstable();
+    let mut seen: HashMap<Cell, ()> = HashMap::new();
+    let mut out = Vec::new();
+    for start in keys {
+        if seen.insert(start, ()).is_some() {
+            continue;
+        }
+        let mut members = Vec::new();
+        let mut queue = VecDeque::from([start]);
+        while let Some(c) = queue.pop_front() {
+            if let Some(idx) = cells.get(&c) {
+                members.extend_from_slice(idx);
+            }
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let n = (c.0 + dx, c.1 + dy, c.2 + dz);
+                        if cells.contains_key(&n) && seen.insert(n, ()).is_none() {
+                            queue.push_back(n);
+                        }
+                    }
+                }
+            }
+        }
+        out.push(members);
+    }
+    out.sort_by(|a, b| b.len().cmp(&a.len()).then(a.cmp(b)));
+    out
+}
+
+fn largest_cluster(points: &[DVec3]) -> Vec<DVec3> {
+    (clusters(points).into_iter().next())
+        .map(|c| c.into_iter().map(|i| points[i]).collect())
+        .unwrap_or_default()
+}
+
+/// The cluster whose top-view footprint comes nearest the seed.
+fn cluster_near(points: &[DVec3], seed: DVec3) -> Vec<DVec3> {
+    let s = seed.truncate();
+    let distance = |c: &Vec<usize>| {
+        c.iter()
+            .map(|&i| points[i].truncate().distance(s))
+            .fold(f64::INFINITY, f64::min)
+    };
+    (clusters(points).into_iter().filter(|c| c.len() >= MIN_OBJECT_POINTS))
+        .min_by(|a, b| distance(a).total_cmp(&distance(b)))
+        .map(|c| c.into_iter().map(|i| points[i]).collect())
+        .unwrap_or_default()
+}
+
+/// Yaw of the footprint: the 2D principal axes' angle, refined to the
+/// smallest trimmed footprint area within 45° of it.
+fn best_yaw(points: &[DVec2]) -> f64 {
+    let n = points.len() as f64;
+    let mean = points.iter().copied().sum::<DVec2>() / n;
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in points {
+        let d = *p - mean;
+        (sxx, sxy, syy) = (sxx + d.x * d.x, sxy + d.x * d.y, syy + d.y * d.y);
+    }
+    let principal = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let area = |yaw: f64| {
+        let (mut u, mut v): (Vec<f64>, Vec<f64>) = points.iter().map(|&q| rotate(q, -yaw)).map(|q| (q.x, q.y)).unzip();
+        let (u0, u1) = trimmed(&mut u);
+        let (v0, v1) = trimmed(&mut v);
+        (u1 - u0) * (v1 - v0)
+    };
+    let mut best = (area(principal), principal);
+    let mut step = 1f64.to_radians();
+    let mut span = 45f64.to_radians();
+    while step >= 0.02f64.to_radians() {
+        let centre = best.1;
+        let count = (span / step).round() as i64;
+        for k in -count..=count {
+            let yaw = centre + k as f64 * step;
+            let a = area(yaw);
+            if a < best.0 {
+                best = (a, yaw);
+            }
+        }
+        span = step;
+        step /= 10.0;
+    }
+    best.1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Points on the visible faces of a box standing on a floor plane, plus the floor.
+    fn scene(yaw: f64, size: DVec3, centre: DVec2) -> Vec<DVec3> {
+        let mut pts = Vec::new();
+        let step = 0.004;
+        let mut x = -1.0;
+        while x < 1.0 {
+            let mut y = -1.0;
+            while y < 1.0 {
+                pts.push(DVec3::new(x, y, 0.0));
+                y += step;
+            }
+            x += step;
+        }
+        let r = |q: DVec2| rotate(q, yaw) + centre;
+        let h = size * 0.5;
+        let mut a = -h.x;
+        while a <= h.x {
+            let mut b = -h.y;
+            while b <= h.y {
+                let q = r(DVec2::new(a, b));
+                pts.push(DVec3::new(q.x, q.y, size.z));
+                b += step;
+            }
+            let mut z = 0.0;
+            while z <= size.z {
+                for side in [-h.y, h.y] {
+                    let q = r(DVec2::new(a, side));
+                    pts.push(DVec3::new(q.x, q.y, z));
+                }
+                z += step;
+            }
+            a += step;
+        }
+        let mut b = -h.y;
+        while b <= h.y {
+            let mut z = 0.0;
+            while z <= size.z {
+                for side in [-h.x, h.x] {
+                    let q = r(DVec2::new(side, b));
+                    pts.push(DVec3::new(q.x, q.y, z));
+                }
+                z += step;
+            }
+            b += step;
+        }
+        pts
+    }
+
+    fn rect(c: DVec2, half: f64) -> Region {
+        Region::Polygon(
+            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+                .map(|(x, y)| DVec3::new(c.x + x * half, c.y + y * half, 0.5))
+                .to_vec(),
+        )
+    }
+
+    #[test]
+    fn a_box_on_a_floor_is_recovered_from_a_rectangle_around_it() {
+        let (yaw, size, c) = (0.5, DVec3::new(0.3, 0.2, 0.15), DVec2::new(0.1, -0.2));
+        let fit = FitPoints::new(Ground::z_up(), &scene(yaw, size, c), 0.0);
+        let b = fit.fit(&rect(c, 0.3)).unwrap();
+        assert!((b.size - size).abs().max_element() < 0.006, "{:?}", b.size);
+        assert!(b.center.distance(DVec3::new(c.x, c.y, 0.075)) < 0.004, "{:?}", b.center);
+        let got = b.rotation.x_axis.y.atan2(b.rotation.x_axis.x);
+        assert!((got - yaw).abs() < 0.5f64.to_radians(), "yaw {got}");
+        assert!((b.rotation.z_axis - DVec3::Z).length() < 1e-9);
+        assert!(b.support_height.is_some_and(|h| h.abs() < 1e-3));
+    }
+
+    #[test]
+    fn a_seed_click_and_a_shrink_give_the_same_box() {
+        let (yaw, size, c) = (-0.3, DVec3::new(0.25, 0.1, 0.2), DVec2::new(-0.3, 0.3));
+        let fit = FitPoints::new(Ground::z_up(), &scene(yaw, size, c), 0.0);
+        let seeded = fit.fit(&Region::Seed(DVec3::new(c.x, c.y, 0.2))).unwrap();
+        assert!((seeded.size - size).abs().max_element() < 0.006, "{:?}", seeded.size);
+        let loose = Box3 {
+            label: "x".into(),
+            instance_id: 1,
+            center: seeded.center,
+            size: seeded.size + DVec3::splat(0.1),
+            rotation: seeded.rotation,
+        };
+        let shrunk = fit.fit(&Region::Shrink(loose)).unwrap();
+        assert!(
+            (shrunk.size - seeded.size).abs().max_element() < 0.003,
+            "{:?}",
+            shrunk.size
+        );
+        assert!(shrunk.center.distance(seeded.center) < 0.003);
+    }
+
+    #[test]
+    fn regions_without_an_object_are_refused() {
+        let fit = FitPoints::new(Ground::z_up(), &scene(0.0, DVec3::new(0.2, 0.2, 0.2), DVec2::ZERO), 0.0);
+        assert_eq!(
+            fit.fit(&rect(DVec2::new(0.7, 0.7), 0.1)).unwrap_err(),
+            FitError::NoObject { found: 0 }
+        );
+        assert_eq!(fit.fit(&rect(DVec2::new(5.0, 5.0), 0.1)).unwrap_err(), FitError::Empty);
+        assert!(matches!(
+            fit.fit(&Region::Polygon(vec![DVec3::ZERO, DVec3::X])),
+            Err(FitError::BadRegion(_))
+        ));
+    }
+}

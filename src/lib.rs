@@ -8,6 +8,7 @@
 //! The library never prints; the CLI in `main.rs` owns all output.
 
 pub mod atomic;
+pub mod batch;
 pub mod boxes;
 pub mod evaluate;
 pub mod fixture;

@@ -130,7 +130,7 @@ pub fn run_entry(entry: &Entry, stages: &mut dyn Stages) -> Result<EntryOutcome,
     let mut status = ScanStatus {
         nerflabel_version: env!("CARGO_PKG_VERSION").into(),
         id: entry.id.clone(),
-        scan: entry.scan.display().to_string(),
+        scan: crate::outputs::resolve(&entry.scan).display().to_string(),
         line: entry.line,
         state: StageState::Running,
         error: None,
@@ -269,11 +269,11 @@ fn plan(stage: Stage, entry: &Entry, out: &ScanOutputs, status: &ScanStatus) -> 
                 return Plan::NotAsked;
             }
             let made_from = format!(
-                "model={} views={} size={:?}x{:?} seed={} boxes={} masks={}",
+                "model={} views={} size={}x{} seed={} boxes={} masks={}",
                 model_crc(),
                 entry.synth_views,
-                entry.synth_width,
-                entry.synth_height,
+                entry.synth_width.map_or("scan".into(), |w| w.to_string()),
+                entry.synth_height.map_or("scan".into(), |h| h.to_string()),
                 entry.seed,
                 input_tag(entry.boxes.as_deref()),
                 entry.masks.as_ref().map_or("none".into(), |m| m.display().to_string())

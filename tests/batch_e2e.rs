@@ -7,75 +7,17 @@
 
 mod common;
 
+use common::batch::{batch, bin, python_loads, stamp, status, three_scans};
 use common::{s, stderr};
 use serde_json::Value;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant, SystemTime};
-
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_nerflabel"));
-    // An array task's index from the environment would select one line.
-    c.env_remove("SLURM_ARRAY_TASK_ID").env_remove("JOB_COMPLETION_INDEX");
-    c
-}
-
-fn batch(manifest: &Path, extra: &[&str]) -> Output {
-    bin().arg("batch").arg(manifest).args(extra).output().unwrap()
-}
-
-/// A small clean scan at `dir/name` (clean depth: a short fit is enough to sample views).
-fn scan(dir: &Path, name: &str) -> PathBuf {
-    let path = dir.join(name);
-    let o = bin()
-        .args([
-            "fixture", "--scene", "small", "--width", "160", "--height", "120", "--clean",
-        ])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
-    path
-}
-
-fn status(scan: &Path) -> Value {
-    let path = scan.join("nerflabel/batch.status.json");
-    serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()
-}
-
-/// Modification time and bytes of a scan's outputs (finished outputs must not be redone).
-fn stamp(scan: &Path) -> Vec<(SystemTime, Vec<u8>)> {
-    ["model.nlf", "model.report.json", "labels/coco.json", "synth.parquet"]
-        .iter()
-        .map(|f| {
-            let p = scan.join("nerflabel").join(f);
-            (
-                std::fs::metadata(&p).unwrap().modified().unwrap(),
-                std::fs::read(&p).unwrap(),
-            )
-        })
-        .collect()
-}
+use std::path::Path;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
 
 #[test]
 fn batch_runs_refuses_twins_resumes_after_kill_9_and_merges_the_finished_scans() {
     let dir = tempfile::tempdir().unwrap();
-    let (a, b) = (scan(dir.path(), "a"), scan(dir.path(), "b"));
-    let c = scan(dir.path(), "c");
-    // The broken scan: a colour frame that is not an image.
-    std::fs::write(c.join("rgb/000002.png"), b"garbage").unwrap();
-    let manifest = dir.path().join("scans.jsonl");
-    let small = r#""preset": "fast", "synth_views": 3, "synth_width": 80, "synth_height": 60"#;
-    std::fs::write(
-        &manifest,
-        format!(
-            "{{\"scan\": \"a\", \"boxes\": \"a/boxes.json\", \"steps\": 150, {small}}}\n\
-             {{\"scan\": \"b\", \"boxes\": \"b/boxes.json\", \"time\": 24, {small}}}\n\
-             \n\
-             {{\"scan\": \"c\", \"id\": \"broken\", \"steps\": 20, {small}}}\n"
-        ),
-    )
-    .unwrap();
+    let (manifest, [a, b, c]) = three_scans(dir.path(), r#""time": 24"#);
 
     // Line 0 through Kubernetes' index variable.
     let o = bin()
@@ -240,20 +182,4 @@ fn check_parquet(out: &Path, id: &str, views: usize) {
     assert_eq!(rows, views);
     assert_eq!(schema.fields().last().unwrap().name(), "scan");
     assert!(schema.field_with_name("view_id").is_ok());
-}
-
-/// pyarrow (hive partitioning), polars and `datasets` load the merged dataset; each skips when missing.
-pub fn python_loads(out: &Path, ids: &[&str]) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/batch/check_merged.py");
-    let o = match Command::new("python3").arg(&script).arg(out).args(ids).output() {
-        Ok(o) => o,
-        Err(e) => {
-            eprintln!("skipped the Python loads: no python3 ({e})");
-            return;
-        }
-    };
-    let text = String::from_utf8_lossy(&o.stdout);
-    eprintln!("{text}");
-    assert!(o.status.success(), "{text}\n{}", stderr(&o));
-    assert!(text.contains("ok coco paths resolve from OUT"), "{text}");
 }

@@ -237,7 +237,7 @@ mod tests {
         assert!(script.contains(&format!("#SBATCH --mem={mem}M\n")));
         // Time from the 600 s fit with labels: at least the budget, under a day.
         let t = task_seconds(&m.entries[0], &small);
-        assert!(t >= 900 && t < 86_400, "{t}");
+        assert!((900..86_400).contains(&t), "{t}");
         let longest = (0..3)
             .map(|i| task_seconds(&m.entries[i], [&small, &big, &small][i]))
             .max()

@@ -91,7 +91,7 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
         let col = |name: &str| b.column_by_name(name).cloned().ok_or(format!("no column {name}"));
         let (w, h) = (col("width")?, col("height")?);
         let (k, pose) = (col("intrinsics")?, col("camera_to_world")?);
-        let (rgb, depth, mask) = (col("rgb_png")?, col("depth_png")?, col("mask_png")?);
+        let (rgb, depth, mask) = (col("rgb")?, col("depth")?, col("mask")?);
         for i in 0..b.num_rows() {
             if rows.len() >= limit {
                 return Ok(rows);
@@ -116,7 +116,13 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
                 width: w.as_primitive::<Int32Type>().value(i) as u32,
                 height: h.as_primitive::<Int32Type>().value(i) as u32,
             };
-            let decode = |c: &arrow_array::ArrayRef| image::load_from_memory(c.as_binary::<i32>().value(i));
+            let decode = |c: &arrow_array::ArrayRef| {
+                let png = c
+                    .as_struct()
+                    .column_by_name("bytes")
+                    .ok_or_else(|| "no bytes field".to_string())?;
+                image::load_from_memory(png.as_binary::<i32>().value(i)).map_err(|e| e.to_string())
+            };
             let rgb = decode(&rgb)?.into_rgb8().into_raw();
             let depth_m = match decode(&depth)? {
                 DynamicImage::ImageLuma16(d) => d.into_raw().into_iter().map(|v| f32::from(v) / 1000.0).collect(),

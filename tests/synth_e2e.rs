@@ -110,7 +110,7 @@ fn read_rows(path: &Path) -> Vec<Row> {
         let ints = |name: &str| col(name).as_primitive::<Int32Type>().values().to_vec();
         let (ids, widths, heights) = (ints("view_id"), ints("width"), ints("height"));
         let (k, pose) = (col("intrinsics"), col("camera_to_world"));
-        let (rgb, depth, mask, boxes) = (col("rgb_png"), col("depth_png"), col("mask_png"), col("boxes_2d"));
+        let (rgb, depth, mask, boxes) = (col("rgb"), col("depth"), col("mask"), col("boxes_2d"));
         for i in 0..b.num_rows() {
             let kv = k.as_fixed_size_list().value(i);
             let kv = kv.as_primitive::<Float64Type>().values();
@@ -127,7 +127,15 @@ fn read_rows(path: &Path) -> Vec<Row> {
                 width: widths[i] as u32,
                 height: heights[i] as u32,
             };
-            let decode = |c: &arrow_array::ArrayRef| image::load_from_memory(c.as_binary::<i32>().value(i)).unwrap();
+            let decode = |c: &arrow_array::ArrayRef| {
+                let png = c
+                    .as_struct()
+                    .column_by_name("bytes")
+                    .unwrap()
+                    .as_binary::<i32>()
+                    .value(i);
+                image::load_from_memory(png).unwrap()
+            };
             let DynamicImage::ImageRgb8(rgb) = decode(&rgb) else {
                 panic!("rgb is not 8-bit RGB")
             };
@@ -437,17 +445,38 @@ fn interruption_and_impossible_clearance_leave_nothing_behind() {
     );
 }
 
-#[test]
-fn the_file_loads_in_pyarrow() {
+/// Runs `script` with the file's path in python3 when `modules` import;
+/// `None` (with a message) where they do not.
+fn python_on(modules: &str, script: &str, file: &Path) -> Option<Vec<String>> {
     let check = std::process::Command::new("python3")
-        .args(["-c", "import pyarrow.parquet"])
+        .args(["-c", &format!("import {modules}")])
         .output();
     if !matches!(&check, Ok(o) if o.status.success()) {
-        eprintln!("skipping: python3 with pyarrow is not available");
-        return;
+        eprintln!("skipping: python3 with {modules} is not available");
+        return None;
     }
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("py.parquet");
+    let o = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(file)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{modules} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    Some(
+        String::from_utf8(o.stdout)
+            .unwrap()
+            .lines()
+            .map(str::to_string)
+            .collect(),
+    )
+}
+
+fn three_views(dir: &Path) -> PathBuf {
+    let out = dir.join("py.parquet");
     run(
         &SynthOptions {
             n: 3,
@@ -458,40 +487,84 @@ fn the_file_loads_in_pyarrow() {
         &AtomicBool::new(false),
     )
     .unwrap();
+    out
+}
+
+#[test]
+fn the_file_loads_in_pyarrow() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = three_views(dir.path());
     let script = r#"
-import sys, pyarrow.parquet as pq
+import sys, json, pyarrow.parquet as pq
 t = pq.read_table(sys.argv[1])
 print(t.num_rows)
 print(",".join(t.column_names))
 print(t.schema.field("boxes_2d").type)
-print(len(t.column("rgb_png")[0].as_py()) > 0, t.column("camera_to_world")[0].as_py()[15])
+print(t.schema.field("rgb").type)
+rgb = t.column("rgb")[0].as_py()
+print(rgb["bytes"][:4] == b"\x89PNG", rgb["path"], t.column("camera_to_world")[0].as_py()[15])
 print(pq.ParquetFile(sys.argv[1]).metadata.metadata[b"seed"].decode())
+features = json.loads(t.schema.metadata[b"huggingface"])["info"]["features"]
+print(",".join(k for k, v in features.items() if isinstance(v, dict) and v.get("_type") == "Image"))
 "#;
-    let o = std::process::Command::new("python3")
-        .arg("-c")
-        .arg(script)
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "pyarrow failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    let text = String::from_utf8(o.stdout).unwrap();
-    let lines: Vec<&str> = text.lines().collect();
+    let Some(lines) = python_on("pyarrow.parquet", script, &out) else {
+        return;
+    };
     assert_eq!(lines[0], "3");
     assert_eq!(
         lines[1],
-        "view_id,width,height,intrinsics,camera_to_world,rgb_png,depth_png,mask_png,boxes_2d"
+        "view_id,width,height,intrinsics,camera_to_world,rgb,depth,mask,boxes_2d"
     );
     assert!(
         lines[2].starts_with("list<item: struct<instance_id: int32 not null, label: string not null"),
         "{}",
         lines[2]
     );
-    assert_eq!(lines[3], "True 1.0");
-    assert_eq!(lines[4], "4");
+    assert_eq!(lines[3], "struct<bytes: binary, path: string>");
+    assert_eq!(lines[4], "True None 1.0");
+    assert_eq!(lines[5], "4");
+    assert_eq!(lines[6], "depth,mask,rgb");
+}
+
+/// FORMATS.md section 4: `datasets.Dataset.from_parquet` yields images
+/// without a cast, and polars reads the same file.
+#[test]
+fn the_file_loads_as_images_in_datasets_and_polars() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = three_views(dir.path());
+    let rows = read_rows(&out);
+    let datasets = r#"
+import sys, datasets
+ds = datasets.Dataset.from_parquet(sys.argv[1], cache_dir=sys.argv[1] + ".cache")
+print(len(ds))
+print(",".join(f"{k}={type(v).__name__}" for k, v in ds.features.items() if k in ("rgb", "depth", "mask")))
+row = ds[0]
+for k in ("rgb", "depth", "mask"):
+    print(k, row[k].size[0], row[k].size[1], row[k].mode)
+print(row["boxes_2d"][0]["label"] if row["boxes_2d"] else "-")
+"#;
+    if let Some(lines) = python_on("datasets", datasets, &out) {
+        assert_eq!(lines[0], "3");
+        assert_eq!(lines[1], "rgb=Image,depth=Image,mask=Image");
+        let (w, h) = (rows[0].spec.width, rows[0].spec.height);
+        assert_eq!(lines[2], format!("rgb {w} {h} RGB"));
+        assert!(lines[3].starts_with(&format!("depth {w} {h} I")), "{}", lines[3]);
+        assert!(lines[4].starts_with(&format!("mask {w} {h} ")), "{}", lines[4]);
+        let label = rows[0].boxes.first().map_or("-", |b| b.1.as_str());
+        assert_eq!(lines[5], label);
+    }
+    let polars = r#"
+import sys, polars as pl
+df = pl.read_parquet(sys.argv[1])
+print(df.height)
+print(df.schema["rgb"])
+print(len(df["rgb"].struct.field("bytes")[2]))
+"#;
+    if let Some(lines) = python_on("polars", polars, &out) {
+        assert_eq!(lines[0], "3");
+        assert!(lines[1].starts_with("Struct"), "{}", lines[1]);
+        assert!(lines[2].parse::<usize>().unwrap() > 100, "{}", lines[2]);
+    }
 }
 
 /// `synth --masks`: the objects of the exact masks of four frames label the
@@ -542,6 +615,10 @@ fn objects_of_given_masks_label_the_synthetic_views() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let rows = read_rows(&out);
     assert_eq!(rows.len(), 6);
+    // The metadata names the model file the views came from.
+    let (_, _, kv) = read_batches(&out);
+    let crc = crc32fast::hash(&std::fs::read(&model).unwrap());
+    assert_eq!(kv.get("model_crc32"), Some(&format!("{crc:08x}")));
     let pairs: Vec<(Vec<u8>, Vec<u16>)> = rows.iter().map(|r| (r.mask.clone(), truth(&r.spec).instance)).collect();
     let (miou, instances) = mean_iou(&pairs);
     eprintln!("synth --masks: mask mIoU {miou:.3} over {instances} instances");

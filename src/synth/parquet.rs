@@ -20,8 +20,11 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Columns holding PNG blobs (no statistics or dictionaries: every value is unique).
-const BLOB_COLUMNS: [&str; 3] = ["rgb_png", "depth_png", "mask_png"];
+/// Image columns: structs `{bytes, path}` as Hugging Face `datasets` stores images.
+const IMAGE_COLUMNS: [&str; 3] = ["rgb", "depth", "mask"];
+
+/// Leaf columns holding PNG blobs (no statistics or dictionaries: every value is unique).
+const BLOB_COLUMNS: [[&str; 2]; 3] = [["rgb", "bytes"], ["depth", "bytes"], ["mask", "bytes"]];
 
 /// Fields of one `boxes_2d` entry.
 fn box_fields() -> Fields {
@@ -45,19 +48,63 @@ fn box_item() -> Arc<Field> {
     Arc::new(Field::new("item", DataType::Struct(box_fields()), false))
 }
 
+/// Fields of an image column: the PNG in `bytes`, `path` always null.
+fn image_fields() -> Fields {
+    Fields::from(vec![
+        Field::new("bytes", DataType::Binary, true),
+        Field::new("path", DataType::Utf8, true),
+    ])
+}
+
+/// The `huggingface` schema metadata: the `datasets` features of every column,
+/// so `Dataset.from_parquet` decodes the image columns as images.
+fn huggingface_features() -> String {
+    let value = |dtype: &str| serde_json::json!({"dtype": dtype, "_type": "Value"});
+    let floats =
+        |length: usize| serde_json::json!({"feature": value("float64"), "length": length, "_type": "Sequence"});
+    let image = serde_json::json!({"_type": "Image"});
+    let box_2d = serde_json::json!({
+        "instance_id": value("int32"),
+        "label": value("string"),
+        "x0": value("float32"),
+        "y0": value("float32"),
+        "x1": value("float32"),
+        "y1": value("float32"),
+    });
+    let features = serde_json::json!({
+        "view_id": value("int32"),
+        "width": value("int32"),
+        "height": value("int32"),
+        "intrinsics": floats(4),
+        "camera_to_world": floats(16),
+        "rgb": image,
+        "depth": image,
+        "mask": image,
+        "boxes_2d": [box_2d],
+    });
+    serde_json::json!({"info": {"features": features}}).to_string()
+}
+
 /// The Arrow schema of the synth file, exactly FORMATS.md section 4.
 pub fn synth_schema() -> Schema {
-    Schema::new(vec![
+    // Nullable as `datasets` declares an Image, or it ignores the feature.
+    let image = |name: &str| Field::new(name, DataType::Struct(image_fields()), true);
+    let fields = vec![
         Field::new("view_id", DataType::Int32, false),
         Field::new("width", DataType::Int32, false),
         Field::new("height", DataType::Int32, false),
         Field::new("intrinsics", DataType::FixedSizeList(f64_item(), 4), false),
         Field::new("camera_to_world", DataType::FixedSizeList(f64_item(), 16), false),
-        Field::new("rgb_png", DataType::Binary, false),
-        Field::new("depth_png", DataType::Binary, false),
-        Field::new("mask_png", DataType::Binary, false),
+        image(IMAGE_COLUMNS[0]),
+        image(IMAGE_COLUMNS[1]),
+        image(IMAGE_COLUMNS[2]),
         Field::new("boxes_2d", DataType::List(box_item()), false),
-    ])
+    ];
+    let metadata = [("huggingface".to_string(), huggingface_features())];
+    Schema::new_with_metadata(
+        fields,
+        metadata.into_iter().collect::<std::collections::HashMap<_, _>>(),
+    )
 }
 
 /// A Parquet file being written; dropping it unfinished removes the temp file.
@@ -99,7 +146,7 @@ impl SynthWriter {
                     .collect(),
             ));
         for col in BLOB_COLUMNS {
-            let path = ColumnPath::from(col);
+            let path = ColumnPath::new(col.iter().map(|part| part.to_string()).collect());
             props = props
                 .set_column_statistics_enabled(path.clone(), EnabledStatistics::None)
                 .set_column_dictionary_enabled(path, false);
@@ -207,17 +254,22 @@ impl SynthWriter {
                 .map_err(|e| SynthError::Options(format!("internal: cannot build a fixed-size list: {e}")))?;
             Ok(Arc::new(list))
         };
-        let blob =
-            |f: fn(&SynthView) -> &[u8]| -> ArrayRef { Arc::new(BinaryArray::from_iter_values(views.iter().map(f))) };
+        let image = |f: fn(&SynthView) -> &[u8]| -> Result<ArrayRef, SynthError> {
+            let bytes: ArrayRef = Arc::new(BinaryArray::from_iter_values(views.iter().map(f)));
+            let paths: ArrayRef = Arc::new(StringArray::new_null(views.len()));
+            let column = StructArray::try_new(image_fields(), vec![bytes, paths], None)
+                .map_err(|e| SynthError::Options(format!("internal: cannot build an image column: {e}")))?;
+            Ok(Arc::new(column))
+        };
         let columns: Vec<ArrayRef> = vec![
             view_id,
             width,
             height,
             fixed(intrinsics, 4)?,
             fixed(poses, 16)?,
-            blob(|v| &v.rgb_png),
-            blob(|v| &v.depth_png),
-            blob(|v| &v.mask_png),
+            image(|v| &v.rgb_png)?,
+            image(|v| &v.depth_png)?,
+            image(|v| &v.mask_png)?,
             boxes_column(views)?,
         ];
         RecordBatch::try_new(self.schema.clone(), columns)
@@ -386,9 +438,11 @@ mod tests {
                     out.push(list.value(i).as_primitive::<Float64Type>().values().to_vec());
                 }
             }
-            for (name, out) in [("rgb_png", &mut rows.rgb), ("depth_png", &mut rows.depth)] {
+            for (name, out) in [("rgb", &mut rows.rgb), ("depth", &mut rows.depth)] {
                 let c = col(name);
-                out.extend(c.as_binary::<i32>().iter().map(|v| v.unwrap().to_vec()));
+                let image = c.as_struct();
+                assert_eq!(image.column(1).null_count(), image.len(), "path is null");
+                out.extend(image.column(0).as_binary::<i32>().iter().map(|v| v.unwrap().to_vec()));
             }
             let boxes = col("boxes_2d");
             let boxes = boxes.as_list::<i32>();

@@ -17,7 +17,10 @@ use std::time::{Duration, Instant};
 #[test]
 fn batch_runs_refuses_twins_resumes_after_kill_9_and_merges_the_finished_scans() {
     let dir = tempfile::tempdir().unwrap();
-    let (manifest, [a, b, c]) = three_scans(dir.path(), r#""time": 24"#);
+    // b fits by steps (a time budget would leave a resumed fit on a loaded
+    // machine too few steps to sample views): long enough that its first
+    // checkpoint (after 10 s of training) comes well before the end.
+    let (manifest, [a, b, c]) = three_scans(dir.path(), r#""steps": 400"#);
 
     // Line 0 through Kubernetes' index variable.
     let o = bin()
@@ -165,10 +168,10 @@ fn check_parquet(out: &Path, id: &str, views: usize) {
         get("model_crc32").is_some() && get("seed").is_some(),
         "synth's metadata kept"
     );
-    if let Some(hf) = get("huggingface") {
-        let hf: Value = serde_json::from_str(&hf).unwrap();
-        assert_eq!(hf["info"]["features"]["scan"]["dtype"], "string", "{hf}");
-    }
+    // synth declares its columns to `datasets`; the merge declares `scan` too.
+    let hf: Value = serde_json::from_str(&get("huggingface").expect("the huggingface features kept")).unwrap();
+    assert_eq!(hf["info"]["features"]["scan"]["dtype"], "string", "{hf}");
+    assert_eq!(hf["info"]["features"]["rgb"]["_type"], "Image", "{hf}");
     let schema = builder.schema().clone();
     let reader = builder.build().unwrap();
     let mut rows = 0;

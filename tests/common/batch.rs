@@ -65,12 +65,18 @@ pub fn python_loads(out: &Path, ids: &[&str]) {
     eprintln!("{text}");
     assert!(o.status.success(), "{text}\n{}", stderr(&o));
     assert!(text.contains("ok coco paths resolve from OUT"), "{text}");
+    if text.contains("ok datasets") {
+        assert!(
+            text.contains("image columns ['rgb', 'depth', 'mask']"),
+            "datasets decodes the image columns: {text}"
+        );
+    }
 }
 
 /// Three generated scans `a`, `b` and `c` under `dir` (`c` broken: a colour
 /// frame that is not an image, id `broken`) and their manifest
 /// `dir/scans.jsonl` (a blank line before `c`); `b_budget` is b's fit budget
-/// (`"steps": 150` or `"time": 24`). Returns the manifest and the three scans.
+/// (e.g. `"steps": 150`). Returns the manifest and the three scans.
 pub fn three_scans(dir: &Path, b_budget: &str) -> (PathBuf, [PathBuf; 3]) {
     let (a, b, c) = (scan(dir, "a"), scan(dir, "b"), scan(dir, "c"));
     std::fs::write(c.join("rgb/000002.png"), b"garbage").unwrap();

@@ -404,6 +404,8 @@ mod tests {
     struct Fake {
         calls: Vec<(Stage, bool)>,
         fail: Option<Stage>,
+        /// A signal arrives during this stage (it saves and returns Ok).
+        signal: Option<Stage>,
     }
 
     fn report(interrupted: bool) -> String {
@@ -413,6 +415,13 @@ mod tests {
     impl Stages for Fake {
         fn fit(&mut self, entry: &Entry, resume: bool) -> Result<(), String> {
             self.calls.push((Stage::Fit, resume));
+            if self.signal == Some(Stage::Fit) {
+                let out = ScanOutputs::of(entry);
+                std::fs::create_dir_all(entry.work_dir()).unwrap();
+                std::fs::write(&out.checkpoint, b"ckpt").unwrap();
+                std::fs::write(&out.report, report(true)).unwrap();
+                return Ok(());
+            }
             if self.fail == Some(Stage::Fit) {
                 return Err("cannot read the scan".into());
             }
@@ -436,7 +445,8 @@ mod tests {
             Ok(())
         }
         fn interrupted(&self) -> bool {
-            false
+            self.signal
+                .is_some_and(|stage| self.calls.iter().any(|(s, _)| *s == stage))
         }
     }
 
@@ -457,6 +467,7 @@ mod tests {
         let mut fake = Fake {
             calls: vec![],
             fail: None,
+            signal: None,
         };
         let outcome = run_entry(&e, &mut fake).unwrap();
         assert_eq!(
@@ -507,11 +518,42 @@ mod tests {
         let mut fake = Fake {
             calls: vec![],
             fail: None,
+            signal: None,
         };
         run_entry(&e, &mut fake).unwrap();
         assert_eq!(fake.calls, vec![(Stage::Fit, true)]);
         let status = ScanStatus::read(&out.status).unwrap().unwrap();
         assert!(status.fit.resumed && status.fit.runs == 1 && status.state == StageState::Done);
+    }
+
+    #[test]
+    fn a_fit_stopped_by_sigterm_is_recorded_interrupted_and_resumed_by_the_next_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = entry(dir.path(), "{\"scan\": \"scan\", \"synth_views\": 0}");
+        let mut stopped = Fake {
+            calls: vec![],
+            fail: None,
+            signal: Some(Stage::Fit),
+        };
+        assert_eq!(
+            run_entry(&e, &mut stopped).unwrap(),
+            EntryOutcome::Interrupted { stage: Stage::Fit }
+        );
+        let status = ScanStatus::read(&ScanOutputs::of(&e).status).unwrap().unwrap();
+        assert_eq!(
+            (status.state, status.fit.state),
+            (StageState::Interrupted, StageState::Interrupted)
+        );
+        let mut next = Fake {
+            calls: vec![],
+            fail: None,
+            signal: None,
+        };
+        assert_eq!(
+            run_entry(&e, &mut next).unwrap(),
+            EntryOutcome::Done { ran: vec![Stage::Fit] }
+        );
+        assert_eq!(next.calls, vec![(Stage::Fit, true)]);
     }
 
     #[test]
@@ -521,6 +563,7 @@ mod tests {
         let mut fake = Fake {
             calls: vec![],
             fail: Some(Stage::Fit),
+            signal: None,
         };
         let outcome = run_entry(&e, &mut fake).unwrap();
         assert!(matches!(outcome, EntryOutcome::Failed { stage: Stage::Fit, .. }));

@@ -18,7 +18,7 @@ pub enum BatchError {
     EmptyManifest { path: PathBuf },
     #[error("{path}: more than {max} scans; split the manifest")]
     TooManyEntries { path: PathBuf, max: usize },
-    #[error("index {index} is past the manifest's last entry ({entries} scans, indices 0 to {last}){from}", last = entries.saturating_sub(1))]
+    #[error("index {index}{from} is past the manifest's last entry ({entries} scans, indices 0 to {last})", last = entries.saturating_sub(1))]
     IndexOutOfRange { index: usize, entries: usize, from: String },
     #[error("{var}={value}: expected an array task index (a whole number from 0)")]
     BadIndexVar { var: String, value: String },

@@ -604,6 +604,91 @@ mod tests {
         assert_eq!((one[0].1.len(), one[1].1.len()), (1, 0));
     }
 
+    /// A finished scan `name` under `root` whose labels have `categories`
+    /// (id, name) and one image with one annotation of each.
+    fn labelled_scan(root: &Path, name: &str, categories: &[(u64, &str)]) {
+        let scan = root.join(name);
+        let labels = scan.join("nerflabel/labels");
+        std::fs::create_dir_all(labels.join("masks")).unwrap();
+        std::fs::create_dir_all(scan.join("rgb")).unwrap();
+        std::fs::write(scan.join("rgb/000000.png"), b"png").unwrap();
+        std::fs::write(labels.join("masks/000000.png"), b"png").unwrap();
+        let annotations: Vec<Value> = categories
+            .iter()
+            .enumerate()
+            .map(|(i, (id, _))| json!({"id": i + 1, "image_id": 7, "category_id": id, "bbox": [0, 0, 1, 1]}))
+            .collect();
+        let coco = json!({
+            "info": {"image_root": resolve(&scan).display().to_string()},
+            "images": [{"id": 7, "file_name": "rgb/000000.png", "mask_file": "masks/000000.png", "width": 4, "height": 3}],
+            "categories": categories.iter().map(|(id, n)| json!({"id": id, "name": n})).collect::<Vec<_>>(),
+            "annotations": annotations,
+        });
+        std::fs::write(labels.join("coco.json"), coco.to_string()).unwrap();
+        let mut status = ScanStatus {
+            state: StageState::Done,
+            ..ScanStatus::default()
+        };
+        status.label.state = StageState::Done;
+        status
+            .write(&crate::batch::status::status_path(&scan.join("nerflabel")))
+            .unwrap();
+    }
+
+    #[test]
+    fn coco_files_join_categories_by_name_renumber_ids_and_resolve_paths_from_out() {
+        let dir = tempfile::tempdir().unwrap();
+        labelled_scan(dir.path(), "s0", &[(1, "mug"), (2, "ball")]);
+        labelled_scan(dir.path(), "s1", &[(1, "ball"), (2, "can")]);
+        let text = "{\"scan\": \"s0\", \"boxes\": \"b.json\", \"synth_views\": 0}\n{\"scan\": \"s1\", \"boxes\": \"b.json\", \"synth_views\": 0}\n{\"scan\": \"gone\"}\n";
+        let manifest = parse_manifest(text, &dir.path().join("m.jsonl"), dir.path()).unwrap();
+        let out = dir.path().join("out");
+        let options = MergeOptions {
+            val: 0.0,
+            ..MergeOptions::default()
+        };
+        let summary = merge(&manifest, &out, &options).unwrap();
+        assert_eq!(summary.merged(), 2);
+        assert_eq!(summary.rows[2].state, "no scan folder");
+        let train: Value = serde_json::from_slice(&std::fs::read(out.join("coco/train.json")).unwrap()).unwrap();
+        let names: Vec<&str> = train["categories"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["name"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["ball", "can", "mug"]);
+        let images = train["images"].as_array().unwrap();
+        assert_eq!(
+            images.iter().map(|i| i["id"].as_u64().unwrap()).collect::<Vec<_>>(),
+            [1, 2]
+        );
+        assert_eq!(images[1]["scan"], "s1");
+        for image in images {
+            assert!(out.join(image["file_name"].as_str().unwrap()).is_file(), "{image}");
+            assert!(out.join(image["mask_file"].as_str().unwrap()).is_file(), "{image}");
+        }
+        // s1's `ball` (its category 1) and `can` (2) are ball = 1 and can = 2 in the merged file;
+        // s0's `mug` (1) is 3.
+        let pairs: Vec<(u64, u64)> = train["annotations"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| (a["image_id"].as_u64().unwrap(), a["category_id"].as_u64().unwrap()))
+            .collect();
+        assert_eq!(pairs, [(1, 3), (1, 1), (2, 1), (2, 2)]);
+        let val: Value = serde_json::from_slice(&std::fs::read(out.join("coco/val.json")).unwrap()).unwrap();
+        assert!(val["images"].as_array().unwrap().is_empty());
+
+        // A folder that is not an earlier merge is refused; an earlier merge is updated.
+        let other = dir.path().join("other");
+        std::fs::create_dir_all(&other).unwrap();
+        std::fs::write(other.join("keep.txt"), b"x").unwrap();
+        let err = merge(&manifest, &other, &options).unwrap_err().to_string();
+        assert!(err.contains("not empty and not an earlier merge"), "{err}");
+        merge(&manifest, &out, &options).unwrap();
+    }
+
     #[test]
     fn csv_fields_with_commas_or_quotes_are_quoted() {
         let rows = [ScanRow {

@@ -13,32 +13,22 @@
 //! Every file is written atomically; OUT carries the marker `.nerflabel-merge`
 //! and a merge never writes into a non-empty folder without it.
 
+use super::coco_merge::merge_coco;
 use super::error::BatchError;
-use super::hf_json::add_string_feature;
 use super::manifest::{Entry, Manifest};
+use super::partition::{copy_partition, remove_stale_partitions};
 use super::stages::{parquet_rows, ScanOutputs};
 use super::status::{ScanStatus, StageState};
-use crate::boxes::output::relative_path;
 use crate::outputs::{lock_output, resolve};
 use crate::rng::Rng;
-use arrow_array::{ArrayRef, RecordBatch, StringArray};
-use arrow_schema::{DataType, Field, Schema};
-use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
-use parquet::arrow::ArrowWriter;
-use parquet::basic::Compression;
-use parquet::file::metadata::KeyValue;
-use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use serde_json::{json, Value};
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 /// Marker file of a merged dataset folder.
 pub const MERGE_MARKER: &str = ".nerflabel-merge";
 /// Name of the id column and of the hive partition key.
 pub const ID_COLUMN: &str = "scan";
-/// Rows per record batch while copying (PNG blobs: keep batches small).
-const COPY_BATCH_ROWS: usize = 16;
 /// Largest COCO file read, bytes.
 const MAX_COCO_BYTES: u64 = 4 << 30;
 /// RNG stream of the split (separate from every other use of a seed).
@@ -278,7 +268,7 @@ fn state_name(state: StageState) -> &'static str {
     }
 }
 
-fn read_json(path: &Path) -> Option<Value> {
+pub(super) fn read_json(path: &Path) -> Option<Value> {
     let len = std::fs::metadata(path).ok()?.len();
     if len > MAX_COCO_BYTES {
         return None;
@@ -321,108 +311,6 @@ fn sorted(mut v: Vec<String>) -> Vec<String> {
     v
 }
 
-/// Copy a synth file to `dst` with the id column added; returns its rows.
-fn copy_partition(src: &Path, dst: &Path, id: &str) -> Result<u64, BatchError> {
-    let parquet_err = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| BatchError::Parquet { path, source }
-    };
-    let file = std::fs::File::open(src).map_err(BatchError::io(src, "open the synthetic views"))?;
-    let builder = ParquetRecordBatchReaderBuilder::try_new(file)
-        .map_err(parquet_err(src))?
-        .with_batch_size(COPY_BATCH_ROWS);
-    let schema = builder.schema().clone();
-    if schema.field_with_name(ID_COLUMN).is_ok() {
-        return Err(BatchError::Invalid {
-            path: src.to_path_buf(),
-            problem: format!("already has a `{ID_COLUMN}` column, which the merge adds"),
-        });
-    }
-    // File metadata as synth wrote it (tool version, seed, model CRC, the
-    // `huggingface` features), the id column declared in the features.
-    let mut kv: Vec<(String, String)> = builder
-        .metadata()
-        .file_metadata()
-        .key_value_metadata()
-        .map(|kv| {
-            kv.iter()
-                .filter(|k| k.key != "ARROW:schema")
-                .map(|k| (k.key.clone(), k.value.clone().unwrap_or_default()))
-                .collect()
-        })
-        .unwrap_or_default();
-    for (key, value) in schema.metadata() {
-        if key != "ARROW:schema" && !kv.iter().any(|(k, _)| k == key) {
-            kv.push((key.clone(), value.clone()));
-        }
-    }
-    for (key, value) in kv.iter_mut() {
-        if key == "huggingface" {
-            if let Some(with_id) = add_string_feature(value, ID_COLUMN) {
-                *value = with_id;
-            }
-        }
-    }
-    let mut fields: Vec<Arc<Field>> = schema.fields().iter().cloned().collect();
-    fields.push(Arc::new(Field::new(ID_COLUMN, DataType::Utf8, false)));
-    let metadata: HashMap<String, String> = kv.iter().cloned().collect();
-    let out_schema = Arc::new(Schema::new_with_metadata(fields, metadata));
-    let props = WriterProperties::builder()
-        .set_compression(Compression::SNAPPY)
-        .set_dictionary_enabled(false)
-        .set_statistics_enabled(EnabledStatistics::None)
-        .set_column_dictionary_enabled(ID_COLUMN.into(), true)
-        .set_column_statistics_enabled(ID_COLUMN.into(), EnabledStatistics::Chunk)
-        .set_max_row_group_row_count(Some(64))
-        .set_key_value_metadata(Some(kv.into_iter().map(|(k, v)| KeyValue::new(k, v)).collect()))
-        .build();
-    let reader = builder.build().map_err(parquet_err(src))?;
-    let mut rows = 0u64;
-    let mut failure: Option<BatchError> = None;
-    let written = crate::atomic::write_with(dst, |w| {
-        let mut writer = ArrowWriter::try_new(w, out_schema.clone(), Some(props)).map_err(std::io::Error::other)?;
-        for batch in reader {
-            let batch = match batch {
-                Ok(b) => b,
-                Err(e) => {
-                    failure = Some(BatchError::Arrow {
-                        path: src.to_path_buf(),
-                        source: e,
-                    });
-                    return Err(std::io::Error::other("reading failed"));
-                }
-            };
-            let n = batch.num_rows();
-            let mut columns: Vec<ArrayRef> = batch.columns().to_vec();
-            columns.push(Arc::new(StringArray::from(vec![id; n])));
-            let with_id = RecordBatch::try_new(out_schema.clone(), columns).map_err(std::io::Error::other)?;
-            writer.write(&with_id).map_err(std::io::Error::other)?;
-            rows += n as u64;
-        }
-        writer.close().map_err(std::io::Error::other)?;
-        Ok(())
-    });
-    if let Some(e) = failure {
-        return Err(e);
-    }
-    written.map_err(BatchError::io(dst, "write the merged synthetic views"))?;
-    Ok(rows)
-}
-
-fn remove_stale_partitions(root: &Path, keep: &BTreeSet<std::ffi::OsString>) -> Result<(), BatchError> {
-    let Ok(read) = std::fs::read_dir(root) else {
-        return Ok(());
-    };
-    for item in read.filter_map(Result::ok) {
-        let name = item.file_name();
-        if name.to_string_lossy().starts_with(&format!("{ID_COLUMN}=")) && !keep.contains(&name) {
-            let path = item.path();
-            std::fs::remove_dir_all(&path).map_err(BatchError::io(&path, "remove a stale partition"))?;
-        }
-    }
-    Ok(())
-}
-
 fn remove_file_if_there(path: &Path) -> Result<(), BatchError> {
     match std::fs::remove_file(path) {
         Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(BatchError::io(path, "remove a stale file")(e)),
@@ -436,98 +324,6 @@ fn write_json(path: &Path, value: &Value) -> Result<(), BatchError> {
         problem: format!("cannot serialise: {e}"),
     })?;
     crate::atomic::write_file(path, &bytes).map_err(BatchError::io(path, "write"))
-}
-
-/// One COCO file from the scans' label files: images and annotations
-/// renumbered from 1, categories joined by name (ids in name order), each
-/// image with its `scan` id and paths relative to OUT (`info.image_root`).
-fn merge_coco(scans: &[&Entry], out_abs: &Path, split: &str) -> Result<Value, BatchError> {
-    let mut files = Vec::new();
-    for entry in scans {
-        let labels = ScanOutputs::of(entry).labels;
-        let path = labels.join("coco.json");
-        let coco = read_json(&path).ok_or_else(|| BatchError::Invalid {
-            path: path.clone(),
-            problem: "not a readable COCO file".into(),
-        })?;
-        files.push((entry, resolve(&labels), path, coco));
-    }
-    let names: BTreeSet<String> = files
-        .iter()
-        .flat_map(|(_, _, _, c)| c["categories"].as_array().cloned().unwrap_or_default())
-        .filter_map(|c| c["name"].as_str().map(str::to_string))
-        .collect();
-    let category_id: BTreeMap<&str, u64> = names.iter().zip(1u64..).map(|(n, i)| (n.as_str(), i)).collect();
-    let categories: Vec<Value> = category_id
-        .iter()
-        .map(|(name, id)| json!({"id": id, "name": name, "supercategory": "object"}))
-        .collect();
-    let (mut images, mut annotations) = (Vec::new(), Vec::new());
-    for (entry, labels_abs, path, coco) in files {
-        let bad = |problem: String| BatchError::Invalid {
-            path: path.clone(),
-            problem,
-        };
-        let root = coco["info"]["image_root"]
-            .as_str()
-            .map(PathBuf::from)
-            .ok_or_else(|| bad("no info.image_root".into()))?;
-        let their_category: HashMap<u64, u64> = coco["categories"]
-            .as_array()
-            .into_iter()
-            .flatten()
-            .filter_map(|c| Some((c["id"].as_u64()?, *category_id.get(c["name"].as_str()?)?)))
-            .collect();
-        let mut their_image: HashMap<u64, u64> = HashMap::new();
-        for image in coco["images"].as_array().into_iter().flatten() {
-            let mut image = image.clone();
-            let old = image["id"]
-                .as_u64()
-                .ok_or_else(|| bad("an image without an id".into()))?;
-            let id = images.len() as u64 + 1;
-            their_image.insert(old, id);
-            let file = image["file_name"]
-                .as_str()
-                .map(str::to_string)
-                .ok_or_else(|| bad(format!("image {old} has no file_name")))?;
-            let from_out = |p: PathBuf| relative_path(&resolve(&p), out_abs);
-            image["id"] = json!(id);
-            image["file_name"] = json!(from_out(root.join(&file))
-                .ok_or_else(|| bad(format!("no path leads from {} to {file}", out_abs.display())))?);
-            if let Some(mask) = image["mask_file"].as_str().map(str::to_string) {
-                image["mask_file"] = json!(from_out(labels_abs.join(mask)));
-            }
-            image[ID_COLUMN] = json!(entry.id);
-            images.push(image);
-        }
-        for annotation in coco["annotations"].as_array().into_iter().flatten() {
-            let mut a = annotation.clone();
-            let image = a["image_id"].as_u64().and_then(|i| their_image.get(&i));
-            let category = a["category_id"].as_u64().and_then(|c| their_category.get(&c));
-            let (Some(&image), Some(&category)) = (image, category) else {
-                return Err(bad(format!(
-                    "annotation {} names an image or category the file does not have",
-                    a["id"]
-                )));
-            };
-            a["id"] = json!(annotations.len() as u64 + 1);
-            a["image_id"] = json!(image);
-            a["category_id"] = json!(category);
-            annotations.push(a);
-        }
-    }
-    Ok(json!({
-        "info": {
-            "description": format!("nerflabel merged labels, split {split}"),
-            "nerflabel_version": env!("CARGO_PKG_VERSION"),
-            "image_root": out_abs.display().to_string(),
-            "scans": scans.iter().map(|e| e.id.clone()).collect::<Vec<_>>(),
-        },
-        "licenses": [],
-        "images": images,
-        "categories": categories,
-        "annotations": annotations,
-    }))
 }
 
 /// The summary table as CSV (RFC 4180 quoting).

@@ -9,10 +9,12 @@
 //! Runs the stages only through the [`stages::Stages`] trait the CLI
 //! implements: never depends on the CLI, and never prints.
 
+mod coco_merge;
 pub mod error;
 pub mod hf_json;
 pub mod manifest;
 pub mod merge;
+mod partition;
 pub mod sbatch;
 pub mod stages;
 pub mod status;

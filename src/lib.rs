@@ -9,6 +9,7 @@
 
 pub mod annotate;
 pub mod atomic;
+pub mod batch;
 pub mod boxes;
 pub mod evaluate;
 pub mod fixture;

@@ -30,7 +30,7 @@ fn help_lists_every_subcommand() {
     let text = String::from_utf8_lossy(&out.stdout).to_string();
     insta::assert_snapshot!("help", text);
     for cmd in [
-        "info", "cloud", "fixture", "demo", "fit", "report", "label", "synth", "boxes",
+        "info", "cloud", "fixture", "demo", "fit", "report", "label", "synth", "boxes", "batch",
     ] {
         assert!(text.contains(cmd), "{cmd} missing from --help");
     }

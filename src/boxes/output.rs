@@ -130,7 +130,7 @@ fn rgb_file_name(scan: &Scan, frame: &Frame) -> String {
 /// `path` relative to `base` (both absolute), `/`-separated, with a `..`
 /// for each folder of `base` that `path` does not lie in; `None` when they
 /// share no root (another drive).
-fn relative_path(path: &Path, base: &Path) -> Option<String> {
+pub(crate) fn relative_path(path: &Path, base: &Path) -> Option<String> {
     let (p, b): (Vec<_>, Vec<_>) = (path.components().collect(), base.components().collect());
     let common = p.iter().zip(&b).take_while(|(x, y)| x == y).count();
     if common == 0 {

@@ -1,6 +1,7 @@
 //! Argument definitions and the dispatch of each subcommand.
 
 mod annotate;
+mod batch;
 mod boxes;
 mod cloud;
 mod common;
@@ -39,7 +40,7 @@ pub struct Cli {
 pub enum Command {
     /// Validate a scan fully and print a summary (layout, frames, depth coverage, bounds).
     Info(InfoArgs),
-    /// Write the fused, voxel-downsampled, coloured point cloud as binary PLY (to place boxes).
+    /// Write the coloured point cloud as binary PLY to place boxes in (completed by the fitted model when there is one).
     Cloud(CloudArgs),
     /// Generate a procedural scan with exact ground truth (for tests and demos).
     Fixture(FixtureArgs),
@@ -57,6 +58,8 @@ pub enum Command {
     Annotate(AnnotateArgs),
     /// Import boxes from labelCloud, KITTI or CVAT into a boxes.json, or export one to labelCloud.
     Boxes(boxes::BoxesArgs),
+    /// Run many scans from a manifest (one a Slurm array task), write its sbatch script, or merge the results.
+    Batch(BatchArgs),
 }
 
 /// How to read the scan.
@@ -401,6 +404,56 @@ pub struct SynthArgs {
     pub appearance: String,
 }
 
+#[derive(Args, Debug)]
+pub struct BatchArgs {
+    /// Manifest: JSON Lines, one scan a line, e.g. `{"scan": "scans/kitchen",
+    /// "boxes": "scans/kitchen/boxes.json", "time": 300, "synth_views": 200}`.
+    /// Fields: scan (required), id (default: the folder's name), boxes,
+    /// masks, time, steps, seed, preset, synth_views (default 500, 0 = no
+    /// synth), synth_width, synth_height. Relative paths are taken from the
+    /// manifest's folder.
+    pub manifest: PathBuf,
+    /// Run only the scan at this index (0-based, blank lines not counted).
+    /// Default: $SLURM_ARRAY_TASK_ID, else $JOB_COMPLETION_INDEX, else every
+    /// scan in turn. Finished stages are skipped, a stopped fit resumes; a
+    /// scan another run is working on is refused.
+    #[arg(long, value_name = "N")]
+    pub index: Option<usize>,
+    /// Print an sbatch script of a job array over the manifest (one task a
+    /// scan; limits derived from the scans unless given below).
+    #[arg(long, conflicts_with_all = ["merge", "index"])]
+    pub sbatch: bool,
+    /// CPUs per array task [default: 4].
+    #[arg(long, requires = "sbatch", value_name = "N")]
+    pub cpus: Option<u32>,
+    /// Memory per array task: megabytes or e.g. 16G [default: from the largest scan].
+    #[arg(long, requires = "sbatch", value_name = "SIZE")]
+    pub mem: Option<String>,
+    /// Time limit per array task: seconds, H:MM:SS or D-HH:MM:SS [default: from the scans' budgets].
+    #[arg(long, requires = "sbatch", value_name = "TIME")]
+    pub time_limit: Option<String>,
+    /// Most array tasks running at once (`--array=0-(N-1)%K`) [default: 8].
+    #[arg(long, requires = "sbatch", value_name = "K")]
+    pub parallel: Option<usize>,
+    /// Slurm partition.
+    #[arg(long, requires = "sbatch")]
+    pub partition: Option<String>,
+    /// Merge the finished scans into OUT: synth/scan=<id>/part-0.parquet
+    /// (hive-partitioned, `scan` column), coco/train.json and coco/val.json
+    /// (split by scan; image paths relative to OUT), splits.json, summary.csv.
+    #[arg(long, value_name = "OUT", conflicts_with = "index")]
+    pub merge: Option<PathBuf>,
+    /// Share of the scans in the validation split [default: 0.2].
+    #[arg(long, requires = "merge", value_name = "FRACTION")]
+    pub val: Option<f64>,
+    /// Share of the scans in a test split (coco/test.json) [default: 0].
+    #[arg(long, requires = "merge", value_name = "FRACTION")]
+    pub test: Option<f64>,
+    /// Seed of the split [default: 0].
+    #[arg(long, requires = "merge", value_name = "N")]
+    pub seed: Option<u64>,
+}
+
 /// `--yolo-val`: a fraction in [0, 1).
 fn parse_val_fraction(text: &str) -> Result<f64, String> {
     let value: f64 = text.trim().parse().map_err(|_| format!("`{text}` is not a number"))?;
@@ -434,5 +487,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(&args),
         Command::Boxes(args) => boxes::run(&args),
         Command::Annotate(args) => annotate::run(&args),
+        Command::Batch(args) => batch::run(&args),
     }
 }

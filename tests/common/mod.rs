@@ -2,6 +2,8 @@
 //! and running the binary.
 #![allow(dead_code)]
 
+pub mod batch;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -79,6 +79,47 @@ fn threads_sets_the_worker_count_and_zero_is_refused() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--threads must be at least 1"));
 }
 
+/// `-q` leaves warnings and errors only; `-v` adds every held-out evaluation.
+#[test]
+fn quiet_silences_progress_and_summaries_and_verbose_adds_evaluations() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/small");
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model.nlf");
+    let fit = |flag: Option<&str>| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_nerflabel"));
+        cmd.args(flag)
+            .args(["fit", fixture.to_str().unwrap(), "--steps", "3", "--model"])
+            .arg(&model)
+            .env("NERFLABEL_PROGRESS_EVERY", "0.001");
+        let out = cmd.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        (
+            String::from_utf8_lossy(&out.stdout).to_string(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    let (stdout, stderr) = fit(None);
+    assert!(stdout.contains("trained 3 steps"), "{stdout}");
+    assert!(stderr.contains("fitting"), "{stderr}");
+    assert!(
+        !stderr.contains("held-out PSNR") || !stderr.contains("step 3, "),
+        "{stderr}"
+    );
+    let (stdout, stderr) = fit(Some("-q"));
+    assert_eq!(stdout, "", "-q prints no summary");
+    let lines: Vec<&str> = stderr.lines().filter(|l| !l.starts_with("warning:")).collect();
+    assert!(lines.is_empty(), "-q prints only warnings: {lines:?}");
+    let (_, stderr) = fit(Some("-v"));
+    assert!(
+        stderr
+            .lines()
+            .any(|l| l.contains("held-out PSNR") && l.starts_with("step ")),
+        "-v prints each evaluation: {stderr}"
+    );
+    let out = nerflabel(&["-q", "-v", "info", fixture.to_str().unwrap()]);
+    assert!(!out.status.success(), "-q and -v together are refused");
+}
+
 #[test]
 fn unknown_format_and_bad_budget_are_rejected_before_work() {
     let out = nerflabel(&["info", ".", "--format", "meshroom"]);

@@ -2,6 +2,7 @@
 //! Kubernetes array task's, or all in turn), write its sbatch script, or
 //! merge the finished scans into one dataset.
 
+use super::verbosity::{note, say};
 use super::{fit, label, synth, BatchArgs, FitArgs, LabelArgs, ScanArgs, SynthArgs};
 use anyhow::{bail, Context};
 use nerflabel::batch::stages::StageNote;
@@ -38,7 +39,7 @@ pub fn run(args: &BatchArgs) -> anyhow::Result<()> {
     let mut stages = CliStages;
     let mut failures: Vec<String> = Vec::new();
     for entry in &selected {
-        eprintln!(
+        note!(
             "== scan {} ({}), manifest line {}",
             entry.id,
             entry.scan.display(),
@@ -48,7 +49,7 @@ pub fn run(args: &BatchArgs) -> anyhow::Result<()> {
         match run_entry(entry, &mut stages) {
             Ok(EntryOutcome::Done { ran }) => {
                 let ran: Vec<&str> = ran.iter().map(|s| s.name()).collect();
-                println!(
+                say!(
                     "scan {}: done ({}); status: {}",
                     entry.id,
                     if ran.is_empty() {
@@ -198,7 +199,7 @@ impl Stages for CliStages {
             StageNote::Start => "starting",
             StageNote::Resume => "resuming from the checkpoint a stopped run left",
         };
-        eprintln!("[{}] {}: {what}", entry.id, stage.name());
+        note!("[{}] {}: {what}", entry.id, stage.name());
     }
 }
 
@@ -223,7 +224,7 @@ fn write_sbatch(args: &BatchArgs, manifest: &Manifest) -> anyhow::Result<()> {
         partition: args.partition.clone(),
     };
     print!("{}", sbatch_script(manifest, &options));
-    eprintln!(
+    note!(
         "{} array tasks; submit with `sbatch FILE` (logs in {})",
         manifest.entries.len(),
         log_dir.display()
@@ -313,7 +314,7 @@ fn run_merge(args: &BatchArgs, manifest: &Manifest, out: &Path) -> anyhow::Resul
         .iter()
         .map(|(name, ids)| format!("{} {name}", ids.len()))
         .collect();
-    println!(
+    say!(
         "merged {} of {} scans into {} ({}): synth/scan=<id>/part-0.parquet, coco/<split>.json, splits.json, summary.csv",
         summary.merged(),
         summary.rows.len(),

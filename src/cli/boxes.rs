@@ -1,5 +1,6 @@
 //! `nerflabel boxes import|export`: boxes from and to other labelling tools.
 
+use super::verbosity::say;
 use clap::{Args, Subcommand};
 use nerflabel::atomic;
 use nerflabel::boxes::interop::{boxes_json, export_boxes, import_boxes, ExportFormat, ImportFormat};
@@ -107,7 +108,7 @@ fn import(args: &ImportArgs) -> anyhow::Result<()> {
     let text = boxes_json(&imported.boxes);
     atomic::write_file(&args.out, text.as_bytes())
         .map_err(|e| anyhow::anyhow!("{}: cannot write the boxes: {e}", args.out.display()))?;
-    println!(
+    say!(
         "imported {} boxes ({} labels) from {} ({}) into {}",
         imported.boxes.boxes.len(),
         imported.boxes.categories.len(),
@@ -132,7 +133,7 @@ fn export(args: &ExportArgs) -> anyhow::Result<()> {
     let text = export_boxes(&boxes, args.format, &args.cloud);
     atomic::write_file(&out, text.as_bytes())
         .map_err(|e| anyhow::anyhow!("{}: cannot write the labelCloud file: {e}", out.display()))?;
-    println!(
+    say!(
         "exported {} boxes from {} to {} ({})",
         boxes.boxes.len(),
         args.boxes.display(),

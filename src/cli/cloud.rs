@@ -2,6 +2,7 @@
 //! by the fitted model when there is one, with boxes drawn in on request.
 
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir};
+use super::verbosity::say;
 use super::CloudArgs;
 use anyhow::Context;
 use nerflabel::boxes::completed::completed_cloud;
@@ -65,7 +66,7 @@ pub fn run(args: &CloudArgs) -> anyhow::Result<()> {
         ),
         None => String::new(),
     };
-    println!(
+    say!(
         "wrote {points} points ({} m voxels, {source}){edges} to {}",
         cloud.voxel_size,
         output.display()

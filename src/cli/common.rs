@@ -72,6 +72,9 @@ pub fn model_path(scan: &Path, model: Option<&PathBuf>) -> PathBuf {
 
 /// A progress bar on stderr (hidden when stderr is not a terminal).
 pub fn progress_bar(len: u64, template: &str) -> ProgressBar {
+    if super::verbosity::quiet() {
+        return ProgressBar::hidden();
+    }
     let bar = ProgressBar::new(len);
     let style = ProgressStyle::with_template(template).unwrap_or_else(|_| ProgressStyle::default_bar());
     bar.set_style(style.progress_chars("=> "));
@@ -103,7 +106,8 @@ impl PlainProgress {
         let now = Instant::now();
         PlainProgress {
             started: now,
-            every: (!std::io::stderr().is_terminal()).then(|| Duration::from_secs_f64(seconds)),
+            every: (!std::io::stderr().is_terminal() && !super::verbosity::quiet())
+                .then(|| Duration::from_secs_f64(seconds)),
             last: Mutex::new(now),
         }
     }

@@ -1,6 +1,7 @@
 //! `nerflabel fit`: train the NeRF of a scan and write the model and report.
 
 use super::common::{load_scan, model_path, progress_bar, stop_flag, PlainProgress};
+use super::verbosity::{detail, note, say};
 use super::FitArgs;
 use anyhow::{bail, Context};
 use nerflabel::nerf::train::checkpoint::{checkpoint_path, Checkpoint};
@@ -45,7 +46,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     };
     if let Some(c) = &from {
         let p = &c.header.progress;
-        eprintln!(
+        note!(
             "resuming from step {} ({:.1} s trained) saved in {}",
             c.steps(),
             p.train_seconds,
@@ -58,7 +59,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         (None, Some(s)) => format!("{s} steps"),
         (None, None) => format!("{DEFAULT_TIME_S} s"),
     };
-    eprintln!(
+    note!(
         "fitting {} frames of {} ({budget}, preset {})",
         scan.frames.len(),
         args.scan.scan.display(),
@@ -76,7 +77,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             )
         }),
         FitEvent::PosesRefined(r) => {
-            bar.suspend(|| eprintln!(
+            bar.suspend(|| note!(
                 "aligned {} poses to the depth: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",
                 r.frames_refined,
                 r.median_disagreement_before_m.unwrap_or(f64::NAN) * 1e3,
@@ -84,7 +85,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
                 r.largest_translation_m * 1e3,
                 r.largest_rotation_deg
             ));
-            bar.suspend(|| eprintln!("poses vs depth: {}", r.verdict));
+            bar.suspend(|| note!("poses vs depth: {}", r.verdict));
         }
         FitEvent::Prepared {
             train_views,
@@ -92,7 +93,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             param_count,
             occupied_fraction,
         } => {
-            bar.suspend(|| eprintln!(
+            bar.suspend(|| note!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
                 occupied_fraction * 100.0
             ));
@@ -111,6 +112,17 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             });
         }
         FitEvent::Eval(p) => {
+            bar.suspend(|| {
+                detail!(
+                    "step {}, {:.1} s: held-out PSNR {:.2} dB, SSIM {:.3}, depth MAE {}",
+                    p.step,
+                    p.seconds,
+                    p.psnr,
+                    p.ssim,
+                    p.depth_mae_m
+                        .map_or_else(|| "n/a".into(), |d| format!("{:.1} mm", d * 1e3))
+                )
+            });
             last_eval = format!(
                 "held-out PSNR {:.2} dB, depth MAE {}  {:.0} k samples/s",
                 p.psnr,
@@ -120,7 +132,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
                 p.samples_per_s / 1e3
             );
         }
-        FitEvent::CheckpointSaved { .. } => {}
+        FitEvent::CheckpointSaved { .. } => bar.suspend(|| detail!("checkpoint saved: {}", checkpoint.display())),
         FitEvent::CheckpointFailed(e) => bar.suspend(|| eprintln!("warning: {e}")),
     };
     let outcome = match from {
@@ -147,7 +159,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     if r.interrupted {
         eprintln!("interrupted: saved the model trained so far (`nerflabel fit --resume` continues)");
     }
-    println!(
+    say!(
         "trained {} steps in {:.1} s ({} batches skipped); model: {}",
         r.counters.steps,
         r.timings.train_s,
@@ -155,7 +167,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         model_path.display()
     );
     if let Some(p) = r.curve.last() {
-        println!(
+        say!(
             "held-out: PSNR {:.2} dB, SSIM {:.3}, depth MAE {}",
             p.psnr,
             p.ssim,
@@ -165,11 +177,14 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         );
     }
     if let Some(a) = &r.appearance {
-        println!(
+        say!(
             "appearance: {} frames, colour change median {:.3}, largest {:.3} (frame {})",
-            a.frames, a.median_strength, a.largest_strength, a.largest_frame
+            a.frames,
+            a.median_strength,
+            a.largest_strength,
+            a.largest_frame
         );
     }
-    println!("report: {}", report_path.display());
+    say!("report: {}", report_path.display());
     Ok(())
 }

@@ -1,5 +1,6 @@
 //! `nerflabel fixture`: write a procedural scan with exact ground truth.
 
+use super::verbosity::say;
 use super::FixtureArgs;
 use anyhow::Context;
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, FixtureSummary};
@@ -70,7 +71,7 @@ pub fn write(args: &FixtureArgs) -> anyhow::Result<FixtureSummary> {
 
 pub fn run(args: &FixtureArgs) -> anyhow::Result<()> {
     let s = write(args)?;
-    println!(
+    say!(
         "wrote {} scene to {}: {} frames {}x{} ({} layout), {} held-out views, {} objects; ground truth in {}",
         s.scene.name(),
         s.out.display(),

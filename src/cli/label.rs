@@ -2,6 +2,7 @@
 //! masks, 2D boxes, object poses and COCO for every frame.
 
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model, work_dir, PlainProgress};
+use super::verbosity::{note, say};
 use super::LabelArgs;
 use anyhow::Context;
 use nerflabel::boxes::coco::CocoInfo;
@@ -97,7 +98,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
             if args.masks.is_some() { "an object" } else { "a box" }
         ),
     };
-    println!(
+    say!(
         "labelled {} frames with {} depth: {} annotations in {}; {work}",
         summary.frames,
         source,
@@ -105,7 +106,7 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         summary.out.display()
     );
     if let Some((train, val)) = summary.yolo_split {
-        println!(
+        say!(
             "YOLO dataset for ultralytics: {} ({train} training and {val} validation frames)",
             summary.out.join("yolo").join("data.yaml").display()
         );
@@ -123,9 +124,7 @@ fn box_labeler<'a>(
     let mut labeler = Labeler::new(boxes, model, options)?;
     let planes = labeler.exclude_supports(scan)?;
     if planes > 0 {
-        eprintln!(
-            "excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)"
-        );
+        note!("excluded {planes} support or wall plane(s) from the boxes they run through (--exact-boxes keeps them)");
     }
     labeler.fuse_sensor_depth(scan);
     Ok(labeler)
@@ -191,7 +190,7 @@ pub(super) fn lift_masks(
     for warning in &lifted.warnings {
         eprintln!("warning: {warning}");
     }
-    eprintln!(
+    note!(
         "lifted {} masks of {} object(s) in {:.1} s ({} surface points, {:.1} mm voxels)",
         given.frames.len(),
         lifted.objects.boxes.len(),
@@ -201,13 +200,20 @@ pub(super) fn lift_masks(
     );
     const LISTED: usize = 20;
     for b in lifted.objects.boxes.iter().take(LISTED) {
-        eprintln!(
+        note!(
             "  object {} (`{}`): {:.3} x {:.3} x {:.3} m at ({:.3}, {:.3}, {:.3})",
-            b.instance_id, b.label, b.size.x, b.size.y, b.size.z, b.center.x, b.center.y, b.center.z
+            b.instance_id,
+            b.label,
+            b.size.x,
+            b.size.y,
+            b.size.z,
+            b.center.x,
+            b.center.y,
+            b.center.z
         );
     }
     if lifted.objects.boxes.len() > LISTED {
-        eprintln!("  ... and {} more", lifted.objects.boxes.len() - LISTED);
+        note!("  ... and {} more", lifted.objects.boxes.len() - LISTED);
     }
     Ok((given, lifted))
 }

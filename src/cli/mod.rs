@@ -12,6 +12,7 @@ mod info;
 mod label;
 mod report;
 mod synth;
+pub(crate) mod verbosity;
 
 use clap::{Args, Parser, Subcommand};
 pub use common::interrupted_status;
@@ -34,6 +35,12 @@ pub struct Cli {
     /// on the count, so compare runs made with the same one.
     #[arg(long, global = true, value_name = "N")]
     pub threads: Option<usize>,
+    /// Print only warnings, errors and what the command exists to print (no progress, no summaries).
+    #[arg(short, long, global = true, conflicts_with = "verbose")]
+    pub quiet: bool,
+    /// Also print details: every held-out evaluation and checkpoint of a fit.
+    #[arg(short, long, global = true)]
+    pub verbose: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -467,6 +474,11 @@ fn parse_val_fraction(text: &str) -> Result<f64, String> {
 
 /// Run one parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    verbosity::set(match (cli.quiet, cli.verbose) {
+        (true, _) => verbosity::QUIET,
+        (false, true) => verbosity::VERBOSE,
+        (false, false) => verbosity::NORMAL,
+    });
     if let Some(threads) = cli.threads {
         if threads == 0 {
             anyhow::bail!("--threads must be at least 1");

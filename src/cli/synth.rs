@@ -4,6 +4,7 @@ use super::common::{
     check_model_scan, load_scan, model_path, progress_bar, read_model, stop_flag, work_dir, PlainProgress,
 };
 use super::label::lift_masks;
+use super::verbosity::{note, say};
 use super::SynthArgs;
 use anyhow::bail;
 use glam::DVec3;
@@ -79,7 +80,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             cloud_points,
         } => bar.suspend(|| {
             let clearance = clearance_m.map(|c| format!(", clearance {c:.3} m")).unwrap_or_default();
-            eprintln!("rendering {views} views ({cloud_points} cloud points{clearance})");
+            note!("rendering {views} views ({cloud_points} cloud points{clearance})");
         }),
         SynthProgress::Views { done, seconds, .. } => {
             bar.set_position(done as u64);
@@ -114,7 +115,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         }
     };
     bar.finish_and_clear();
-    println!(
+    say!(
         "wrote {} views to {} ({:.1} MB) in {:.1} s ({:.2} views/s)",
         summary.views,
         out.display(),
@@ -123,9 +124,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         summary.views_per_s
     );
     if summary.attempts > 0 {
-        println!(
+        say!(
             "sampled {} candidates; rejected: {}",
-            summary.attempts, summary.rejections
+            summary.attempts,
+            summary.rejections
         );
     }
     Ok(())

@@ -10,6 +10,7 @@ use nerflabel::boxes::output::FrameLabelling;
 use nerflabel::boxes::{
     read_boxes, write_labels, BoxSet, FrameRange, LabelOptions, LabelSummary, Labeler, OutputOptions, YoloOptions,
 };
+use nerflabel::evaluate::{score_written_labels, WrittenLabelScore, EVALUATION_FILE};
 use nerflabel::masks::{lift, objects_and_boxes, read_masks, GivenMasks, Lifted, MaskLabeler};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
@@ -105,6 +106,13 @@ pub fn run(args: &LabelArgs) -> anyhow::Result<()> {
         summary.annotations,
         summary.out.display()
     );
+    let truth = scan_dir.join("gt").join("masks");
+    if truth.is_dir() {
+        let model = model
+            .as_ref()
+            .map(|_| std::fs::canonicalize(&model_path).unwrap_or(model_path.clone()));
+        score_against_truth(&summary.out, &truth, model.as_deref(), source.name())?;
+    }
     if let Some((train, val)) = summary.yolo_split {
         say!(
             "YOLO dataset for ultralytics: {} ({train} training and {val} validation frames)",
@@ -261,4 +269,31 @@ fn yolo_options(args: &LabelArgs) -> anyhow::Result<Option<YoloOptions>> {
         val_fraction: args.yolo_val.unwrap_or(defaults.val_fraction),
         seed: args.seed,
     }))
+}
+
+/// A generated scan carries its exact masks (`gt/masks`): score the labels
+/// against them and keep the score beside the labels (`report --plot` draws it).
+fn score_against_truth(out: &Path, truth: &Path, model: Option<&Path>, source: &str) -> anyhow::Result<()> {
+    let Some((scores, frames)) = score_written_labels(out, truth).map_err(anyhow::Error::msg)? else {
+        return Ok(());
+    };
+    let score = WrittenLabelScore {
+        truth: truth.display().to_string(),
+        model: model.map(|m| m.display().to_string()),
+        source: source.to_string(),
+        frames,
+        miou: scores.mean_frame_iou(),
+        pixel_ratio: scores.total_counts().pixel_ratio(),
+    };
+    let path = out.join(EVALUATION_FILE);
+    let json = serde_json::to_vec_pretty(&score).context("cannot serialise the label score")?;
+    nerflabel::atomic::write_file(&path, &json).with_context(|| format!("cannot write {}", path.display()))?;
+    say!(
+        "against the scan's ground truth ({}): mIoU {:.3} over {frames} frames, predicted/true pixels {:.3}; {}",
+        truth.display(),
+        score.miou,
+        score.pixel_ratio,
+        path.display()
+    );
+    Ok(())
 }

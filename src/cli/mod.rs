@@ -244,7 +244,7 @@ pub struct ReportArgs {
     /// Scan folder.
     #[arg(default_value = ".")]
     pub scan: PathBuf,
-    /// Draw PSNR and depth error against seconds into this PNG.
+    /// Draw PSNR, SSIM and depth error against seconds into this PNG, and the labels' mIoU when `label` scored them against the scan's ground truth (gt/masks of a generated scan).
     #[arg(long)]
     pub plot: Option<PathBuf>,
     /// Model file whose report to read (MODEL.report.json, or fit_report.json beside it from earlier versions; default SCAN/nerflabel/model.nlf).

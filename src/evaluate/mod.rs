@@ -4,6 +4,8 @@
 
 mod holdout;
 mod labels;
+mod written;
 
 pub use holdout::{score_holdout, HoldoutScore};
 pub use labels::{evaluate_labels, fixture_truth, read_gray16, LabelEvaluation, TruthMask};
+pub use written::{score_written_labels, WrittenLabelScore, EVALUATION_FILE};

@@ -50,6 +50,12 @@ pub fn run(args: &AnnotateArgs) -> anyhow::Result<()> {
         bar.finish_and_clear();
     }
     let source = session.source_name();
+    if session.model.is_some() {
+        eprintln!(
+            "{} fit points from the model's surface where the sensor saw nothing",
+            session.fit.unseen()
+        );
+    }
     serve(Arc::new(session), &args.host, args.port, |addr| {
         eprintln!(
             "boxes file: {}{}; previews from {source} depth; Ctrl-C stops",

@@ -114,6 +114,13 @@ fn an_object_without_sensor_depth_is_fitted_from_the_model_surface() {
     let (status, body) = call(&completed, "POST", "/api/fit", &gesture(&can, 0.05));
     assert_eq!(status, 200, "{body}");
     let (centre_err, size_err) = errors(&body["box"], &can);
+    // A click on the can's top finds it too.
+    let top = can.center + DVec3::Z * can.size.z * 0.5;
+    let (status, seeded) = call(&completed, "POST", "/api/fit", &json!({"seed": top.to_array()}));
+    assert_eq!(status, 200, "{seeded}");
+    let seeded_err = centre_and_size(&seeded["box"]).0.distance(can.center);
+    eprintln!("a click on the can's top: centre {:.1} mm", seeded_err * 1e3);
+    assert!(seeded_err < 0.02, "{seeded}");
     let (_, model_cuboid) = call(&completed, "POST", "/api/fit", &gesture(&cuboid, 0.05));
     let model_cuboid = errors(&model_cuboid["box"], &cuboid);
     eprintln!(

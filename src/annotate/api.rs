@@ -84,6 +84,7 @@ pub fn info(session: &Session) -> Reply {
         "up": session.fit.ground.up.to_array(),
         "frames": session.scan.frames.len(),
         "surface_points": session.fit.len(),
+        "model_surface_points": session.fit.unseen(),
     }))
 }
 

@@ -13,7 +13,7 @@
 use super::ground::Ground;
 use crate::boxes::Box3;
 use glam::{DMat3, DVec2, DVec3};
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 
 /// Most polygon vertices accepted.
 pub const MAX_POLYGON_VERTICES: usize = 1000;
@@ -39,6 +39,9 @@ const TRIM: f64 = 0.02;
 const CONSISTENT_SHARE: f64 = 0.25;
 /// Fewest object points a box is fitted to.
 const MIN_OBJECT_POINTS: usize = 20;
+/// A rendered point the sensor did not see is kept when its 3x3x3 cells
+/// hold this many such points (itself included): a surface, not a floater.
+const MIN_UNSEEN_NEIGHBOURS: usize = 4;
 
 /// What the user marked in the top view.
 #[derive(Clone, Debug, PartialEq)]
@@ -81,6 +84,8 @@ pub struct FitPoints {
     pub ground: Ground,
     /// Ground-frame points (x, y horizontal, z up), metres.
     points: Vec<DVec3>,
+    /// How many of them came from the model's surface (see [`FitPoints::with_unseen`]).
+    unseen: usize,
 }
 
 impl FitPoints {
@@ -96,7 +101,45 @@ impl FitPoints {
             .filter(|p| p.is_finite())
             .collect();
         let points = if cell > 0.0 { consistent(points, cell) } else { points };
-        FitPoints { ground, points }
+        FitPoints {
+            ground,
+            points,
+            unseen: 0,
+        }
+    }
+
+    /// [`FitPoints::new`] of the sensor's points, plus the points of a
+    /// rendered surface (world metres, e.g. the model-completed cloud) that
+    /// have no sensor point within about `near`: what the sensor missed.
+    /// Where the sensor saw, its points alone are fitted to, as without a
+    /// model. Rendered points come averaged over the views, so instead of
+    /// the views' agreement, isolated ones (floaters) are dropped.
+    pub fn with_unseen(ground: Ground, sensor: &[DVec3], cell: f64, rendered: &[DVec3], near: f64) -> FitPoints {
+        let mut fit = FitPoints::new(ground, sensor, cell);
+        if !(near > 0.0) {
+            return fit;
+        }
+        let in_ground = |p: &DVec3| Some(ground.to_ground(*p)).filter(|q| q.is_finite());
+        let seen: HashSet<Cell> = sensor.iter().filter_map(in_ground).map(|q| cell_at(q, near)).collect();
+        let unseen: Vec<DVec3> = (rendered.iter().filter_map(in_ground))
+            .filter(|&q| around(cell_at(q, near)).all(|c| !seen.contains(&c)))
+            .collect();
+        let mut counts: HashMap<Cell, usize> = HashMap::new();
+        for &q in &unseen {
+            *counts.entry(cell_at(q, near)).or_default() += 1;
+        }
+        let before = fit.points.len();
+        fit.points.extend(unseen.into_iter().filter(|&q| {
+            let n: usize = around(cell_at(q, near)).filter_map(|c| counts.get(&c)).sum();
+            n >= MIN_UNSEEN_NEIGHBOURS
+        }));
+        fit.unseen = fit.points.len() - before;
+        fit
+    }
+
+    /// Points taken from a rendered surface the sensor missed.
+    pub fn unseen(&self) -> usize {
+        self.unseen
     }
 
     /// Number of points.
@@ -341,8 +384,17 @@ fn support_plane(context: &[DVec3], inside: &[DVec3]) -> Option<(f64, f64)> {
 type Cell = (i64, i64, i64);
 
 fn cell_of(p: DVec3) -> Cell {
-    let c = (p / CLUSTER_CELL).floor();
+    cell_at(p, CLUSTER_CELL)
+}
+
+fn cell_at(p: DVec3, edge: f64) -> Cell {
+    let c = (p / edge).floor();
     (c.x as i64, c.y as i64, c.z as i64)
+}
+
+/// The cell and its 26 neighbours.
+fn around(c: Cell) -> impl Iterator<Item = Cell> {
+    (0..27).map(move |i| (c.0 + i % 3 - 1, c.1 + (i / 3) % 3 - 1, c.2 + i / 9 - 1))
 }
 
 /// Connected components of the occupied cells (26-neighbourhood), each as
@@ -532,6 +584,26 @@ mod tests {
             shrunk.size
         );
         assert!(shrunk.center.distance(seeded.center) < 0.003);
+    }
+
+    #[test]
+    fn a_box_only_the_rendered_surface_has_is_fitted_and_a_floater_is_not() {
+        let (yaw, size, c) = (0.2, DVec3::new(0.12, 0.08, 0.1), DVec2::new(0.2, 0.1));
+        let all = scene(yaw, size, c);
+        let floor: Vec<DVec3> = all.iter().copied().filter(|p| p.z == 0.0).collect();
+        let mut rendered: Vec<DVec3> = all.iter().copied().step_by(2).collect();
+        rendered.push(DVec3::new(-0.6, -0.6, 0.2));
+        let sensor_only = FitPoints::new(Ground::z_up(), &floor, 0.0);
+        assert!(sensor_only.fit(&rect(c, 0.15)).is_err());
+        let fit = FitPoints::with_unseen(Ground::z_up(), &floor, 0.0, &rendered, 0.008);
+        assert!(fit.unseen() > 500, "{} rendered points kept", fit.unseen());
+        let b = fit.fit(&rect(c, 0.15)).unwrap();
+        assert!((b.size - size).abs().max_element() < 0.02, "{:?}", b.size);
+        assert!(b.center.truncate().distance(c) < 0.005, "{:?}", b.center);
+        assert_eq!(
+            fit.fit(&rect(DVec2::new(-0.6, -0.6), 0.1)).unwrap_err(),
+            FitError::NoObject { found: 0 }
+        );
     }
 
     #[test]

@@ -1,10 +1,13 @@
 //! What the server holds while it runs: the scan, the optional model, the
 //! surface points boxes are fitted to, the encoded page cloud, and the
-//! boxes file it reads and replaces.
+//! boxes file it reads and replaces. With a model, the page's cloud and the
+//! fit points are completed by its rendered surface, so objects the sensor
+//! missed (glass) show and can be fitted.
 
 use super::cloud_bin;
 use super::fit_box::FitPoints;
 use super::ground::Ground;
+use crate::boxes::completed::{completed_cloud, CloudError};
 use crate::boxes::{read_boxes, BoxError, BoxSet};
 use crate::nerf::model_file::Model;
 use crate::poses::{fuse_cloud, sample_depth_points, CloudOptions, DepthSamples, GeometryError};
@@ -29,6 +32,8 @@ pub enum SessionError {
     Boxes(#[from] BoxError),
     #[error("{0}: the scan has no depth to fit boxes to")]
     NoDepth(String),
+    #[error("cannot complete the scan's point cloud with the model: {0}")]
+    Completed(#[from] CloudError),
 }
 
 /// The state behind the HTTP API.
@@ -57,6 +62,19 @@ impl Session {
         boxes_path: PathBuf,
         model: Option<Model>,
     ) -> Result<Session, SessionError> {
+        Session::open_reporting(scan, scan_dir, boxes_path, model, &|_| {})
+    }
+
+    /// [`Session::open`]; with a model (whose fitted poses the scan must
+    /// already carry), the cloud and the fit points are completed by its
+    /// rendered depth, and `progress` hears the frames rendered.
+    pub fn open_reporting(
+        scan: Scan,
+        scan_dir: PathBuf,
+        boxes_path: PathBuf,
+        model: Option<Model>,
+        progress: &(dyn Fn(usize) + Sync),
+    ) -> Result<Session, SessionError> {
         if boxes_path.exists() {
             read_existing(&boxes_path)?;
         }
@@ -65,14 +83,28 @@ impl Session {
             return Err(SessionError::NoDepth(scan_dir.display().to_string()));
         }
         let ground = Ground::estimate(&scan, &samples.points);
-        let fit = FitPoints::new(ground, &samples.points, consistency_cell(&scan, &samples));
-        let cloud = fuse_cloud(
-            &scan,
-            &CloudOptions {
-                voxels_per_extent: CLOUD_VOXELS,
-                ..CloudOptions::default()
-            },
-        )?;
+        let options = CloudOptions {
+            voxels_per_extent: CLOUD_VOXELS,
+            ..CloudOptions::default()
+        };
+        let cell = consistency_cell(&scan, &samples);
+        let (fit, cloud) = match &model {
+            Some(model) => {
+                let cloud = completed_cloud(&scan, model, &options, progress)?;
+                let rendered: Vec<DVec3> = (cloud.positions.iter())
+                    .map(|p| DVec3::from_array(p.map(f64::from)))
+                    .collect();
+                // Two voxels: the averaged point of a voxel the sensor saw
+                // lies within one of the sensor's own samples.
+                let near = 2.0 * cloud.voxel_size;
+                let fit = FitPoints::with_unseen(ground, &samples.points, cell, &rendered, near);
+                (fit, cloud)
+            }
+            None => (
+                FitPoints::new(ground, &samples.points, cell),
+                fuse_cloud(&scan, &options)?,
+            ),
+        };
         let cloud_bin = cloud_bin::encode(&cloud, ground.up, CLOUD_POINTS);
         Ok(Session {
             scan,

@@ -1,9 +1,10 @@
 //! `nerflabel annotate`: serve the box annotation page for a scan.
 
-use super::common::{check_model_scan, load_scan, model_path, read_model};
+use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model};
 use super::AnnotateArgs;
 use anyhow::Context;
 use nerflabel::annotate::{serve, Session};
+use nerflabel::boxes::completed::CLOUD_RAYS;
 use std::io::Write;
 use std::sync::Arc;
 
@@ -21,10 +22,40 @@ pub fn run(args: &AnnotateArgs) -> anyhow::Result<()> {
     if let Some(model) = &model {
         check_model_scan(model, &path, &mut scan, args.force)?;
     }
-    eprintln!("preparing the point cloud of {} frames...", scan.frames.len());
-    let session = Session::open(scan, scan_dir.clone(), boxes.clone(), model)
+    let frames = scan.frames.len();
+    let bar = match &model {
+        Some(_) => {
+            eprintln!(
+                "rendering the model's depth in {frames} frames to complete the cloud where the sensor saw nothing (at most {} M rays; ~8 s for 120 VGA frames in release)...",
+                CLOUD_RAYS / 1_000_000
+            );
+            Some(progress_bar(
+                frames as u64,
+                "rendering depth {bar:30} {pos}/{len} frames {elapsed}",
+            ))
+        }
+        None => {
+            eprintln!("preparing the point cloud of {frames} frames...");
+            None
+        }
+    };
+    let progress = |done: usize| {
+        if let Some(bar) = &bar {
+            bar.set_position(done as u64);
+        }
+    };
+    let session = Session::open_reporting(scan, scan_dir.clone(), boxes.clone(), model, &progress)
         .with_context(|| format!("cannot annotate {}", scan_dir.display()))?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
     let source = session.source_name();
+    if session.model.is_some() {
+        eprintln!(
+            "{} fit points from the model's surface where the sensor saw nothing",
+            session.fit.unseen()
+        );
+    }
     serve(Arc::new(session), &args.host, args.port, |addr| {
         eprintln!(
             "boxes file: {}{}; previews from {source} depth; Ctrl-C stops",

@@ -1,6 +1,7 @@
 //! `nerflabel annotate`: serve the box annotation page for a scan.
 
 use super::common::{check_model_scan, load_scan, model_path, progress_bar, read_model};
+use super::verbosity::note;
 use super::AnnotateArgs;
 use anyhow::Context;
 use nerflabel::annotate::{serve, Session};
@@ -25,7 +26,7 @@ pub fn run(args: &AnnotateArgs) -> anyhow::Result<()> {
     let frames = scan.frames.len();
     let bar = match &model {
         Some(_) => {
-            eprintln!(
+            note!(
                 "rendering the model's depth in {frames} frames to complete the cloud where the sensor saw nothing (at most {} M rays; ~8 s for 120 VGA frames in release)...",
                 CLOUD_RAYS / 1_000_000
             );
@@ -35,7 +36,7 @@ pub fn run(args: &AnnotateArgs) -> anyhow::Result<()> {
             ))
         }
         None => {
-            eprintln!("preparing the point cloud of {frames} frames...");
+            note!("preparing the point cloud of {frames} frames...");
             None
         }
     };
@@ -51,13 +52,13 @@ pub fn run(args: &AnnotateArgs) -> anyhow::Result<()> {
     }
     let source = session.source_name();
     if session.model.is_some() {
-        eprintln!(
+        note!(
             "{} fit points from the model's surface where the sensor saw nothing",
             session.fit.unseen()
         );
     }
     serve(Arc::new(session), &args.host, args.port, |addr| {
-        eprintln!(
+        note!(
             "boxes file: {}{}; previews from {source} depth; Ctrl-C stops",
             boxes.display(),
             if boxes.exists() {

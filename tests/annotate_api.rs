@@ -4,6 +4,8 @@
 
 mod common;
 
+use common::annotate::{call, gesture};
+
 use glam::{DMat3, DVec3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
@@ -21,21 +23,6 @@ fn tabletop(dir: &Path, frames: usize) -> Session {
     generate(dir, &o).unwrap();
     let scan = load(dir, &LoadOptions::default()).unwrap();
     Session::open(scan, dir.to_path_buf(), dir.join("annotated.json"), None).unwrap()
-}
-
-fn call(session: &Session, method: &str, url: &str, body: &Value) -> (u16, Value) {
-    let reply = route(session, method, url, body.to_string().as_bytes());
-    (reply.status, reply.body_json().unwrap_or(Value::Null))
-}
-
-/// A top-view rectangle around the box's footprint, `margin` metres wider on each side.
-fn gesture(b: &nerflabel::boxes::Box3, margin: f64) -> Value {
-    let h = b.size * 0.5 + DVec3::splat(margin);
-    let corners: Vec<[f64; 3]> = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-        .iter()
-        .map(|&(sx, sy)| (b.center + b.rotation.x_axis * (sx * h.x) + b.rotation.y_axis * (sy * h.y)).to_array())
-        .collect();
-    json!({ "polygon": corners, "label": b.label })
 }
 
 fn parse_box(v: &Value) -> (DVec3, DVec3, DMat3) {

@@ -5,6 +5,8 @@
 
 mod common;
 
+use common::annotate::{call, gesture};
+
 use common::{run, s, small_scan, stderr};
 use glam::{DMat3, DVec3};
 use nerflabel::annotate::{route, Session};
@@ -14,21 +16,6 @@ use nerflabel::nerf::model_file::Model;
 use nerflabel::scan::{load, LoadOptions};
 use serde_json::{json, Value};
 use std::path::Path;
-
-fn call(session: &Session, method: &str, url: &str, body: &Value) -> (u16, Value) {
-    let reply = route(session, method, url, body.to_string().as_bytes());
-    (reply.status, reply.body_json().unwrap_or(Value::Null))
-}
-
-/// A top-view rectangle around the box's footprint, `margin` metres wider on each side.
-fn gesture(b: &Box3, margin: f64) -> Value {
-    let h = b.size * 0.5 + DVec3::splat(margin);
-    let corners: Vec<[f64; 3]> = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-        .iter()
-        .map(|&(sx, sy)| (b.center + b.rotation.x_axis * (sx * h.x) + b.rotation.y_axis * (sy * h.y)).to_array())
-        .collect();
-    json!({ "polygon": corners, "label": b.label })
-}
 
 /// Centre and edge lengths of a fitted box.
 fn centre_and_size(v: &Value) -> (DVec3, DVec3) {

@@ -2,6 +2,7 @@
 //! and running the binary.
 #![allow(dead_code)]
 
+pub mod annotate;
 pub mod batch;
 
 use std::path::{Path, PathBuf};

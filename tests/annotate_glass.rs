@@ -7,7 +7,7 @@ mod common;
 
 use common::annotate::{call, gesture};
 
-use common::{run, s, small_scan, stderr};
+use common::small_scan_fitted;
 use glam::{DMat3, DVec3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::Box3;
@@ -65,9 +65,7 @@ fn open(scan_dir: &Path, model: Option<Model>) -> Session {
 #[test]
 fn an_object_without_sensor_depth_is_fitted_from_the_model_surface() {
     let dir = tempfile::tempdir().unwrap();
-    let scan = small_scan(dir.path());
-    let fit = run(&["fit", s(&scan), "--steps", "300", "--seed", "1"]);
-    assert!(fit.status.success(), "{}", stderr(&fit));
+    let scan = small_scan_fitted(dir.path());
     let truth = read_meta(&scan).unwrap().build_scene();
     let can = truth
         .labelled()

@@ -6,22 +6,19 @@
 
 mod common;
 
-use common::{run, s, small_scan, stderr};
+use common::{run, s, small_scan, small_scan_fitted, stderr};
 use nerflabel::evaluate::WrittenLabelScore;
 use nerflabel::fixture::read_meta;
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
 /// A copy of the small fixture with a 300-step model in SCAN/nerflabel/,
-/// made once for the tests of this file.
+/// shared by the tests of this file.
 fn fitted_scan() -> &'static Path {
     static SCAN: OnceLock<PathBuf> = OnceLock::new();
     SCAN.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap().keep();
-        let scan = small_scan(&dir);
-        let fit = run(&["fit", s(&scan), "--steps", "300", "--seed", "1"]);
-        assert!(fit.status.success(), "{}", stderr(&fit));
-        scan
+        small_scan_fitted(&dir)
     })
 }
 use std::path::Path;

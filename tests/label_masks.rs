@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{run, s, small_scan, stderr};
+use common::{run, s, small_scan, small_scan_fitted, stderr};
 use nerflabel::boxes::metrics::MaskScores;
 use nerflabel::evaluate::read_gray16;
 use serde_json::Value;
@@ -82,10 +82,8 @@ fn score_others(scan: &Path, out: &Path, given: &[&str]) -> MaskScores {
 #[test]
 fn masks_of_every_sixth_frame_label_the_other_frames() {
     let dir = tempfile::tempdir().unwrap();
-    let scan = small_scan(dir.path());
-    let model = dir.path().join("m.nlf");
-    let fit = run(&["fit", s(&scan), "--steps", "300", "--seed", "1", "--model", s(&model)]);
-    assert!(fit.status.success(), "{}", stderr(&fit));
+    let scan = small_scan_fitted(dir.path());
+    let model = scan.join("nerflabel/model.nlf");
     let given = ["000000", "000006", "000012", "000018"];
     let label = |masks: &Path, out: &Path| {
         let o = run(&[

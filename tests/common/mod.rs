@@ -34,6 +34,42 @@ pub fn small_scan(dir: &Path) -> PathBuf {
     scan
 }
 
+/// A copy of the small fixture at `dir/scan` with the model of `fit SCAN
+/// --steps 300 --seed 1` and its report in SCAN/nerflabel/. The fit runs
+/// once per build of the binary (its size and time stamp name the cache in
+/// the target's test folder) and every test that needs it copies it: the
+/// fit is deterministic, so each would have made the same model.
+pub fn small_scan_fitted(dir: &Path) -> PathBuf {
+    let scan = small_scan(dir);
+    let binary = std::fs::metadata(env!("CARGO_BIN_EXE_nerflabel")).unwrap();
+    let stamp = binary
+        .modified()
+        .ok()
+        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos());
+    let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("small-300-steps-{}-{stamp}", binary.len()));
+    let files = ["model.nlf", "model.report.json"];
+    if !cache.join(files[1]).is_file() {
+        // Fit in a scan copy of its own, then move the files into place
+        // (a concurrent test doing the same only wastes its time).
+        let work = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap();
+        let fresh = small_scan(work.path());
+        let fit = run(&["fit", s(&fresh), "--steps", "300", "--seed", "1"]);
+        assert!(fit.status.success(), "{}", stderr(&fit));
+        let staged = work.path().join("cache");
+        std::fs::create_dir_all(&staged).unwrap();
+        for f in files {
+            std::fs::copy(fresh.join("nerflabel").join(f), staged.join(f)).unwrap();
+        }
+        let _ = std::fs::rename(&staged, &cache);
+    }
+    std::fs::create_dir_all(scan.join("nerflabel")).unwrap();
+    for f in files {
+        std::fs::copy(cache.join(f), scan.join("nerflabel").join(f)).unwrap();
+    }
+    scan
+}
+
 /// Run the binary with `args`.
 pub fn run(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nerflabel"))

@@ -36,18 +36,25 @@ pub fn small_scan(dir: &Path) -> PathBuf {
 
 /// A copy of the small fixture at `dir/scan` with the model of `fit SCAN
 /// --steps 300 --seed 1` and its report in SCAN/nerflabel/. The fit runs
-/// once per build of the binary (its size and time stamp name the cache in
-/// the target's test folder) and every test that needs it copies it: the
+/// once per build of the binary and state of the fixture (their sizes and
+/// time stamps name the cache in the target's test folder) and every test that needs it copies it: the
 /// fit is deterministic, so each would have made the same model.
 pub fn small_scan_fitted(dir: &Path) -> PathBuf {
     let scan = small_scan(dir);
-    let binary = std::fs::metadata(env!("CARGO_BIN_EXE_nerflabel")).unwrap();
-    let stamp = binary
-        .modified()
-        .ok()
-        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-        .map_or(0, |d| d.as_nanos());
-    let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("small-300-steps-{}-{stamp}", binary.len()));
+    let stamp = |path: &Path| {
+        let meta = std::fs::metadata(path).unwrap();
+        let modified = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok());
+        format!("{}-{}", meta.len(), modified.map_or(0, |d| d.as_nanos()))
+    };
+    let key = format!(
+        "small-300-steps-{}-{}",
+        stamp(Path::new(env!("CARGO_BIN_EXE_nerflabel"))),
+        stamp(&small_fixture().join("gt/meta.json"))
+    );
+    let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join(key);
     let files = ["model.nlf", "model.report.json"];
     if !cache.join(files[1]).is_file() {
         // Fit in a scan copy of its own, then move the files into place

@@ -11,7 +11,8 @@
 //! erases object ID from the first given mask (a mask missing an object).
 //!
 //! Run after `cargo build --release`:
-//! `cargo run --release --example bench_masks -- [--every 20 | --given 3] [--dilate 2] [--drop ID] [--model NAME] [--source S] SCENE...`
+//! `cargo run --release --example bench_masks -- [--every 20 | --given 3] [--dilate 2] [--drop ID] [--model NAME] [--source S] [--exact-boxes] SCENE...`
+//! (`--exact-boxes`: no support plane excluded from the objects' regions.)
 //! (MODEL defaults to SCENE/model-120s.nlf.)
 
 use nerflabel::boxes::metrics::MaskScores;
@@ -30,6 +31,7 @@ struct Args {
     source: Option<String>,
     /// Object id erased from the first given mask (a mask missing an object).
     drop: Option<u16>,
+    exact_boxes: bool,
     scenes: Vec<PathBuf>,
 }
 
@@ -41,6 +43,7 @@ fn parse() -> Result<Args, Error> {
         model: "model-120s.nlf".into(),
         source: None,
         drop: None,
+        exact_boxes: false,
         scenes: Vec::new(),
     };
     let mut it = std::env::args().skip(1);
@@ -53,6 +56,7 @@ fn parse() -> Result<Args, Error> {
             "--model" => a.model = value()?,
             "--source" => a.source = Some(value()?),
             "--drop" => a.drop = Some(value()?.parse()?),
+            "--exact-boxes" => a.exact_boxes = true,
             _ => a.scenes.push(PathBuf::from(arg)),
         }
     }
@@ -135,6 +139,9 @@ fn run_scene(args: &Args, scene: &Path, exe: &Path) -> Result<(), Error> {
         .arg(&out);
     if let Some(s) = &args.source {
         cmd.arg("--source").arg(s);
+    }
+    if args.exact_boxes {
+        cmd.arg("--exact-boxes");
     }
     let start = Instant::now();
     let status = cmd.status()?;

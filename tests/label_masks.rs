@@ -109,7 +109,8 @@ fn masks_of_every_sixth_frame_label_the_other_frames() {
         scores.mean_frame_iou(),
         scores.total_counts().pixel_ratio()
     );
-    // Measured 0.939 (can 0.935, no sensor depth: from the rendered depth).
+    // Measured 0.929 (can 0.905, no sensor depth: from the rendered depth;
+    // the table plane takes a rim of its base, 0.935 with --exact-boxes).
     assert!(scores.mean_frame_iou() > 0.90, "mIoU {}", scores.mean_frame_iou());
     assert!(can > 0.88, "the can has no sensor depth: IoU {can}");
     let ratio = scores.total_counts().pixel_ratio();
@@ -139,16 +140,19 @@ fn masks_of_every_sixth_frame_label_the_other_frames() {
     );
 
     // Masks that bleed 2 px onto the background (at 160x120 a large share of
-    // these 20-40 px objects): measured 0.890.
+    // these 20-40 px objects) score within 0.02 of clean masks: the bleed
+    // onto the table is the table's plane, excluded from the objects
+    // (measured 0.933 against 0.929; 0.890 before that rule).
     let (bled, bled_out) = (dir.path().join("bled"), dir.path().join("bled-labels"));
     given_masks(&scan, &bled, &given, 2);
     label(&bled, &bled_out);
     let bled_scores = score_others(&scan, &bled_out, &given);
     eprintln!("dilated 2 px: mIoU {:.4}", bled_scores.mean_frame_iou());
     assert!(
-        bled_scores.mean_frame_iou() > 0.86,
-        "mIoU {}",
-        bled_scores.mean_frame_iou()
+        bled_scores.mean_frame_iou() > scores.mean_frame_iou() - 0.02,
+        "dilated masks: mIoU {} against {} with clean masks",
+        bled_scores.mean_frame_iou(),
+        scores.mean_frame_iou()
     );
 }
 

@@ -207,6 +207,20 @@ impl<'a> Labeler<'a> {
         &self.excluded
     }
 
+    /// Whether the planes excluded from box `index` (of the box set) take
+    /// the surface point `point`: on a plane's band it is the plane itself,
+    /// unless the surface there is steep to it (`normal`: an object's side
+    /// meeting its support); behind the band it is always the plane's side.
+    pub fn excluded_at(&self, index: usize, point: DVec3, normal: impl Fn() -> Option<DVec3>) -> bool {
+        let Some(planes) = self.excluded.get(index) else {
+            return false;
+        };
+        planes.iter().any(|plane| {
+            let (distance, band) = (plane.distance(point), self.plane_band(plane));
+            distance < 0.0 || (distance <= band && !normal().is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
+        })
+    }
+
     /// Whether a point in several boxes goes to the object that reaches it
     /// ([`reach`]): with the smallest-box rule, unless the boxes are taken
     /// exactly as drawn.
@@ -365,20 +379,10 @@ impl<'a> Labeler<'a> {
                     .classifier
                     .classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
                 let point = origin + dir * (z * len);
-                // On an excluded plane's band: the plane itself, unless the
-                // surface there is steep to it (an object's side meeting its
-                // support); behind the band: always the plane's side.
-                let excluded_by = |plane: &ExcludedPlane| {
-                    let (distance, band) = (plane.distance(point), self.plane_band(plane));
-                    distance < 0.0
-                        || (distance <= band
-                            && !surface_normal(&z_image, w, h, j.x, j.y, &point_at)
-                                .is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
-                };
                 let excluded_from = |id: u32| {
-                    self.excluded
-                        .get(id as usize - 1)
-                        .is_some_and(|planes| planes.iter().any(excluded_by))
+                    self.excluded_at(id as usize - 1, point, || {
+                        surface_normal(&z_image, w, h, j.x, j.y, &point_at)
+                    })
                 };
                 let excluded = id > 0 && excluded_from(id);
                 mask[index] = if excluded { 0 } else { id as u16 };
@@ -498,7 +502,7 @@ const STEEP_COSINE: f64 = std::f64::consts::FRAC_1_SQRT_2;
 /// `z` (0 = no surface): along each image axis, the difference to the
 /// neighbour nearer in depth, so a depth edge does not tilt it. `None`
 /// without a neighbour on either axis.
-fn surface_normal(
+pub(crate) fn surface_normal(
     z: &[f64],
     w: u32,
     h: u32,

@@ -238,18 +238,15 @@ fn label_with_masks(
     output: &OutputOptions,
 ) -> anyhow::Result<LabelSummary> {
     let (given, lifted) = lift_masks(dir, scan, model, options)?;
-    let mut surface = Labeler::new(
-        &lifted.regions,
-        model,
-        LabelOptions {
-            exact_boxes: true,
-            ..options
-        },
-    )?;
+    let mut surface = Labeler::new(&lifted.regions, model, options)?;
     surface.fuse_sensor_depth(scan);
+    let planes = surface.exclude_supports(scan)?;
+    if planes > 0 {
+        note!("excluded {planes} support or wall plane(s) from the regions of the masks' objects (--exact-boxes keeps them)");
+    }
     let (all, first_box_id) = objects_and_boxes(&lifted, boxes.map(|(b, _)| b))?;
     let boxes = boxes.map(|(_, labeler)| (labeler, first_box_id));
-    let labeler = MaskLabeler::new(scan, &given, &lifted.votes, &surface, boxes, &all, options);
+    let labeler = MaskLabeler::new(scan, &given, &lifted, &surface, boxes, &all, options);
     write(out, scan, &all, &labeler, output)
 }
 

@@ -324,7 +324,8 @@ pub struct LabelArgs {
     /// thinner than the plane's measured noise band is lost to the support.
     /// Also by default, where boxes overlap, a neighbour's face that a box
     /// encloses behind a depth step goes to the neighbour, not to the
-    /// smaller box.
+    /// smaller box. With --masks, the same planes are excluded from the
+    /// masks' objects (a mask that bleeds onto the table around an object).
     #[arg(long)]
     pub exact_boxes: bool,
     /// Which box a point inside several boxes belongs to.

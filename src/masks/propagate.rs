@@ -13,7 +13,7 @@
 
 use super::read::GivenMasks;
 use super::votes::VoteVolume;
-use crate::boxes::label::{finish_mask, instances_of};
+use crate::boxes::label::{finish_mask, instances_of, surface_normal};
 use crate::boxes::output::FrameLabelling;
 use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
 use crate::poses::symmetric_eigen;
@@ -422,8 +422,11 @@ pub struct MaskLabeler<'a> {
     /// Frame id -> its given mask.
     given_by_frame: HashMap<u64, &'a Vec<u16>>,
     votes: &'a VoteVolume,
-    /// Renders the surface inside the objects' regions.
+    /// Renders the surface inside the objects' regions, and holds the
+    /// support planes excluded from each region.
     surface: &'a Labeler<'a>,
+    /// Object id -> index of its region in the surface labeler's box set.
+    region_of: HashMap<u16, usize>,
     /// Boxes' labeler and the id its box 1 takes in the output.
     boxes: Option<(&'a Labeler<'a>, u16)>,
     /// Every object and box, by output instance id.
@@ -435,17 +438,26 @@ impl<'a> MaskLabeler<'a> {
     pub fn new(
         scan: &'a Scan,
         given: &'a GivenMasks,
-        votes: &'a VoteVolume,
+        lifted: &'a Lifted,
         surface: &'a Labeler<'a>,
         boxes: Option<(&'a Labeler<'a>, u16)>,
         all: &'a BoxSet,
         options: LabelOptions,
     ) -> MaskLabeler<'a> {
         let given_by_frame = given.frames.iter().map(|(&i, m)| (scan.frames[i].id, m)).collect();
+        // `lift` builds the regions in the order of the objects.
+        let region_of = lifted
+            .objects
+            .boxes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (b.instance_id as u16, i))
+            .collect();
         MaskLabeler {
             given_by_frame,
-            votes,
+            votes: &lifted.votes,
             surface,
+            region_of,
             boxes,
             all,
             options,
@@ -467,9 +479,22 @@ impl FrameLabelling for MaskLabeler<'_> {
             Some(m) => (*m).clone(),
             None => {
                 let mut mask = vec![0u16; w as usize * h as usize];
+                // Camera z of every surface pixel, for the normals the excluded planes need.
+                let mut z_image = vec![0.0f64; w as usize * h as usize];
                 for (x, y, z) in surface.points() {
-                    let (id, _) = self.votes.classify(world_point(frame, x, y, z));
-                    mask[y as usize * w as usize + x as usize] = id;
+                    z_image[y as usize * w as usize + x as usize] = z;
+                }
+                let point_at = |x: u32, y: u32, z: f64| world_point(frame, x, y, z);
+                for (x, y, z) in surface.points() {
+                    let p = world_point(frame, x, y, z);
+                    let (id, _) = self.votes.classify(p);
+                    // A mask that bleeds onto the support an object stands on
+                    // lifts to the support plane: the plane is not the object.
+                    let on_support = self.region_of.get(&id).is_some_and(|&region| {
+                        self.surface
+                            .excluded_at(region, p, || surface_normal(&z_image, w, h, x, y, &point_at))
+                    });
+                    mask[y as usize * w as usize + x as usize] = if on_support { 0 } else { id };
                 }
                 mask
             }

@@ -356,7 +356,7 @@ fn relabelling_three_frames_keeps_every_other_frames_files_byte_identical() {
 }
 
 #[test]
-fn synth_refuses_to_replace_a_file_without_overwrite() {
+fn synth_refuses_to_replace_a_file_without_overwrite_or_while_another_run_writes_it() {
     let dir = tempfile::tempdir().unwrap();
     let scan = small_scan(dir.path());
     let fit = run(&["fit", s(&scan), "--steps", "2", "--preset", "fast", "--holdout", "0"]);
@@ -375,6 +375,14 @@ fn synth_refuses_to_replace_a_file_without_overwrite() {
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--overwrite"), "{}", stderr(&o));
     assert_eq!(std::fs::read(&out).unwrap(), b"precious");
+    // Another process writing the same file (here: this test holding its lock).
+    let held = std::fs::File::create(dir.path().join(".views.parquet.lock")).unwrap();
+    held.try_lock().unwrap();
+    let o = synth(&["--overwrite"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("another nerflabel process"), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&out).unwrap(), b"precious");
+    drop(held);
     let o = synth(&["--overwrite"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(&std::fs::read(&out).unwrap()[..4], b"PAR1");

@@ -10,7 +10,7 @@ use anyhow::bail;
 use glam::DVec3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
 use nerflabel::masks::{objects_and_boxes, PointLabels};
-use nerflabel::outputs::{check_outputs, Output, ProtectedInputs};
+use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 use nerflabel::synth::{read_poses, synthesize, synthesize_objects, Objects, SynthOptions, SynthProgress};
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
@@ -40,6 +40,8 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let mut scan = load_scan(&args.scan)?;
     check_outputs(&outputs, Some(&ProtectedInputs::of(&scan)))?;
     check_model_scan(&model, &model_path, &mut scan, args.force)?;
+    // Two runs writing one file would each replace the other's at its end.
+    let _lock = lock_output(&out, "the synthetic views")?;
     if out.exists() && !args.overwrite {
         bail!(
             "{}: exists; pass --overwrite to replace it, or choose another --out",

@@ -402,6 +402,45 @@ fn masks_of_sampled_views_agree_with_exact_ground_truth() {
     );
 }
 
+/// Boxes drawn loosely (margins, a bottom that dips into the table) label
+/// the objects of synthetic views as `label` does, not the table under them;
+/// `exact_boxes` labels all they enclose, table included.
+#[test]
+fn loose_boxes_label_the_objects_of_synthetic_views_not_the_table() {
+    let f = fitted();
+    let loose = read_boxes(&f.scan_dir.join("gt/boxes_loose.json")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let score = |exact_boxes: bool| {
+        let out = dir.path().join(format!("exact-{exact_boxes}.parquet"));
+        let opts = SynthOptions {
+            n: 6,
+            seed: 5,
+            width: Some(128),
+            exact_boxes,
+            ..SynthOptions::default()
+        };
+        synthesize(
+            &f.scan,
+            &f.model,
+            Some(&loose),
+            &opts,
+            &out,
+            &|_| {},
+            &AtomicBool::new(false),
+        )
+        .unwrap();
+        let rows = read_rows(&out);
+        let pairs: Vec<(Vec<u8>, Vec<u16>)> = rows.iter().map(|r| (r.mask.clone(), truth(&r.spec).instance)).collect();
+        mean_iou(&pairs).0
+    };
+    let (objects, exact) = (score(false), score(true));
+    eprintln!("loose boxes: mask mIoU {objects:.3}, with exact boxes {exact:.3}");
+    assert!(
+        objects > 0.8 && objects > exact + 0.1,
+        "mIoU {objects:.3} (exact boxes {exact:.3})"
+    );
+}
+
 #[test]
 fn interruption_and_impossible_clearance_leave_nothing_behind() {
     let dir = tempfile::tempdir().unwrap();

@@ -173,6 +173,7 @@ impl Stages for CliStages {
             scan: scan_args(entry),
             boxes: entry.boxes.clone(),
             masks: entry.masks.clone(),
+            exact_boxes: false,
             n: entry.synth_views,
             width: entry.synth_width,
             height: entry.synth_height,

@@ -375,6 +375,11 @@ pub struct SynthArgs {
     /// largest mask id.
     #[arg(long, value_name = "DIR")]
     pub masks: Option<PathBuf>,
+    /// Label exactly what each box encloses. By default the support and
+    /// wall planes `label` excludes from a box (the table under a loosely
+    /// drawn box) are excluded from the synthetic masks too.
+    #[arg(long)]
+    pub exact_boxes: bool,
     /// Number of views to sample.
     #[arg(long, default_value_t = 500)]
     pub n: usize,

@@ -11,7 +11,9 @@ use glam::DVec3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
 use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
-use nerflabel::synth::{read_poses, synthesize, synthesize_objects, Objects, SynthOptions, SynthProgress};
+use nerflabel::synth::{
+    read_poses, support_planes, synthesize, synthesize_objects, Objects, SynthOptions, SynthProgress,
+};
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let scan_dir = &args.scan.scan;
@@ -67,6 +69,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         clearance: args.clearance,
         poses,
         model_checksum,
+        exact_boxes: args.exact_boxes,
         ..SynthOptions::default()
     };
     let views = options.poses.as_ref().map_or(args.n, |p| p.len());
@@ -101,15 +104,32 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             let (_, lifted) = lift_masks(dir, &scan, Some(&model), LabelOptions::default())?;
             let (all, first_box_id) = objects_and_boxes(&lifted, boxes.as_ref())?;
             let from_masks = PointLabels::new(&lifted);
+            let region_of = lifted.region_of();
+            let object_supports = support_planes(&lifted.regions, &model, &scan, args.exact_boxes)?;
             let from_boxes = boxes.as_ref().map(BoxClassifier::new);
-            // A mask object's surface first; the boxes label the rest.
-            let classify = |p: DVec3| -> u32 {
-                match from_masks.classify(p) {
-                    0 => from_boxes.as_ref().map_or(0, |c| match c.classify(p) {
-                        0 => 0,
-                        b => b + first_box_id as u32 - 1,
-                    }),
-                    id => id as u32,
+            let box_supports = boxes
+                .as_ref()
+                .map(|b| support_planes(b, &model, &scan, args.exact_boxes))
+                .transpose()?;
+            // A mask object's surface first; the boxes label the rest. Each
+            // loses the support and wall planes `label` excludes from it.
+            let classify = |p: DVec3, normal: Option<DVec3>| -> u32 {
+                let id = from_masks.classify(p);
+                if id > 0 {
+                    let on_support = region_of
+                        .get(&id)
+                        .is_some_and(|&r| object_supports.excluded_at(r, p, || normal));
+                    return if on_support { 0 } else { id as u32 };
+                }
+                let b = from_boxes.as_ref().map_or(0, |c| c.classify(p));
+                let on_support = b > 0
+                    && box_supports
+                        .as_ref()
+                        .is_some_and(|s| s.excluded_at(b as usize - 1, p, || normal));
+                if b == 0 || on_support {
+                    0
+                } else {
+                    b + first_box_id as u32 - 1
                 }
             };
             let objects = Objects::of(&all, &classify);

@@ -58,6 +58,19 @@ pub struct Lifted {
     pub warnings: Vec<String>,
 }
 
+impl Lifted {
+    /// Object id -> index of its region in `regions` (`lift` builds the
+    /// regions in the order of the objects).
+    pub fn region_of(&self) -> HashMap<u16, usize> {
+        self.objects
+            .boxes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| (b.instance_id as u16, i))
+            .collect()
+    }
+}
+
 /// Lift the given masks: `labeler` must give every pixel's surface
 /// (full depth, no boxes).
 pub fn lift(
@@ -445,14 +458,7 @@ impl<'a> MaskLabeler<'a> {
         options: LabelOptions,
     ) -> MaskLabeler<'a> {
         let given_by_frame = given.frames.iter().map(|(&i, m)| (scan.frames[i].id, m)).collect();
-        // `lift` builds the regions in the order of the objects.
-        let region_of = lifted
-            .objects
-            .boxes
-            .iter()
-            .enumerate()
-            .map(|(i, b)| (b.instance_id as u16, i))
-            .collect();
+        let region_of = lifted.region_of();
         MaskLabeler {
             given_by_frame,
             votes: &lifted.votes,

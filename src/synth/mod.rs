@@ -14,9 +14,11 @@ pub use error::{PosesFileError, Rejections, SynthError};
 pub use parquet::{synth_schema, SynthWriter};
 pub use poses_file::{parse_poses, read_poses, ViewSpec};
 pub use sampling::{Candidate, Cloud, PoseSampler, Target};
-pub use triplet::{Box2d, Instances, SynthView};
+pub use triplet::{Box2d, Instances, PointClassifier, SynthView};
 pub mod synthesize;
 pub mod viewpoints;
 
-pub use synthesize::{synthesize, synthesize_objects, view_size, Objects, SynthOptions, SynthProgress, SynthSummary};
+pub use synthesize::{
+    support_planes, synthesize, synthesize_objects, view_size, Objects, SynthOptions, SynthProgress, SynthSummary,
+};
 pub use viewpoints::{probe, Verdict, ViewStream};

@@ -6,9 +6,9 @@ use super::error::{Rejections, SynthError};
 use super::parquet::SynthWriter;
 use super::poses_file::{ViewSpec, MAX_VIEWS};
 use super::sampling::{Cloud, PoseSampler, Target};
-use super::triplet::{render_view, Instances, SynthView};
+use super::triplet::{render_view, Instances, PointClassifier, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
-use crate::boxes::{BoxClassifier, BoxSet};
+use crate::boxes::{BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
@@ -48,6 +48,9 @@ pub struct SynthOptions {
     /// Render colour with the appearance (exposure, white balance) of this
     /// scan frame; `None`: the model's neutral appearance.
     pub appearance: Option<usize>,
+    /// Label exactly what each box encloses; by default the support and
+    /// wall planes `label` excludes from a box are excluded here too.
+    pub exact_boxes: bool,
 }
 
 impl Default for SynthOptions {
@@ -62,6 +65,7 @@ impl Default for SynthOptions {
             min_observed: MIN_OBSERVED,
             model_checksum: 0,
             appearance: None,
+            exact_boxes: false,
         }
     }
 }
@@ -104,7 +108,7 @@ pub struct Objects<'a> {
 impl<'a> Objects<'a> {
     /// The objects of a box set (boxes, or given masks' objects): views
     /// aimed at each box, labels by instance id, points labelled by `classify`.
-    pub fn of(set: &BoxSet, classify: &'a (dyn Fn(DVec3) -> u32 + Sync)) -> Objects<'a> {
+    pub fn of(set: &BoxSet, classify: &'a PointClassifier<'a>) -> Objects<'a> {
         let mut labels = vec![String::new(); set.max_instance_id() as usize];
         for b in &set.boxes {
             if let Some(slot) = (b.instance_id as usize).checked_sub(1).and_then(|i| labels.get_mut(i)) {
@@ -191,8 +195,33 @@ pub fn synthesize(
         return synthesize_objects(scan, model, &objects, options, out, progress, stop);
     };
     let classifier = BoxClassifier::new(set);
-    let classify = |p: DVec3| classifier.classify(p);
+    let supports = support_planes(set, model, scan, options.exact_boxes)?;
+    let classify = |p: DVec3, normal: Option<DVec3>| match classifier.classify(p) {
+        0 => 0,
+        id if supports.excluded_at(id as usize - 1, p, || normal) => 0,
+        id => id,
+    };
     synthesize_objects(scan, model, &Objects::of(set, &classify), options, out, progress, stop)
+}
+
+/// The support and wall planes `label` excludes from each box of `set`
+/// (none with `exact_boxes`), held by a labeler of the rendered depth.
+pub fn support_planes<'a>(
+    set: &'a BoxSet,
+    model: &'a Model,
+    scan: &Scan,
+    exact_boxes: bool,
+) -> Result<Labeler<'a>, SynthError> {
+    let options = LabelOptions {
+        source: DepthSource::Nerf,
+        exact_boxes,
+        ..LabelOptions::default()
+    };
+    let mut labeler = Labeler::new(set, Some(model), options).map_err(|e| SynthError::Options(e.to_string()))?;
+    labeler
+        .exclude_supports(scan)
+        .map_err(|e| SynthError::Options(e.to_string()))?;
+    Ok(labeler)
 }
 
 /// [`synthesize`] with the objects given directly (targets and a point classifier).

@@ -6,16 +6,22 @@
 use super::error::SynthError;
 use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
+use crate::boxes::label::surface_normal;
 use crate::boxes::LabelOptions;
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
 use glam::{DMat4, DVec3};
 
+/// Instance id of a world point (0 = none), given the surface normal there
+/// where neighbouring pixels give one (a support plane's band keeps the
+/// foot of an object, which is steep to it).
+pub type PointClassifier<'a> = dyn Fn(DVec3, Option<DVec3>) -> u32 + Sync + 'a;
+
 /// Maps world points to instance ids (0 = none) and ids to labels.
 pub struct Instances<'a> {
     /// Instance id of a world point, 0 when it lies in no box.
-    pub classify: &'a (dyn Fn(DVec3) -> u32 + Sync),
+    pub classify: &'a PointClassifier<'a>,
     /// Label of instance id `i` at index `i - 1`.
     pub labels: Vec<String>,
 }
@@ -24,7 +30,7 @@ impl Instances<'_> {
     /// No boxes: every pixel is background.
     pub fn none() -> Instances<'static> {
         Instances {
-            classify: &|_| 0,
+            classify: &|_, _| 0,
             labels: Vec::new(),
         }
     }
@@ -74,24 +80,31 @@ impl SynthView {
 }
 
 /// Instance id of every pixel: its depth back-projected to a world point
-/// and classified; pixels without depth are 0.
+/// and classified with the surface normal there; pixels without depth are 0.
 pub fn instance_mask(
     depth_m: &[f32],
     camera_to_world: &DMat4,
     k: &Intrinsics,
     width: u32,
-    classify: &(dyn Fn(DVec3) -> u32 + Sync),
+    classify: &PointClassifier,
 ) -> Vec<u16> {
     let w = width.max(1) as usize;
-    depth_m
+    let h = depth_m.len() / w;
+    let z: Vec<f64> = depth_m
         .iter()
+        .map(|&z| if z > 0.0 && z.is_finite() { f64::from(z) } else { 0.0 })
+        .collect();
+    let point_at =
+        |u: u32, v: u32, z: f64| camera_to_world.transform_point3(k.unproject(f64::from(u), f64::from(v)) * z);
+    z.iter()
         .enumerate()
-        .map(|(i, &z)| {
-            if !(z > 0.0 && z.is_finite()) {
+        .map(|(i, &depth)| {
+            if depth <= 0.0 || i >= w * h {
                 return 0;
             }
-            let (u, v) = ((i % w) as f64, (i / w) as f64);
-            let id = classify(camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z)));
+            let (u, v) = ((i % w) as u32, (i / w) as u32);
+            let normal = surface_normal(&z, w as u32, h as u32, u, v, &point_at);
+            let id = classify(point_at(u, v, depth), normal);
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16
         })
@@ -189,7 +202,7 @@ mod tests {
             cy: 1.0,
         };
         // Box 1: world x in [1.5, 2.5] (depth 2 m hits it, depth 1 m does not).
-        let classify = |p: DVec3| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
+        let classify = |p: DVec3, _| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
         let depth = [2.0, 2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, f32::NAN];
         let mask = instance_mask(&depth, &c2w, &k, 3, &classify);
         // Pixel (u, v) at depth 2 maps to world (2, -(u - 1) / 2, -(v - 1) / 2): inside the box.
@@ -217,7 +230,7 @@ mod tests {
     #[test]
     fn tight_boxes_cover_exactly_the_instance_pixels() {
         let instances = Instances {
-            classify: &|_| 0,
+            classify: &|_, _| 0,
             labels: vec!["mug".into(), "box".into(), "can".into()],
         };
         #[rustfmt::skip]

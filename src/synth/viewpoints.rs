@@ -122,7 +122,10 @@ fn sees_object(depth: &[f32], c2w: &DMat4, k: &Intrinsics, pixels: &[(f32, f32)]
     depth.iter().zip(pixels).any(|(&z, &(u, v))| {
         z > 0.0
             && z.is_finite()
-            && (instances.classify)(c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)) * f64::from(z))) > 0
+            && (instances.classify)(
+                c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)) * f64::from(z)),
+                None,
+            ) > 0
     })
 }
 

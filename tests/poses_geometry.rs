@@ -2,6 +2,7 @@
 //! global-to-local normalisation and the fused point cloud written as PLY.
 
 use glam::{DMat3, DMat4, DQuat, DVec3};
+use nerflabel::glam_bridge::{ToGlam, ToNalgebra};
 use nerflabel::poses::{
     fuse_cloud, normalize, scene_bounds, write_ply, BoundsOptions, BoundsSource, CloudOptions, DAabb, Normalization,
     NormalizeOptions, Orientation, SceneBounds,
@@ -61,7 +62,7 @@ impl Room {
                 let mut rgb = RgbImage::new(W, H);
                 for v in 0..H {
                     for u in 0..W {
-                        let d = rot * k.unproject(u as f64, v as f64);
+                        let d = rot * k.unproject(u as f64, v as f64).to_glam();
                         let t = (0..3)
                             .filter(|&a| d[a] != 0.0)
                             .map(|a| (self.half[a].copysign(d[a]) - eye[a]) / d[a])
@@ -89,7 +90,8 @@ impl Room {
                         world_rot.y_axis.extend(0.0),
                         world_rot.z_axis.extend(0.0),
                         self.to_world(eye).extend(1.0),
-                    ),
+                    )
+                    .to_na(),
                     intrinsics: k,
                     depth_size: None,
                 }
@@ -162,9 +164,9 @@ fn bounds_ignore_flying_pixels_all_on_one_side() {
         ..Room::default()
     }
     .scan();
-    scan.frames.retain(|f| f.camera_to_world.z_axis.x > 0.5);
+    scan.frames.retain(|f| f.camera_to_world.to_glam().z_axis.x > 0.5);
     let mut clean = Room::default().scan();
-    clean.frames.retain(|f| f.camera_to_world.z_axis.x > 0.5);
+    clean.frames.retain(|f| f.camera_to_world.to_glam().z_axis.x > 0.5);
     let (noisy, clean) = (bounds_of(&scan), bounds_of(&clean));
     let extent = clean.aabb.max_extent();
     assert!(
@@ -178,13 +180,13 @@ fn bounds_ignore_flying_pixels_all_on_one_side() {
 #[test]
 fn bounds_enclose_all_cameras_even_a_far_one() {
     let mut scan = Room::default().scan();
-    scan.frames[5].camera_to_world.w_axis = DVec3::new(30.0, -4.0, 2.0).extend(1.0);
+    scan.frames[5].camera_to_world.translation = nalgebra::Translation3::new(30.0, -4.0, 2.0);
     let b = bounds_of(&scan);
     for f in &scan.frames {
         assert!(
-            b.aabb.contains(f.camera_center()),
+            b.aabb.contains(f.camera_center().to_glam()),
             "{} outside {:?}",
-            f.camera_center(),
+            f.camera_center().to_glam(),
             b.aabb
         );
     }
@@ -195,17 +197,27 @@ fn bbox_txt_overrides_the_depth() {
     let mut scan = Room::default().scan();
     // Reaches the wall at x = 2 (bounds holding no surface are refused).
     let user = Bounds {
-        min: DVec3::new(-0.5, -0.25, -0.1),
-        max: DVec3::new(2.5, 0.75, 0.3),
+        min: nalgebra::Point3::new(-0.5, -0.25, -0.1),
+        max: nalgebra::Point3::new(2.5, 0.75, 0.3),
     };
     scan.bounds = Some(user);
     let (b, n) = normalization_of(&scan);
     assert_eq!(b.source, BoundsSource::User);
-    assert_eq!((b.aabb.min, b.aabb.max), (user.min, user.max));
+    assert_eq!((b.aabb.min, b.aabb.max), (user.min.to_glam(), user.max.to_glam()));
     assert!(!n.rotated);
     // The user box becomes the local box, its longest edge spanning 0.9.
-    assert!(max_abs_diff(n.transform.world_to_local_point(user.min), DVec3::new(0.05, 0.35, 0.44)) < 1e-12);
-    assert!(max_abs_diff(n.transform.world_to_local_point(user.max), DVec3::new(0.95, 0.65, 0.56)) < 1e-12);
+    assert!(
+        max_abs_diff(
+            n.transform.world_to_local_point(user.min.to_glam()),
+            DVec3::new(0.05, 0.35, 0.44)
+        ) < 1e-12
+    );
+    assert!(
+        max_abs_diff(
+            n.transform.world_to_local_point(user.max.to_glam()),
+            DVec3::new(0.95, 0.65, 0.56)
+        ) < 1e-12
+    );
 }
 
 #[test]
@@ -213,8 +225,8 @@ fn bbox_txt_holding_no_surface_is_refused() {
     // Regression: bounds away from the scene trained nothing and exited 0.
     let mut scan = Room::default().scan();
     scan.bounds = Some(Bounds {
-        min: DVec3::new(-0.5, -0.25, -0.1),
-        max: DVec3::new(0.5, 0.75, 0.3),
+        min: nalgebra::Point3::new(-0.5, -0.25, -0.1),
+        max: nalgebra::Point3::new(0.5, 0.75, 0.3),
     });
     let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err().to_string();
     assert!(err.contains("bbox.txt") && err.contains("hold 0 of"), "{err}");
@@ -231,12 +243,12 @@ fn no_depth_fallback_is_finite_and_contains_the_cameras() {
     assert_eq!(b.source, BoundsSource::CameraFrusta);
     assert!(b.aabb.is_valid());
     for f in &scan.frames {
-        assert!(b.aabb.contains(f.camera_center()));
+        assert!(b.aabb.contains(f.camera_center().to_glam()));
         // Each optical axis is kept for the documented range, 2 x the
         // camera box diagonal (0.7 m radius trajectory: diagonal > 1.4 m).
         assert!(b
             .aabb
-            .contains(f.camera_center() + f.camera_to_world.z_axis.truncate() * 2.8));
+            .contains(f.camera_center().to_glam() + f.camera_to_world.to_glam().z_axis.truncate() * 2.8));
     }
     assert!(b.aabb.max_extent() < 20.0, "{:?}", b.aabb);
     let n = normalize(&b, &NormalizeOptions::default()).unwrap();
@@ -325,7 +337,7 @@ fn camera_poses_stay_orthonormal_in_local_space_and_round_trip() {
     let (_, n) = normalization_of(&scan);
     let t = n.transform;
     for f in &scan.frames {
-        let local = t.world_to_local_pose(&f.camera_to_world);
+        let local = t.world_to_local_pose(&f.camera_to_world.to_glam());
         let r = DMat3::from_mat4(local);
         let err = (r.transpose() * r - DMat3::IDENTITY)
             .abs()
@@ -335,11 +347,11 @@ fn camera_poses_stay_orthonormal_in_local_space_and_round_trip() {
         assert!(err < 1e-12 && (r.determinant() - 1.0).abs() < 1e-12, "frame {}", f.name);
         assert_eq!(local.row(3), glam::DVec4::W);
         // The optical axis and centre follow the points.
-        let ahead = f.camera_to_world.transform_point3(DVec3::new(0.0, 0.0, 0.02));
+        let ahead = f.camera_to_world.to_glam().transform_point3(DVec3::new(0.0, 0.0, 0.02));
         let ahead_local = local.transform_point3(DVec3::new(0.0, 0.0, t.world_to_local_distance(0.02)));
         assert!((t.world_to_local_point(ahead) - ahead_local).length() < 1e-9);
         let back = t.local_to_world_pose(&local);
-        assert!(back.abs_diff_eq(f.camera_to_world, 1e-9), "frame {}", f.name);
+        assert!(back.abs_diff_eq(f.camera_to_world.to_glam(), 1e-9), "frame {}", f.name);
     }
 }
 

@@ -11,6 +11,7 @@ use glam::DMat4;
 use image::DynamicImage;
 use nerflabel::boxes::read_boxes;
 use nerflabel::fixture::{generate, read_meta, Corruptions, FixtureOptions, Render, SceneKind};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::metrics::psnr;
@@ -324,7 +325,9 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     let dir = tempfile::tempdir().unwrap();
     let frame = &f.scan.frames[7];
     let (w, h) = frame.size();
-    let rows: Vec<[f64; 4]> = (0..4).map(|r| frame.camera_to_world.row(r).to_array()).collect();
+    let rows: Vec<[f64; 4]> = (0..4)
+        .map(|r| frame.camera_to_world.to_glam().row(r).to_array())
+        .collect();
     let k = frame.intrinsics;
     let json = serde_json::json!({ "views": [{
         "camera_to_world": rows, "intrinsics": [k.fx, k.fy, k.cx, k.cy], "width": w, "height": h
@@ -343,7 +346,10 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     let rows = read_rows(&out);
     assert_eq!(rows.len(), 1);
     let row = &rows[0];
-    assert!(row.spec.camera_to_world.abs_diff_eq(frame.camera_to_world, 1e-12));
+    assert!(row
+        .spec
+        .camera_to_world
+        .abs_diff_eq(frame.camera_to_world.to_glam(), 1e-12));
     let gt = truth(&row.spec);
     let against_frame = psnr(&row.rgb, frame.rgb.as_raw());
     let against_truth = psnr(&row.rgb, gt.rgb.as_raw());

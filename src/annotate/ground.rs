@@ -5,6 +5,7 @@
 //! surface points within 25° of it (the floor or the table), and to a world
 //! axis when within half a degree of one (exact in generated scenes).
 
+use crate::glam_bridge::ToGlam;
 use crate::poses::symmetric_eigen;
 use crate::rng::Rng;
 use crate::scan::Scan;
@@ -48,7 +49,7 @@ impl Ground {
     /// The scan's up axis from its cameras and surface points (world metres).
     pub fn estimate(scan: &Scan, points: &[DVec3]) -> Ground {
         let cameras: DVec3 = (scan.frames.iter())
-            .map(|f| -f.camera_to_world.y_axis.truncate())
+            .map(|f| -f.camera_to_world.to_glam().y_axis.truncate())
             .filter(|v| v.is_finite())
             .sum();
         let guess = if cameras.length() > 1e-9 {

@@ -3,6 +3,7 @@
 //! parameters and the occupancy grid as sections. Written atomically; every
 //! defect on load is a clear error.
 
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::appearance::Affine;
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::field::{Field, FieldConfig};
@@ -172,8 +173,8 @@ impl Model {
         let mut changed = 0;
         for (frame, pose) in scan.frames.iter_mut().zip(poses) {
             let pose = glam::DMat4::from_cols_array(pose);
-            if pose.is_finite() && pose != frame.camera_to_world {
-                frame.camera_to_world = pose;
+            if pose.is_finite() && pose != frame.camera_to_world.to_glam() {
+                frame.camera_to_world = pose.to_na();
                 changed += 1;
             }
         }

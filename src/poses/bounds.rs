@@ -24,6 +24,7 @@
 //! fallback fails.
 
 use super::{DAabb, GeometryError};
+use crate::glam_bridge::ToGlam;
 use crate::scan::{Frame, Scan};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -146,11 +147,11 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
         stats.rejected = samples.points.par_iter().filter(|p| !b.contains(**p)).count();
     }
     let (aabb, source) = if let Some(user) = scan.bounds {
-        let b = DAabb::new(user.min, user.max);
+        let b = DAabb::new(user.min.to_glam(), user.max.to_glam());
         if !b.is_valid() || !b.min.cmplt(b.max).all() {
             return Err(GeometryError::InvalidUserBounds {
-                min: user.min,
-                max: user.max,
+                min: user.min.to_glam(),
+                max: user.max.to_glam(),
             });
         }
         // Bounds holding (almost) none of the measured surface train nothing.
@@ -158,8 +159,8 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
         let inside = samples.points.par_iter().filter(|p| b.contains(**p)).count();
         if total > 0 && inside * USER_BOUNDS_MIN_SHARE < total {
             return Err(GeometryError::UserBoundsMissScene {
-                min: user.min,
-                max: user.max,
+                min: user.min.to_glam(),
+                max: user.max.to_glam(),
                 inside,
                 total,
             });
@@ -189,8 +190,8 @@ pub(crate) fn camera_centers(scan: &Scan) -> Result<Vec<DVec3>, GeometryError> {
     scan.frames
         .iter()
         .map(|f| {
-            if f.camera_to_world.is_finite() {
-                Ok(f.camera_center())
+            if f.camera_to_world.to_glam().is_finite() {
+                Ok(f.camera_center().to_glam())
             } else {
                 Err(GeometryError::BadPose { frame: f.name.clone() })
             }
@@ -239,7 +240,7 @@ fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<DVec3>, V
     let Some(k) = depth_intrinsics(frame)? else {
         return Ok((Vec::new(), Vec::new()));
     };
-    if !frame.camera_to_world.is_finite() {
+    if !frame.camera_to_world.to_glam().is_finite() {
         return Err(GeometryError::BadPose {
             frame: frame.name.clone(),
         });
@@ -251,7 +252,10 @@ fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<DVec3>, V
     while let Some(&z) = usize::try_from(idx).ok().and_then(|i| depth.metres.get(i)) {
         if z > 0.0 && z.is_finite() {
             let (u, v) = ((idx % w) as f64, (idx / w) as f64);
-            let p = frame.camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z));
+            let p = frame
+                .camera_to_world
+                .to_glam()
+                .transform_point3(k.unproject(u, v).to_glam() * f64::from(z));
             if p.is_finite() {
                 points.push(p);
                 depths.push(z);
@@ -351,7 +355,10 @@ fn frusta_bounds(scan: &Scan, cameras: &[DVec3], options: &BoundsOptions) -> Res
         let (w, h) = f.size();
         let (w, h) = (f64::from(w), f64::from(h));
         for (u, v) in [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)] {
-            let p = f.camera_to_world.transform_point3(f.intrinsics.unproject(u, v) * far);
+            let p = f
+                .camera_to_world
+                .to_glam()
+                .transform_point3(f.intrinsics.unproject(u, v).to_glam() * far);
             if p.is_finite() {
                 b = b.including(p);
             }
@@ -445,16 +452,16 @@ mod tests {
     fn user_box_overrides_and_invalid_box_is_an_error() {
         let mut scan = Room::default().scan();
         let user = Bounds {
-            min: DVec3::new(-1.0, -1.0, -1.0),
-            max: DVec3::new(1.0, 2.0, 3.0),
+            min: nalgebra::Point3::new(-1.0, -1.0, -1.0),
+            max: nalgebra::Point3::new(1.0, 2.0, 3.0),
         };
         scan.bounds = Some(user);
         let b = scene_bounds(&scan, &BoundsOptions::default()).unwrap();
         assert_eq!(b.source, BoundsSource::User);
-        assert_eq!((b.aabb.min, b.aabb.max), (user.min, user.max));
+        assert_eq!((b.aabb.min, b.aabb.max), (user.min.to_glam(), user.max.to_glam()));
         scan.bounds = Some(Bounds {
-            min: DVec3::ONE,
-            max: DVec3::new(2.0, 0.5, 2.0),
+            min: nalgebra::Point3::new(1.0, 1.0, 1.0),
+            max: nalgebra::Point3::new(2.0, 0.5, 2.0),
         });
         let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err();
         assert!(matches!(err, GeometryError::InvalidUserBounds { .. }), "{err}");

@@ -10,6 +10,7 @@
 
 use super::bounds::depth_intrinsics;
 use super::{scene_bounds, BoundsOptions, DAabb, GeometryError};
+use crate::glam_bridge::ToGlam;
 use crate::scan::{DepthMap, Frame, Intrinsics, Scan};
 use glam::{DMat3, DVec3, Mat3, Vec3};
 use rayon::prelude::*;
@@ -157,7 +158,7 @@ pub fn fuse_depth_maps<'s>(
     };
     let grid = make_grid(&bounds, options)?;
     for frame in &scan.frames {
-        if !frame.camera_to_world.is_finite() {
+        if !frame.camera_to_world.to_glam().is_finite() {
             return Err(GeometryError::BadPose {
                 frame: frame.name.clone(),
             });
@@ -245,8 +246,8 @@ fn frame_voxels(frame: &Frame, depth: &DepthMap, k: &Intrinsics, grid: &Grid) ->
         return map;
     }
     // Camera point (x, y, 1) * z to grid coordinates: g = z * (A (x, y, 1)) + b.
-    let a: Mat3 = (DMat3::from_mat4(frame.camera_to_world) / grid.voxel).as_mat3();
-    let b: Vec3 = ((frame.camera_center() - grid.min) / grid.voxel).as_vec3();
+    let a: Mat3 = (DMat3::from_mat4(frame.camera_to_world.to_glam()) / grid.voxel).as_mat3();
+    let b: Vec3 = ((frame.camera_center().to_glam() - grid.min) / grid.voxel).as_vec3();
     let dims = Vec3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
     // The rgb pixel on each depth pixel's ray (the nearest centre).
     let rgb_k = frame.intrinsics;
@@ -361,7 +362,8 @@ mod tests {
                 let (u, v) = ((i % 64) as f64, (i / 64) as f64);
                 let p = f
                     .camera_to_world
-                    .transform_point3(f.intrinsics.unproject(u, v) * *z as f64);
+                    .to_glam()
+                    .transform_point3(f.intrinsics.unproject(u, v).to_glam() * *z as f64);
                 keys.insert(((p - cloud.bounds.min) / voxel).floor().as_i64vec3().to_array());
             }
         }

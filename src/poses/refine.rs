@@ -9,6 +9,7 @@
 //! Tukey biweight whose scale is the residuals' own median absolute value.
 
 use super::GeometryError;
+use crate::glam_bridge::ToGlam;
 use crate::scan::{Frame, Scan, EDGE_RELATIVE_GAP};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -189,7 +190,7 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
     if samples.iter().filter(|s| s.len() >= MIN_CORRESPONDENCES).count() < 2 {
         return Ok(None);
     }
-    let captured = scan.poses();
+    let captured = scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>();
     let mut poses = captured.clone();
     let mut previous_scale = f64::INFINITY;
     for _ in 0..opts.rounds {
@@ -295,7 +296,7 @@ pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Re
         while x < w {
             let z = depth.get(x, y);
             if z > 0.0 && z.is_finite() && away_from_edges(depth, x, y, z, reach) {
-                points.push(k.unproject(f64::from(x), f64::from(y)) * f64::from(z));
+                points.push(k.unproject(f64::from(x), f64::from(y)).to_glam() * f64::from(z));
             }
             x += stride;
         }
@@ -581,6 +582,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::glam_bridge::ToNalgebra;
     use crate::poses::test_scene;
 
     /// A room of six planes constrains each frame only partly (a frame that
@@ -600,22 +602,22 @@ mod tests {
             let axis = DVec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
             let angle = 0.3f64.to_radians() * rng.normal();
             let shift = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
-            let centre = f.camera_center();
+            let centre = f.camera_center().to_glam();
             let perturb = DMat4::from_translation(centre + shift)
                 * DMat4::from_axis_angle(axis, angle)
                 * DMat4::from_translation(-centre);
-            f.camera_to_world = perturb * f.camera_to_world;
+            f.camera_to_world = (perturb * f.camera_to_world.to_glam()).to_na();
         }
         let error = |poses: &[DMat4]| {
             let (mut t, mut r) = (0.0, 0.0);
             for (p, f) in poses.iter().zip(&truth.frames) {
-                let (dt, dr) = pose_difference(&f.camera_to_world, p);
+                let (dt, dr) = pose_difference(&f.camera_to_world.to_glam(), p);
                 t += dt * dt;
                 r += dr * dr;
             }
             ((t / poses.len() as f64).sqrt(), (r / poses.len() as f64).sqrt())
         };
-        let perturbed = scan.poses();
+        let perturbed = scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>();
         let (t0, r0) = error(&perturbed);
         let refined = refine_poses(&scan, &RefineOptions::default())
             .unwrap()

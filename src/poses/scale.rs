@@ -9,6 +9,7 @@
 
 use super::refine::{camera_points, Cloud};
 use super::GeometryError;
+use crate::glam_bridge::ToGlam;
 use crate::scan::Scan;
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
@@ -100,7 +101,7 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     if samples.iter().filter(|s| !s.is_empty()).count() < 2 {
         return Ok(None);
     }
-    let poses = scan.poses();
+    let poses = scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>();
     // Far from the answer, the distance to the nearest point of another
     // frame; near it, the distance to the plane through the nearest points
     // (sharper: it does not bottom out at the sampling spacing).
@@ -215,7 +216,13 @@ mod tests {
         .scan();
         for factor in [0.4, 2.5] {
             let mut scaled = scan.clone();
-            scaled.set_poses(&scale_poses(&scan.poses(), factor));
+            let poses = scale_poses(&scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(), factor);
+            scaled.set_poses(
+                &poses
+                    .iter()
+                    .map(crate::glam_bridge::ToNalgebra::to_na)
+                    .collect::<Vec<_>>(),
+            );
             let e = estimate_pose_scale(&scaled).unwrap().expect("the scan has depth");
             assert!(
                 (e.scale * factor - 1.0).abs() < 0.01,

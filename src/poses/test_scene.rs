@@ -1,6 +1,7 @@
 //! Synthetic scans with exact depth for the geometry tests: cameras inside a
 //! box-shaped room, each pixel's depth found by casting its ray to the walls.
 
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::rng::Rng;
 use crate::scan::{DepthMap, Frame, Intrinsics, Layout, RgbImage, Scan};
 use glam::{DMat3, DMat4, DQuat, DVec3};
@@ -89,7 +90,7 @@ impl Room {
                 let mut metres = vec![0.0f32; (w * h) as usize];
                 for v in 0..h {
                     for u in 0..w {
-                        let d = rot * k.unproject(u as f64, v as f64);
+                        let d = rot * k.unproject(u as f64, v as f64).to_glam();
                         let (t, axis) = exit(eye, d, self.half);
                         let mut z = (t * self.scale) as f32;
                         if rng.f64() < self.flying {
@@ -111,7 +112,7 @@ impl Room {
                         height: h,
                         metres,
                     }),
-                    camera_to_world: c2w,
+                    camera_to_world: c2w.to_na(),
                     intrinsics: k,
                     depth_size: None,
                 }

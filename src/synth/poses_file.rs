@@ -146,7 +146,7 @@ fn parse_view(v: &Value, ctx: ViewCtx) -> Result<ViewSpec, PosesFileError> {
     }
     // glam is column-major: column c holds m[0..4][c].
     let camera_to_world = DMat4::from_cols_array_2d(&[0, 1, 2, 3].map(|c| m.map(|row| row[c])));
-    if let Some(problem) = check_pose(&camera_to_world).problem() {
+    if let Some(problem) = check_pose(&crate::glam_bridge::matrix4(&camera_to_world)).problem() {
         return Err(ctx.err(field, problem));
     }
 

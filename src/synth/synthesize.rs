@@ -9,6 +9,7 @@ use super::sampling::{Cloud, PoseSampler, Target};
 use super::triplet::{render_view, Instances, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet};
+use crate::glam_bridge::ToGlam;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
@@ -140,7 +141,7 @@ impl Sampling {
     fn prepare(scan: &Scan, objects: &Objects, clearance: Option<f64>) -> Result<Sampling, SynthError> {
         let fused = fuse_cloud(scan, &CloudOptions::default())?;
         let cloud = Cloud::new(&fused.positions)?;
-        let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
+        let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center().to_glam()).collect();
         let clearance = match clearance {
             Some(c) if c > 0.0 && cloud.is_empty() => return Err(SynthError::NoCloud { clearance: c }),
             Some(c) => c,

@@ -7,6 +7,7 @@ use super::error::SynthError;
 use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
+use crate::glam_bridge::ToGlam;
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
@@ -91,7 +92,7 @@ pub fn instance_mask(
                 return 0;
             }
             let (u, v) = ((i % w) as f64, (i / w) as f64);
-            let id = classify(camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z)));
+            let id = classify(camera_to_world.transform_point3(k.unproject(u, v).to_glam() * f64::from(z)));
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16
         })

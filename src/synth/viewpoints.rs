@@ -13,6 +13,7 @@ use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
 use super::sampling::{Candidate, PoseSampler};
 use super::triplet::Instances;
+use crate::glam_bridge::ToGlam;
 use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
@@ -122,7 +123,9 @@ fn sees_object(depth: &[f32], c2w: &DMat4, k: &Intrinsics, pixels: &[(f32, f32)]
     depth.iter().zip(pixels).any(|(&z, &(u, v))| {
         z > 0.0
             && z.is_finite()
-            && (instances.classify)(c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)) * f64::from(z))) > 0
+            && (instances.classify)(
+                c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)).to_glam() * f64::from(z)),
+            ) > 0
     })
 }
 

@@ -4,6 +4,7 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::appearance;
 use crate::nerf::field::Field;
 use crate::nerf::model_file::{Model, ModelHeader};
@@ -271,7 +272,8 @@ fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseS
             _ => return Ok(None),
         },
     };
-    scan.set_poses(&scale_poses(&scan.poses(), applied));
+    let scaled = scale_poses(&scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(), applied);
+    scan.set_poses(&scaled.iter().map(ToNalgebra::to_na).collect::<Vec<_>>());
     Ok(Some(PoseScaleReport {
         applied,
         forced: forced.is_some(),
@@ -325,7 +327,7 @@ fn run(
         None
     };
     if let Some(r) = &refinement {
-        scan.set_poses(&r.camera_to_world);
+        scan.set_poses(&r.camera_to_world.iter().map(ToNalgebra::to_na).collect::<Vec<_>>());
     }
     let refinement_report = refinement.as_ref().map(PoseRefinementReport::new);
     if let Some(r) = &refinement_report {
@@ -546,8 +548,12 @@ fn run(
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
-        fitted_poses: (scaled || refinement.is_some())
-            .then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
+        fitted_poses: (scaled || refinement.is_some()).then(|| {
+            scan.frames
+                .iter()
+                .map(|f| f.camera_to_world.to_glam().to_cols_array())
+                .collect()
+        }),
         appearance: trainer
             .appearance
             .as_ref()

@@ -1,7 +1,7 @@
 //! Temporary: exact element-for-element conversions between glam and
 //! nalgebra while the crate moves to nalgebra module by module (issue 16).
 //! Deleted with the glam dependency.
-use glam::{DMat4, DVec3};
+use glam::{DMat3, DMat4, DVec3};
 use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Point3, Rotation3, Translation3, Vector3};
 
 /// nalgebra value to its glam twin.
@@ -55,6 +55,35 @@ impl ToNalgebra for DMat4 {
             Rotation3::from_matrix_unchecked(r),
         )
     }
+}
+
+impl ToGlam for Matrix3<f64> {
+    type Glam = DMat3;
+    fn to_glam(&self) -> DMat3 {
+        DMat3::from_cols_slice(self.as_slice())
+    }
+}
+
+impl ToNalgebra for DMat3 {
+    type Nalgebra = Matrix3<f64>;
+    fn to_na(&self) -> Matrix3<f64> {
+        Matrix3::from_column_slice(&self.to_cols_array())
+    }
+}
+
+/// A glam vector as a nalgebra one (an offset, not a point).
+pub fn vector(v: DVec3) -> Vector3<f64> {
+    Vector3::new(v.x, v.y, v.z)
+}
+
+/// Points as glam vectors.
+pub fn points_to_glam(points: &[Point3<f64>]) -> Vec<DVec3> {
+    points.iter().map(ToGlam::to_glam).collect()
+}
+
+/// Camera-to-world poses as glam 4x4s.
+pub fn poses_to_glam(poses: &[IsometryMatrix3<f64>]) -> Vec<DMat4> {
+    poses.iter().map(ToGlam::to_glam).collect()
 }
 
 impl ToNalgebra for DVec3 {

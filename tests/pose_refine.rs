@@ -2,9 +2,8 @@
 //! (objects on a table, noisy low-resolution depth) whose written poses were
 //! perturbed; the exact ones are in `gt/pose`.
 
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Point3};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
-use nerflabel::glam_bridge::{ToGlam, ToNalgebra};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::poses::{pose_difference, refine_poses, trajectory_alignment, RefineOptions};
 use nerflabel::scan::{load, LoadOptions, Scan};
@@ -39,13 +38,13 @@ fn perturbed_tabletop(dir: &Path, frames: usize, sigma_m: f64, sigma_deg: f64) -
 /// points (placed by the exact pose and depth) seen through `poses`, once the
 /// trajectory as a whole is aligned to the exact one (where the scene sits
 /// as a whole is not what refinement can know); and the RMS rotation error.
-fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
-    let truth = exact.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>();
+fn rms_error(poses: &[IsometryMatrix3<f64>], exact: &Scan) -> (f64, f64) {
+    let truth = exact.poses();
     let align = trajectory_alignment(poses, &truth, 0.7);
     let (mut px, mut count, mut rot) = (0.0, 0usize, 0.0);
     for (p, f) in poses.iter().zip(&exact.frames) {
-        let pose = align * *p;
-        rot += pose_difference(&f.camera_to_world.to_glam(), &pose).1.powi(2);
+        let pose = align * p;
+        rot += pose_difference(&f.camera_to_world, &pose).1.powi(2);
         let (Some(depth), k) = (&f.depth, f.intrinsics) else {
             continue;
         };
@@ -56,11 +55,8 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
                 if z <= 0.0 {
                     continue;
                 }
-                let world = f
-                    .camera_to_world
-                    .to_glam()
-                    .transform_point3(k.unproject(u as f64, v as f64).to_glam() * z as f64);
-                if let Some((x, y)) = k.project(&(world_to_camera.transform_point3(world)).to_na()) {
+                let world = f.camera_to_world * Point3::from(k.unproject(u as f64, v as f64) * z as f64);
+                if let Some((x, y)) = k.project(&(world_to_camera * world)) {
                     px += (x - u as f64).powi(2) + (y - v as f64).powi(2);
                     count += 1;
                 }
@@ -74,7 +70,7 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
 fn refinement_recovers_known_pose_perturbations() {
     let dir = tempfile::tempdir().unwrap();
     let (_, scan, exact) = perturbed_tabletop(dir.path(), 36, 0.006, 0.3);
-    let (px0, deg0) = rms_error(&scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(), &exact);
+    let (px0, deg0) = rms_error(&scan.poses(), &exact);
     let refined = refine_poses(&scan, &RefineOptions::default())
         .unwrap()
         .expect("the scan has depth");
@@ -139,11 +135,8 @@ fn fit_stores_refined_poses_and_reports_them() {
         "{changed} of {} poses changed",
         scan.frames.len()
     );
-    let (px0, _) = rms_error(&scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(), &exact);
-    let (px1, _) = rms_error(
-        &labelled.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(),
-        &exact,
-    );
+    let (px0, _) = rms_error(&scan.poses(), &exact);
+    let (px1, _) = rms_error(&labelled.poses(), &exact);
     assert!(
         px1 < 0.7 * px0,
         "the model's poses: reprojection error {px0:.2} px -> {px1:.2} px"

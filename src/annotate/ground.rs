@@ -5,7 +5,7 @@
 //! surface points within 25° of it (the floor or the table), and to a world
 //! axis when within half a degree of one (exact in generated scenes).
 
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::symmetric_eigen;
 use crate::rng::Rng;
 use crate::scan::Scan;
@@ -140,8 +140,8 @@ fn plane_normal(points: &[DVec3], guess: DVec3) -> Option<DVec3> {
         let q = *p - mean;
         cov += DMat3::from_cols(q * q.x, q * q.y, q * q.z);
     }
-    let (_, vectors) = symmetric_eigen(cov);
-    let refined = vectors.z_axis;
+    let (_, vectors) = symmetric_eigen(cov.to_na());
+    let refined = vectors.to_glam().z_axis;
     let refined = if refined.dot(n) < 0.0 { -refined } else { refined };
     refined.is_finite().then_some(refined.normalize())
 }

@@ -177,7 +177,7 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        Ok(self.exclude_supports_among(&samples.points))
+        Ok(self.exclude_supports_among(&crate::glam_bridge::points_to_glam(&samples.points)))
     }
 
     /// [`Self::exclude_supports`] with the scan's surface points (world
@@ -439,7 +439,7 @@ impl<'a> Labeler<'a> {
         };
         let (w, h) = frame.size();
         let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world.to_glam(), &frame.intrinsics, w, h);
-        let scale = renderer.transform.scale;
+        let scale = renderer.transform.scale();
         let near = opts.rule.min_step;
         let (field, grid) = (&renderer.model.field, renderer.grid());
         let crossing = CrossingOptions {

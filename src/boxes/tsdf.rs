@@ -6,7 +6,7 @@
 //! NeRFing-it paper.
 
 use super::parse::BoxSet;
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::DAabb;
 use crate::scan::Frame;
 use glam::{DMat3, DVec3};
@@ -65,8 +65,8 @@ impl Block {
     /// Ray parameters where the ray is inside the block.
     fn interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let hi = self.origin + DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
-        DAabb::new(self.origin, hi)
-            .ray_interval(origin, dir)
+        DAabb::new(self.origin.to_na(), hi.to_na())
+            .ray_interval(&origin.to_na(), &crate::glam_bridge::vector(dir))
             .filter(|(t0, t1)| t0 < t1)
     }
 }

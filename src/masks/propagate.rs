@@ -16,7 +16,7 @@ use super::votes::VoteVolume;
 use crate::boxes::label::{finish_mask, instances_of};
 use crate::boxes::output::FrameLabelling;
 use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::symmetric_eigen;
 use crate::scan::{Frame, Scan};
 use glam::{DMat3, DVec3};
@@ -394,7 +394,8 @@ fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
         let d = *p - mean;
         cov += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
     }
-    let (_, mut axes) = symmetric_eigen(cov * (1.0 / n));
+    let (_, axes) = symmetric_eigen((cov * (1.0 / n)).to_na());
+    let mut axes = axes.to_glam();
     if axes.determinant() < 0.0 {
         axes.z_axis = -axes.z_axis;
     }

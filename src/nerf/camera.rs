@@ -4,7 +4,7 @@
 use crate::poses::Aabb;
 use crate::scan::Intrinsics;
 use glam::DMat4;
-use glam::Vec3;
+use nalgebra::{Point3, Vector3};
 
 /// A pinhole camera in local coordinates (OpenCV axes).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -92,7 +92,7 @@ impl LocalRay {
 
 /// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
 pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
-    Aabb::UNIT.ray_interval(Vec3::from(o), Vec3::from(d))
+    Aabb::UNIT.ray_interval(&Point3::from(o), &Vector3::from(d))
 }
 
 #[cfg(test)]

@@ -149,7 +149,7 @@ impl Sampling {
         };
         let targets = if objects.targets.is_empty() {
             vec![Target {
-                center: fused.bounds.center(),
+                center: fused.bounds.center().to_glam(),
                 rotation: glam::DMat3::IDENTITY,
             }]
         } else {

@@ -102,7 +102,7 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         return Verdict::Unobserved;
     }
     if instances.max_id() > 0 {
-        let metres_per_unit = 1.0 / renderer.transform.scale;
+        let metres_per_unit = 1.0 / renderer.transform.scale();
         let depth: Vec<f32> = out
             .iter()
             .zip(&pixels)

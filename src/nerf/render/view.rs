@@ -5,6 +5,7 @@
 //! from the field which cells hold density, at twice the grid's resolution
 //! ([`crate::nerf::occupancy::from_field`]).
 
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::appearance::{apply, Affine, IDENTITY};
 use crate::nerf::camera::LocalCamera;
 
@@ -95,13 +96,18 @@ impl<'a> ViewRenderer<'a> {
 
     /// The camera in the model's local frame.
     pub fn local_camera(&self, camera_to_world: &DMat4, k: &Intrinsics, width: u32, height: u32) -> LocalCamera {
-        LocalCamera::new(&self.transform.world_to_local_pose(camera_to_world), k, width, height)
+        LocalCamera::new(
+            &self.transform.world_to_local_pose(&camera_to_world.to_na()).to_glam(),
+            k,
+            width,
+            height,
+        )
     }
 
     /// Z-depth in metres of a ray's surface through pixel (u, v), 0 = none.
     #[inline]
     fn depth_m(&self, camera: &LocalCamera, o: &RayOutput, u: f32, v: f32) -> f32 {
-        let metres_per_unit = 1.0 / self.transform.scale as f32;
+        let metres_per_unit = 1.0 / self.transform.scale() as f32;
         let t_per_z = camera.ray(u, v).1;
         o.depth_median
             .map(|t| t / t_per_z * metres_per_unit)

@@ -46,7 +46,7 @@ pub fn is_holdout(index: usize, every: usize) -> bool {
 pub fn local_camera(frame: &crate::scan::Frame, transform: &SceneTransform) -> LocalCamera {
     let (w, h) = frame.size();
     LocalCamera::new(
-        &transform.world_to_local_pose(&frame.camera_to_world.to_glam()),
+        &transform.world_to_local_pose(&frame.camera_to_world).to_glam(),
         &frame.intrinsics,
         w,
         h,
@@ -60,7 +60,7 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
         .par_iter()
         .map(|frame| {
             let depth = frame.depth.as_ref().map(|d| {
-                let scale = transform.scale as f32;
+                let scale = transform.scale() as f32;
                 d.metres
                     .iter()
                     .map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 })

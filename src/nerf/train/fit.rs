@@ -4,7 +4,7 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
-use crate::glam_bridge::{ToGlam, ToNalgebra};
+use crate::glam_bridge::ToGlam;
 use crate::nerf::appearance;
 use crate::nerf::field::Field;
 use crate::nerf::model_file::{Model, ModelHeader};
@@ -172,7 +172,7 @@ pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
         bounds.stats.depth_median
     } else {
         let centre = bounds.aabb.center();
-        let mut d: Vec<f64> = bounds.cameras.iter().map(|c| c.distance(centre)).collect();
+        let mut d: Vec<f64> = bounds.cameras.iter().map(|c| nalgebra::distance(c, &centre)).collect();
         d.sort_by(|a, b| a.total_cmp(b));
         d.get(d.len() / 2).copied().unwrap_or(1.0)
     };
@@ -214,7 +214,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let bounds = scene_bounds(scan, &BoundsOptions::default())?;
     let norm = normalize(&bounds, &NormalizeOptions::default())?;
     let transform = norm.transform;
-    let metres_per_unit = 1.0 / transform.scale;
+    let metres_per_unit = 1.0 / transform.scale();
     timings.bounds_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
@@ -272,8 +272,7 @@ fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseS
             _ => return Ok(None),
         },
     };
-    let scaled = scale_poses(&scan.poses().iter().map(ToGlam::to_glam).collect::<Vec<_>>(), applied);
-    scan.set_poses(&scaled.iter().map(ToNalgebra::to_na).collect::<Vec<_>>());
+    scan.set_poses(&scale_poses(&scan.poses(), applied));
     Ok(Some(PoseScaleReport {
         applied,
         forced: forced.is_some(),
@@ -327,7 +326,7 @@ fn run(
         None
     };
     if let Some(r) = &refinement {
-        scan.set_poses(&r.camera_to_world.iter().map(ToNalgebra::to_na).collect::<Vec<_>>());
+        scan.set_poses(&r.camera_to_world);
     }
     let refinement_report = refinement.as_ref().map(PoseRefinementReport::new);
     if let Some(r) = &refinement_report {
@@ -539,7 +538,7 @@ fn run(
         field: settings.field.clone(),
         train: settings.train.clone(),
         scene_transform: transform.to_array().to_vec(),
-        units_per_metre: transform.scale,
+        units_per_metre: transform.scale(),
         occupancy_resolution: trainer.occupancy.resolution(),
         background: data.background,
         render_step: settings.render_step,

@@ -5,7 +5,6 @@
 //!
 //! cargo run --release --example bench_nerf
 
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::field::hash_grid::{GridGrad, HashGrid, HashGridConfig};
 use nerflabel::nerf::field::mlp::{Mlp, MlpConfig, MlpWorkspace};
 use nerflabel::nerf::field::simd;
@@ -111,7 +110,7 @@ fn main() -> anyhow::Result<()> {
     let renderer = ViewRenderer::new(&outcome.model)?;
     let frame = &scan.frames[0];
     let (w, h) = frame.size();
-    let cam = renderer.local_camera(&frame.camera_to_world.to_glam(), &frame.intrinsics, w, h);
+    let cam = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
     let pixels: Vec<(f32, f32)> = (0..h).flat_map(|v| (0..w).map(move |u| (u as f32, v as f32))).collect();
     let opts = outcome.model.render_options(false);
     let mut samples = 0u64;

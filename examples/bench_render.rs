@@ -11,7 +11,6 @@
 
 use nerflabel::boxes::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use nerflabel::evaluate::read_gray16;
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined};
 use nerflabel::nerf::occupancy::OccupancyGrid;
@@ -105,7 +104,7 @@ fn main() -> Result<(), Error> {
         let mut depth_rays = 0u64;
         let mut depths = Vec::new();
         for f in &views {
-            let camera = renderer.local_camera(&f.camera_to_world.to_glam(), &f.intrinsics, w, h);
+            let camera = renderer.local_camera(&f.camera_to_world, &f.intrinsics, w, h);
             // Every pixel's ray inside the cube, with its pixel and local t per camera z.
             let (mut marched, mut pixel_of) = (Vec::new(), Vec::new());
             for i in 0..(w * h) as usize {
@@ -140,7 +139,7 @@ fn main() -> Result<(), Error> {
         let t = Instant::now();
         let (mut colour_samples, mut colour_rays) = (0u64, 0u64);
         for f in &views {
-            let camera = renderer.local_camera(&f.camera_to_world.to_glam(), &f.intrinsics, w, h);
+            let camera = renderer.local_camera(&f.camera_to_world, &f.intrinsics, w, h);
             let out = render_image(&model.field, grid, &colour_opts, &camera);
             colour_samples += out.iter().map(|o| o.samples as u64).sum::<u64>();
             colour_rays += out.len() as u64;

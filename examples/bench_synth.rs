@@ -23,6 +23,7 @@ use image::DynamicImage;
 use nerflabel::boxes::read_boxes;
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
+use nerflabel::glam_bridge::ToNalgebra;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -353,7 +354,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for row in sampled.iter().take(16) {
         let spec = &row.spec;
         let t = Instant::now();
-        let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height, true);
+        let view = renderer.render_view(
+            &spec.camera_to_world.to_na(),
+            &spec.intrinsics,
+            spec.width,
+            spec.height,
+            true,
+        );
         t_render += t.elapsed().as_secs_f64();
         let t = Instant::now();
         let mut mask = instance_mask(
@@ -371,7 +378,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         encode_mask(&mask, instances.max_id() as usize, spec.width, spec.height)?;
         t_png += t.elapsed().as_secs_f64();
         rays += view.depth_m.len();
-        let camera = renderer.local_camera(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height);
+        let camera = renderer.local_camera(&spec.camera_to_world.to_na(), &spec.intrinsics, spec.width, spec.height);
         let out = render_image(&model.field, renderer.grid(), &model.render_options(true), &camera);
         samples += out.iter().map(|o| u64::from(o.samples)).sum::<u64>();
         opaque += view.opacity.iter().filter(|&&a| a > 0.5).count();

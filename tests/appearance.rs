@@ -7,7 +7,6 @@ mod common;
 
 use common::{one_view_poses, run, s, stderr};
 use nerflabel::fixture::corrupt::exposure_gains;
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::appearance::apply;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -112,14 +111,13 @@ fn learnt_appearance_follows_exposure_drift_and_synth_renders_a_chosen_frame() {
         .unwrap();
     let frame = &loaded.frames[brightest];
     let (w, h) = frame.size();
-    let neutral =
-        ViewRenderer::new(&model)
-            .unwrap()
-            .render_view(&frame.camera_to_world.to_glam(), &frame.intrinsics, w, h, true);
+    let neutral = ViewRenderer::new(&model)
+        .unwrap()
+        .render_view(&frame.camera_to_world, &frame.intrinsics, w, h, true);
     let as_captured = ViewRenderer::new(&model)
         .unwrap()
         .with_appearance(maps[brightest])
-        .render_view(&frame.camera_to_world.to_glam(), &frame.intrinsics, w, h, true);
+        .render_view(&frame.camera_to_world, &frame.intrinsics, w, h, true);
     let photo = frame.rgb.as_raw();
     let (p_neutral, p_captured) = (psnr(&neutral.rgb, photo), psnr(&as_captured.rgb, photo));
     eprintln!(

@@ -438,7 +438,7 @@ impl<'a> Labeler<'a> {
             return depth;
         };
         let (w, h) = frame.size();
-        let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world.to_glam(), &frame.intrinsics, w, h);
+        let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
         let scale = renderer.transform.scale();
         let near = opts.rule.min_step;
         let (field, grid) = (&renderer.model.field, renderer.grid());

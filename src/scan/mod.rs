@@ -30,6 +30,7 @@ mod validate;
 pub use depth::{resample_depth_to, DepthMap, EDGE_RELATIVE_GAP};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
+pub use rigid::isometry;
 pub use summary::{summarize, DepthRange, ScanSummary};
 pub use validate::{check_intrinsics, check_pose, PoseCheck, POSE_TOLERANCE};
 

@@ -7,7 +7,7 @@ use super::error::SynthError;
 use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
@@ -145,7 +145,7 @@ pub fn render_view(
     index: usize,
 ) -> Result<SynthView, SynthError> {
     let (w, h) = (spec.width, spec.height);
-    let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, w, h, true);
+    let view = renderer.render_view(&spec.camera_to_world.to_na(), &spec.intrinsics, w, h, true);
     let mut mask = instance_mask(
         &view.depth_m,
         &spec.camera_to_world,

@@ -13,7 +13,7 @@ use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
 use super::sampling::{Candidate, PoseSampler};
 use super::triplet::Instances;
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
@@ -71,7 +71,7 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
     let ph =
         ((f64::from(spec.height) * f64::from(pw) / f64::from(spec.width)).round() as u32).clamp(1, spec.height.max(1));
     let k = spec.intrinsics.scaled((spec.width, spec.height), (pw, ph));
-    let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
+    let camera = renderer.local_camera(&spec.camera_to_world.to_na(), &k, pw, ph);
     let pixels: Vec<(f32, f32)> = (0..ph)
         .flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32)))
         .collect();

@@ -5,7 +5,6 @@
 //! from the field which cells hold density, at twice the grid's resolution
 //! ([`crate::nerf::occupancy::from_field`]).
 
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::appearance::{apply, Affine, IDENTITY};
 use crate::nerf::camera::LocalCamera;
 
@@ -15,7 +14,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
-use glam::DMat4;
+use nalgebra::IsometryMatrix3;
 
 /// A rendered view.
 #[derive(Clone, Debug)]
@@ -95,13 +94,14 @@ impl<'a> ViewRenderer<'a> {
     }
 
     /// The camera in the model's local frame.
-    pub fn local_camera(&self, camera_to_world: &DMat4, k: &Intrinsics, width: u32, height: u32) -> LocalCamera {
-        LocalCamera::new(
-            &self.transform.world_to_local_pose(&camera_to_world.to_na()).to_glam(),
-            k,
-            width,
-            height,
-        )
+    pub fn local_camera(
+        &self,
+        camera_to_world: &IsometryMatrix3<f64>,
+        k: &Intrinsics,
+        width: u32,
+        height: u32,
+    ) -> LocalCamera {
+        LocalCamera::new(&self.transform.world_to_local_pose(camera_to_world), k, width, height)
     }
 
     /// Z-depth in metres of a ray's surface through pixel (u, v), 0 = none.
@@ -141,7 +141,7 @@ impl<'a> ViewRenderer<'a> {
     /// Render every pixel of a view.
     pub fn render_view(
         &self,
-        camera_to_world: &DMat4,
+        camera_to_world: &IsometryMatrix3<f64>,
         k: &Intrinsics,
         width: u32,
         height: u32,

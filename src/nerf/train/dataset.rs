@@ -1,7 +1,6 @@
 //! Scan frames turned into training and held-out views in local
 //! coordinates, plus the depth rays that seed the occupancy grid.
 
-use crate::glam_bridge::ToGlam;
 use crate::mask::{components, dilate_mask};
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::occupancy::{CameraSpace, DepthRay};
@@ -46,7 +45,7 @@ pub fn is_holdout(index: usize, every: usize) -> bool {
 pub fn local_camera(frame: &crate::scan::Frame, transform: &SceneTransform) -> LocalCamera {
     let (w, h) = frame.size();
     LocalCamera::new(
-        &transform.world_to_local_pose(&frame.camera_to_world).to_glam(),
+        &transform.world_to_local_pose(&frame.camera_to_world),
         &frame.intrinsics,
         w,
         h,

@@ -4,7 +4,6 @@
 //! fit report. Writes a resumable checkpoint when asked ([`resume`]
 //! continues from one). Reports progress through a callback; never prints.
 
-use crate::glam_bridge::ToGlam;
 use crate::nerf::appearance;
 use crate::nerf::field::Field;
 use crate::nerf::model_file::{Model, ModelHeader};
@@ -550,7 +549,11 @@ fn run(
         fitted_poses: (scaled || refinement.is_some()).then(|| {
             scan.frames
                 .iter()
-                .map(|f| f.camera_to_world.to_glam().to_cols_array())
+                .map(|f| {
+                    // Column-major (FORMATS.md).
+                    let m = f.camera_to_world.to_homogeneous();
+                    std::array::from_fn(|i| m[i])
+                })
                 .collect()
         }),
         appearance: trainer

@@ -18,12 +18,12 @@
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float64Type, Int32Type};
-use glam::DMat4;
 use image::DynamicImage;
+use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
-use nerflabel::glam_bridge::ToNalgebra;
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -107,7 +107,7 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
                 .try_into()
                 .map_err(|_| "pose")?;
             let spec = ViewSpec {
-                camera_to_world: DMat4::from_cols_array(&m).transpose(),
+                camera_to_world: nerflabel::scan::isometry(&Matrix4::from_row_slice(&m)),
                 intrinsics: Intrinsics {
                     fx: kv[0],
                     fy: kv[1],
@@ -309,7 +309,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let rows = read_rows(&held_path, usize::MAX)?;
     for row in &rows {
         let gt = scene.render(
-            &row.spec.camera_to_world,
+            &row.spec.camera_to_world.to_glam(),
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,
@@ -332,7 +332,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let sampled = read_rows(&sampled_path, 50)?;
     for row in &sampled {
         let gt = scene.render(
-            &row.spec.camera_to_world,
+            &row.spec.camera_to_world.to_glam(),
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,
@@ -346,7 +346,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let t_prune = t.elapsed().as_secs_f64();
     let classifier = BoxClassifier::new(&boxes);
     let instances = Instances {
-        classify: &|p| classifier.classify(p),
+        classify: &|p| classifier.classify(p.to_glam()),
         labels: boxes.boxes.iter().map(|b| b.label.clone()).collect(),
     };
     let (mut t_render, mut t_mask, mut t_png, mut rays, mut opaque, mut samples) =
@@ -354,13 +354,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for row in sampled.iter().take(16) {
         let spec = &row.spec;
         let t = Instant::now();
-        let view = renderer.render_view(
-            &spec.camera_to_world.to_na(),
-            &spec.intrinsics,
-            spec.width,
-            spec.height,
-            true,
-        );
+        let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height, true);
         t_render += t.elapsed().as_secs_f64();
         let t = Instant::now();
         let mut mask = instance_mask(
@@ -378,7 +372,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         encode_mask(&mask, instances.max_id() as usize, spec.width, spec.height)?;
         t_png += t.elapsed().as_secs_f64();
         rays += view.depth_m.len();
-        let camera = renderer.local_camera(&spec.camera_to_world.to_na(), &spec.intrinsics, spec.width, spec.height);
+        let camera = renderer.local_camera(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height);
         let out = render_image(&model.field, renderer.grid(), &model.render_options(true), &camera);
         samples += out.iter().map(|o| u64::from(o.samples)).sum::<u64>();
         opaque += view.opacity.iter().filter(|&&a| a > 0.5).count();

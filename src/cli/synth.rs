@@ -7,8 +7,9 @@ use super::label::lift_masks;
 use super::verbosity::{note, say};
 use super::SynthArgs;
 use anyhow::bail;
-use glam::DVec3;
+use nalgebra::Point3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, Output, ProtectedInputs};
 use nerflabel::synth::{read_poses, synthesize, synthesize_objects, Objects, SynthOptions, SynthProgress};
@@ -101,7 +102,8 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             let from_masks = PointLabels::new(&lifted);
             let from_boxes = boxes.as_ref().map(BoxClassifier::new);
             // A mask object's surface first; the boxes label the rest.
-            let classify = |p: DVec3| -> u32 {
+            let classify = |p: Point3<f64>| -> u32 {
+                let p = p.to_glam();
                 match from_masks.classify(p) {
                     0 => from_boxes.as_ref().map_or(0, |c| match c.classify(p) {
                         0 => 0,

@@ -9,12 +9,12 @@ use super::sampling::{Cloud, PoseSampler, Target};
 use super::triplet::{render_view, Instances, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet};
-use crate::glam_bridge::ToGlam;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
 use crate::scan::{Scan, MAX_IMAGE_SIDE};
-use glam::DVec3;
+use nalgebra::{Point3, Rotation3};
 use rayon::prelude::*;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -105,7 +105,7 @@ pub struct Objects<'a> {
 impl<'a> Objects<'a> {
     /// The objects of a box set (boxes, or given masks' objects): views
     /// aimed at each box, labels by instance id, points labelled by `classify`.
-    pub fn of(set: &BoxSet, classify: &'a (dyn Fn(DVec3) -> u32 + Sync)) -> Objects<'a> {
+    pub fn of(set: &BoxSet, classify: &'a (dyn Fn(Point3<f64>) -> u32 + Sync)) -> Objects<'a> {
         let mut labels = vec![String::new(); set.max_instance_id() as usize];
         for b in &set.boxes {
             if let Some(slot) = (b.instance_id as usize).checked_sub(1).and_then(|i| labels.get_mut(i)) {
@@ -117,8 +117,8 @@ impl<'a> Objects<'a> {
                 .boxes
                 .iter()
                 .map(|b| Target {
-                    center: b.center,
-                    rotation: b.rotation,
+                    center: b.center.to_na(),
+                    rotation: Rotation3::from_matrix_unchecked(b.rotation.to_na()),
                 })
                 .collect(),
             instances: Instances { classify, labels },
@@ -129,7 +129,7 @@ impl<'a> Objects<'a> {
 /// What sampling needs from the scan.
 struct Sampling {
     cloud: Cloud,
-    cameras: Vec<DVec3>,
+    cameras: Vec<Point3<f64>>,
     clearance: f64,
     targets: Vec<Target>,
     /// Points in the cloud.
@@ -141,7 +141,7 @@ impl Sampling {
     fn prepare(scan: &Scan, objects: &Objects, clearance: Option<f64>) -> Result<Sampling, SynthError> {
         let fused = fuse_cloud(scan, &CloudOptions::default())?;
         let cloud = Cloud::new(&fused.positions)?;
-        let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center().to_glam()).collect();
+        let cameras: Vec<Point3<f64>> = scan.frames.iter().map(|f| f.camera_center()).collect();
         let clearance = match clearance {
             Some(c) if c > 0.0 && cloud.is_empty() => return Err(SynthError::NoCloud { clearance: c }),
             Some(c) => c,
@@ -149,8 +149,8 @@ impl Sampling {
         };
         let targets = if objects.targets.is_empty() {
             vec![Target {
-                center: fused.bounds.center().to_glam(),
-                rotation: glam::DMat3::IDENTITY,
+                center: fused.bounds.center(),
+                rotation: Rotation3::identity(),
             }]
         } else {
             objects.targets.clone()
@@ -192,7 +192,7 @@ pub fn synthesize(
         return synthesize_objects(scan, model, &objects, options, out, progress, stop);
     };
     let classifier = BoxClassifier::new(set);
-    let classify = |p: DVec3| classifier.classify(p);
+    let classify = |p: Point3<f64>| classifier.classify(p.to_glam());
     synthesize_objects(scan, model, &Objects::of(set, &classify), options, out, progress, stop)
 }
 

@@ -7,16 +7,15 @@ use super::error::SynthError;
 use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::LabelOptions;
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
-use glam::{DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3};
 
 /// Maps world points to instance ids (0 = none) and ids to labels.
 pub struct Instances<'a> {
     /// Instance id of a world point, 0 when it lies in no box.
-    pub classify: &'a (dyn Fn(DVec3) -> u32 + Sync),
+    pub classify: &'a (dyn Fn(Point3<f64>) -> u32 + Sync),
     /// Label of instance id `i` at index `i - 1`.
     pub labels: Vec<String>,
 }
@@ -78,10 +77,10 @@ impl SynthView {
 /// and classified; pixels without depth are 0.
 pub fn instance_mask(
     depth_m: &[f32],
-    camera_to_world: &DMat4,
+    camera_to_world: &IsometryMatrix3<f64>,
     k: &Intrinsics,
     width: u32,
-    classify: &(dyn Fn(DVec3) -> u32 + Sync),
+    classify: &(dyn Fn(Point3<f64>) -> u32 + Sync),
 ) -> Vec<u16> {
     let w = width.max(1) as usize;
     depth_m
@@ -92,7 +91,7 @@ pub fn instance_mask(
                 return 0;
             }
             let (u, v) = ((i % w) as f64, (i / w) as f64);
-            let id = classify(camera_to_world.transform_point3(k.unproject(u, v).to_glam() * f64::from(z)));
+            let id = classify(camera_to_world * Point3::from(k.unproject(u, v) * f64::from(z)));
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16
         })
@@ -145,7 +144,7 @@ pub fn render_view(
     index: usize,
 ) -> Result<SynthView, SynthError> {
     let (w, h) = (spec.width, spec.height);
-    let view = renderer.render_view(&spec.camera_to_world.to_na(), &spec.intrinsics, w, h, true);
+    let view = renderer.render_view(&spec.camera_to_world, &spec.intrinsics, w, h, true);
     let mut mask = instance_mask(
         &view.depth_m,
         &spec.camera_to_world,
@@ -177,11 +176,14 @@ mod tests {
     #[test]
     fn mask_back_projects_depth_through_the_pose() {
         // Camera at the origin looking along world +x (camera z = world x).
-        let c2w = DMat4::from_cols(
-            glam::DVec4::new(0.0, -1.0, 0.0, 0.0),
-            glam::DVec4::new(0.0, 0.0, -1.0, 0.0),
-            glam::DVec4::new(1.0, 0.0, 0.0, 0.0),
-            glam::DVec4::new(0.0, 0.0, 0.0, 1.0),
+        #[rustfmt::skip]
+        let c2w = IsometryMatrix3::from_parts(
+            nalgebra::Translation3::identity(),
+            nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(
+                0.0, 0.0, 1.0,
+                -1.0, 0.0, 0.0,
+                0.0, -1.0, 0.0,
+            )),
         );
         let k = Intrinsics {
             fx: 4.0,
@@ -190,7 +192,7 @@ mod tests {
             cy: 1.0,
         };
         // Box 1: world x in [1.5, 2.5] (depth 2 m hits it, depth 1 m does not).
-        let classify = |p: DVec3| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
+        let classify = |p: Point3<f64>| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
         let depth = [2.0, 2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, f32::NAN];
         let mask = instance_mask(&depth, &c2w, &k, 3, &classify);
         // Pixel (u, v) at depth 2 maps to world (2, -(u - 1) / 2, -(v - 1) / 2): inside the box.

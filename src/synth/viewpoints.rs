@@ -13,13 +13,12 @@ use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
 use super::sampling::{Candidate, PoseSampler};
 use super::triplet::Instances;
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
 use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Intrinsics;
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Point3};
 use rayon::prelude::*;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -38,7 +37,7 @@ const CHUNK: u64 = 32;
 /// Why a candidate was turned down, or its pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Verdict {
-    Accept(DMat4),
+    Accept(IsometryMatrix3<f64>),
     TooClose,
     Unobserved,
     NoObject,
@@ -71,7 +70,7 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
     let ph =
         ((f64::from(spec.height) * f64::from(pw) / f64::from(spec.width)).round() as u32).clamp(1, spec.height.max(1));
     let k = spec.intrinsics.scaled((spec.width, spec.height), (pw, ph));
-    let camera = renderer.local_camera(&spec.camera_to_world.to_na(), &k, pw, ph);
+    let camera = renderer.local_camera(&spec.camera_to_world, &k, pw, ph);
     let pixels: Vec<(f32, f32)> = (0..ph)
         .flat_map(|v| (0..pw).map(move |u| (u as f32, v as f32)))
         .collect();
@@ -119,13 +118,17 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
 }
 
 /// Whether any probe pixel's surface lies in a box.
-fn sees_object(depth: &[f32], c2w: &DMat4, k: &Intrinsics, pixels: &[(f32, f32)], instances: &Instances) -> bool {
+fn sees_object(
+    depth: &[f32],
+    c2w: &IsometryMatrix3<f64>,
+    k: &Intrinsics,
+    pixels: &[(f32, f32)],
+    instances: &Instances,
+) -> bool {
     depth.iter().zip(pixels).any(|(&z, &(u, v))| {
         z > 0.0
             && z.is_finite()
-            && (instances.classify)(
-                c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)).to_glam() * f64::from(z)),
-            ) > 0
+            && (instances.classify)(c2w * Point3::from(k.unproject(f64::from(u), f64::from(v)) * f64::from(z))) > 0
     })
 }
 
@@ -194,7 +197,7 @@ impl<'a> ViewStream<'a> {
     }
 
     /// The view of an accepted pose.
-    fn spec(&self, camera_to_world: DMat4) -> ViewSpec {
+    fn spec(&self, camera_to_world: IsometryMatrix3<f64>) -> ViewSpec {
         ViewSpec {
             camera_to_world,
             intrinsics: self.intrinsics,

@@ -26,6 +26,7 @@ use glam::DMat3;
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, read_gray16};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
@@ -167,12 +168,12 @@ fn model_for(scan: &mut Scan, path: &Path, seconds: f64, refine_poses: bool) -> 
 fn silhouette(frame: &Frame, boxes: &BoxSet) -> Vec<u16> {
     let classifier = BoxClassifier::new(boxes);
     let (w, h) = frame.size();
-    let origin = frame.camera_to_world.w_axis.truncate();
-    let rot = DMat3::from_mat4(frame.camera_to_world);
+    let origin = frame.camera_to_world.to_glam().w_axis.truncate();
+    let rot = DMat3::from_mat4(frame.camera_to_world.to_glam());
     let mut mask = vec![0u16; (w * h) as usize];
     for y in 0..h {
         for x in 0..w {
-            let dir = rot * frame.intrinsics.unproject(x as f64, y as f64);
+            let dir = rot * frame.intrinsics.unproject(x as f64, y as f64).to_glam();
             if classifier.ray_interval(origin, dir).is_some() {
                 mask[(y * w + x) as usize] = 1;
             }

@@ -127,7 +127,7 @@ fn main() -> Result<(), Error> {
             let mut z = vec![0.0f32; (w * h) as usize];
             for (t, &(i, t_per_z)) in out.iter().zip(&pixel_of) {
                 if let Some(t) = t {
-                    z[i] = t / t_per_z / renderer.transform.scale as f32;
+                    z[i] = t / t_per_z / renderer.transform.scale() as f32;
                 }
             }
             depths.push(z);

@@ -18,11 +18,12 @@
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float64Type, Int32Type};
-use glam::DMat4;
 use image::DynamicImage;
+use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -106,7 +107,7 @@ fn read_rows(path: &Path, limit: usize) -> Result<Vec<Row>, Box<dyn std::error::
                 .try_into()
                 .map_err(|_| "pose")?;
             let spec = ViewSpec {
-                camera_to_world: DMat4::from_cols_array(&m).transpose(),
+                camera_to_world: nerflabel::scan::isometry(&Matrix4::from_row_slice(&m)),
                 intrinsics: Intrinsics {
                     fx: kv[0],
                     fy: kv[1],
@@ -308,7 +309,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let rows = read_rows(&held_path, usize::MAX)?;
     for row in &rows {
         let gt = scene.render(
-            &row.spec.camera_to_world,
+            &row.spec.camera_to_world.to_glam(),
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,
@@ -331,7 +332,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let sampled = read_rows(&sampled_path, 50)?;
     for row in &sampled {
         let gt = scene.render(
-            &row.spec.camera_to_world,
+            &row.spec.camera_to_world.to_glam(),
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,
@@ -345,7 +346,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let t_prune = t.elapsed().as_secs_f64();
     let classifier = BoxClassifier::new(&boxes);
     let instances = Instances {
-        classify: &|p, _| classifier.classify(p),
+        classify: &|p, _| classifier.classify(p.to_glam()),
         labels: boxes.boxes.iter().map(|b| b.label.clone()).collect(),
     };
     let (mut t_render, mut t_mask, mut t_png, mut rays, mut opaque, mut samples) =

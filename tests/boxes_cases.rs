@@ -13,6 +13,7 @@ use glam::{DMat3, DVec3};
 use nerflabel::boxes::{
     read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions,
 };
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::train::settings::Preset;
@@ -150,7 +151,7 @@ fn enclosing() -> Box3 {
     let mut lo = DVec3::splat(f64::INFINITY);
     let mut hi = DVec3::splat(f64::NEG_INFINITY);
     for f in &s.frames {
-        let c = f.camera_to_world.w_axis.truncate();
+        let c = f.camera_to_world.to_glam().w_axis.truncate();
         (lo, hi) = (lo.min(c), hi.max(c));
     }
     let centre = (lo + hi) * 0.5;
@@ -284,7 +285,7 @@ fn behind_every_camera() -> Box3 {
     let top = s
         .frames
         .iter()
-        .map(|f| f.camera_to_world.w_axis.z)
+        .map(|f| f.camera_to_world.to_glam().w_axis.z)
         .fold(f64::NEG_INFINITY, f64::max);
     let b = Box3 {
         label: "sky".into(),
@@ -294,7 +295,7 @@ fn behind_every_camera() -> Box3 {
         rotation: DMat3::IDENTITY,
     };
     for f in &s.frames {
-        let w2c = f.camera_to_world.inverse();
+        let w2c = f.camera_to_world.to_glam().inverse();
         for c in b.corners() {
             assert!(
                 w2c.transform_point3(c).z < 0.0,

@@ -11,6 +11,7 @@
 //! them.
 
 use arrow_array::RecordBatch;
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::checkpoint::Checkpoint;
 use nerflabel::rng::Rng;
@@ -512,7 +513,7 @@ fn sigkill_during_synth_leaves_the_previous_or_a_complete_new_parquet() {
         let views: Vec<serde_json::Value> = scan.frames[..n]
             .iter()
             .map(|f| {
-                let m = f.camera_to_world.transpose().to_cols_array_2d();
+                let m = f.camera_to_world.to_glam().transpose().to_cols_array_2d();
                 let k = f.intrinsics.scaled((160, 120), (80, 60));
                 serde_json::json!({"camera_to_world": m, "intrinsics": [k.fx, k.fy, k.cx, k.cy], "width": 80, "height": 60})
             })

@@ -2,7 +2,7 @@
 //! (objects on a table, noisy low-resolution depth) whose written poses were
 //! perturbed; the exact ones are in `gt/pose`.
 
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Point3};
 use nerflabel::fixture::{generate, Corruptions, FixtureOptions, SceneKind};
 use nerflabel::nerf::model_file::Model;
 use nerflabel::poses::{pose_difference, refine_poses, trajectory_alignment, RefineOptions};
@@ -38,12 +38,12 @@ fn perturbed_tabletop(dir: &Path, frames: usize, sigma_m: f64, sigma_deg: f64) -
 /// points (placed by the exact pose and depth) seen through `poses`, once the
 /// trajectory as a whole is aligned to the exact one (where the scene sits
 /// as a whole is not what refinement can know); and the RMS rotation error.
-fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
+fn rms_error(poses: &[IsometryMatrix3<f64>], exact: &Scan) -> (f64, f64) {
     let truth = exact.poses();
     let align = trajectory_alignment(poses, &truth, 0.7);
     let (mut px, mut count, mut rot) = (0.0, 0usize, 0.0);
     for (p, f) in poses.iter().zip(&exact.frames) {
-        let pose = align * *p;
+        let pose = align * p;
         rot += pose_difference(&f.camera_to_world, &pose).1.powi(2);
         let (Some(depth), k) = (&f.depth, f.intrinsics) else {
             continue;
@@ -55,10 +55,8 @@ fn rms_error(poses: &[DMat4], exact: &Scan) -> (f64, f64) {
                 if z <= 0.0 {
                     continue;
                 }
-                let world = f
-                    .camera_to_world
-                    .transform_point3(k.unproject(u as f64, v as f64) * z as f64);
-                if let Some((x, y)) = k.project(world_to_camera.transform_point3(world)) {
+                let world = f.camera_to_world * Point3::from(k.unproject(u as f64, v as f64) * z as f64);
+                if let Some((x, y)) = k.project(&(world_to_camera * world)) {
                     px += (x - u as f64).powi(2) + (y - v as f64).powi(2);
                     count += 1;
                 }

@@ -3,7 +3,7 @@
 //! Every test asserts bounds on the outcome (no NaN, weights in [0, 1],
 //! sample caps respected), never that something merely ran.
 
-use glam::Vec3;
+use nalgebra::{Point3, Vector3};
 use nerflabel::nerf::camera::unit_cube_interval;
 use nerflabel::nerf::camera::LocalRay;
 use nerflabel::nerf::field::density_activation;
@@ -220,27 +220,30 @@ fn unit_cube_interval_on_degenerate_rays_is_finite_or_a_clean_miss() {
 
 #[test]
 fn aabb_ray_interval_on_degenerate_rays_is_finite_or_a_clean_miss() {
-    let b = Aabb::new(Vec3::new(-1.0, -1.0, -1.0), Vec3::new(1.0, 1.0, 1.0));
+    let b = Aabb::new(Point3::new(-1.0, -1.0, -1.0), Point3::new(1.0, 1.0, 1.0));
     // On a face, parallel to it.
-    let (t0, t1) = b.ray_interval(Vec3::new(-1.0, 0.0, 1.0), Vec3::X).unwrap();
+    let (t0, t1) = b.ray_interval(&Point3::new(-1.0, 0.0, 1.0), &Vector3::x()).unwrap();
     assert_eq!((t0, t1), (0.0, 2.0));
     // Inside.
-    let (t0, t1) = b.ray_interval(Vec3::ZERO, Vec3::Y).unwrap();
+    let (t0, t1) = b.ray_interval(&Point3::origin(), &Vector3::y()).unwrap();
     assert_eq!((t0, t1), (0.0, 1.0));
     // Looking away, missing, zero direction, non-finite.
-    assert_eq!(b.ray_interval(Vec3::new(0.0, 0.0, 3.0), Vec3::Z), None);
-    assert_eq!(b.ray_interval(Vec3::new(5.0, 0.0, 0.0), Vec3::Z), None);
-    assert_eq!(b.ray_interval(Vec3::ZERO, Vec3::ZERO), None);
-    assert_eq!(b.ray_interval(Vec3::new(f32::NAN, 0.0, 0.0), Vec3::Z), None);
-    assert_eq!(b.ray_interval(Vec3::ZERO, Vec3::new(0.0, f32::INFINITY, 0.0)), None);
+    assert_eq!(b.ray_interval(&Point3::new(0.0, 0.0, 3.0), &Vector3::z()), None);
+    assert_eq!(b.ray_interval(&Point3::new(5.0, 0.0, 0.0), &Vector3::z()), None);
+    assert_eq!(b.ray_interval(&Point3::origin(), &Vector3::zeros()), None);
+    assert_eq!(b.ray_interval(&Point3::new(f32::NAN, 0.0, 0.0), &Vector3::z()), None);
+    assert_eq!(
+        b.ray_interval(&Point3::origin(), &Vector3::new(0.0, f32::INFINITY, 0.0)),
+        None
+    );
     let mut rng = Rng::new(6, 0);
     for _ in 0..20_000 {
-        let o = Vec3::new(
+        let o = Point3::new(
             rng.range(-4.0, 4.0) as f32,
             rng.range(-4.0, 4.0) as f32,
             rng.range(-4.0, 4.0) as f32,
         );
-        let mut d = Vec3::new(
+        let mut d = Vector3::new(
             rng.range(-1.0, 1.0) as f32,
             rng.range(-1.0, 1.0) as f32,
             rng.range(-1.0, 1.0) as f32,
@@ -248,9 +251,9 @@ fn aabb_ray_interval_on_degenerate_rays_is_finite_or_a_clean_miss() {
         if rng.below(4) == 0 {
             d.y = 1e-42;
         }
-        let r = b.ray_interval(o, d);
+        let r = b.ray_interval(&o, &d);
         assert_interval(r, "random aabb");
-        if b.contains(o) {
+        if b.contains(&o) {
             assert!(
                 r.is_some_and(|(t0, _)| t0 == 0.0),
                 "inside origin {o} must hit at t = 0"

@@ -7,6 +7,7 @@
 
 use glam::{DMat3, DMat4, DVec3};
 use image::{ImageBuffer, Luma, RgbImage};
+use nerflabel::glam_bridge::{ToGlam, ToNalgebra};
 use nerflabel::scan::{load, summarize, DepthMap, Frame, Intrinsics, Layout, LoadOptions, Scan};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -79,7 +80,7 @@ fn cams() -> Vec<Cam> {
 /// Exact depth (camera z) of the plane through pixel (u, v) of a camera.
 fn plane_depth(c2w: &DMat4, k: &Intrinsics, u: f64, v: f64) -> f64 {
     let n = DVec3::from_array(PLANE_N).normalize();
-    let dir = c2w.transform_vector3(k.unproject(u, v));
+    let dir = c2w.transform_vector3(k.unproject(u, v).to_glam());
     let origin = c2w.w_axis.truncate();
     (PLANE_D - n.dot(origin)) / n.dot(dir)
 }
@@ -150,7 +151,7 @@ fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64>
     let (Some(da), Some(db)) = (&a.depth, &b.depth) else {
         return Vec::new();
     };
-    let w2c_b = b.camera_to_world.inverse();
+    let w2c_b = b.camera_to_world.to_glam().inverse();
     let m = margin as f64;
     let mut out = Vec::new();
     for v in (margin..da.height - margin).step_by(step as usize) {
@@ -161,9 +162,10 @@ fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64>
             }
             let world = a
                 .camera_to_world
-                .transform_point3(a.intrinsics.unproject(u as f64, v as f64) * z);
+                .to_glam()
+                .transform_point3(a.intrinsics.unproject(u as f64, v as f64).to_glam() * z);
             let in_b = w2c_b.transform_point3(world);
-            let Some((ub, vb)) = b.intrinsics.project(in_b) else {
+            let Some((ub, vb)) = b.intrinsics.project(&(in_b).to_na()) else {
                 continue;
             };
             if ub < m || vb < m || ub > (db.width - 1) as f64 - m || vb > (db.height - 1) as f64 - m {
@@ -188,10 +190,10 @@ fn check_frame(frame: &Frame, cam: &Cam, k: &Intrinsics, depth_tolerance: f64) {
     assert_eq!(frame.size(), (W, H), "frame {}", frame.name);
     let truth = cam.c2w();
     assert!(
-        frame.camera_to_world.abs_diff_eq(truth, 1e-9),
+        frame.camera_to_world.to_glam().abs_diff_eq(truth, 1e-9),
         "frame {} pose\n{:?}\nvs truth\n{:?}",
         frame.name,
-        frame.camera_to_world,
+        frame.camera_to_world.to_glam(),
         truth
     );
     for (got, want) in [
@@ -379,8 +381,8 @@ fn tum_quaternion_is_scalar_last_camera_to_world() {
     let scan = load(root, &LoadOptions::default()).unwrap();
     let f = &scan.frames[0];
     assert_eq!(f.intrinsics, K);
-    assert!((f.camera_to_world.transform_vector3(DVec3::Z) - DVec3::X).length() < 1e-12);
-    assert!((f.camera_center() - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-12);
+    assert!((f.camera_to_world.to_glam().transform_vector3(DVec3::Z) - DVec3::X).length() < 1e-12);
+    assert!((f.camera_center().to_glam() - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-12);
     // Depth 1/5000 m units: 5000 -> 1 m.
     assert!((f.depth.as_ref().unwrap().get(10, 10) - 1.0).abs() < 1e-6);
 }
@@ -577,7 +579,10 @@ fn fix_poses_reorthonormalises_with_a_warning() {
         .warnings
         .iter()
         .any(|w| w.contains("000001.txt") && w.contains("re-orthonormalised")));
-    assert!(scan.frames[1].camera_to_world.abs_diff_eq(cams()[1].c2w(), 5e-3));
+    assert!(scan.frames[1]
+        .camera_to_world
+        .to_glam()
+        .abs_diff_eq(cams()[1].c2w(), 5e-3));
 }
 
 fn shared_data() -> PathBuf {

@@ -7,10 +7,11 @@
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int32Type};
 use arrow_array::{Array, RecordBatch};
-use glam::DMat4;
 use image::DynamicImage;
+use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::fixture::{generate, read_meta, Corruptions, FixtureOptions, Render, SceneKind};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::metrics::psnr;
@@ -117,7 +118,7 @@ fn read_rows(path: &Path) -> Vec<Row> {
             let m = pose.as_fixed_size_list().value(i);
             let m: Vec<f64> = m.as_primitive::<Float64Type>().values().to_vec();
             let spec = ViewSpec {
-                camera_to_world: DMat4::from_cols_array(&m.try_into().unwrap()).transpose(),
+                camera_to_world: nerflabel::scan::isometry(&Matrix4::from_row_slice(&m)),
                 intrinsics: Intrinsics {
                     fx: kv[0],
                     fy: kv[1],
@@ -188,7 +189,12 @@ fn boxes_of_mask(mask: &[u8], width: u32) -> BTreeMap<i32, [f32; 4]> {
 /// Exact ground truth of a view.
 fn truth(spec: &ViewSpec) -> Render {
     let scene = read_meta(&fitted().scan_dir).unwrap().build_scene();
-    scene.render(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height)
+    scene.render(
+        &spec.camera_to_world.to_glam(),
+        &spec.intrinsics,
+        spec.width,
+        spec.height,
+    )
 }
 
 /// Mean IoU over the instances present in either mask, pixels pooled over views.
@@ -324,7 +330,9 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     let dir = tempfile::tempdir().unwrap();
     let frame = &f.scan.frames[7];
     let (w, h) = frame.size();
-    let rows: Vec<[f64; 4]> = (0..4).map(|r| frame.camera_to_world.row(r).to_array()).collect();
+    let rows: Vec<[f64; 4]> = (0..4)
+        .map(|r| frame.camera_to_world.to_glam().row(r).to_array())
+        .collect();
     let k = frame.intrinsics;
     let json = serde_json::json!({ "views": [{
         "camera_to_world": rows, "intrinsics": [k.fx, k.fy, k.cx, k.cy], "width": w, "height": h
@@ -343,7 +351,7 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     let rows = read_rows(&out);
     assert_eq!(rows.len(), 1);
     let row = &rows[0];
-    assert!(row.spec.camera_to_world.abs_diff_eq(frame.camera_to_world, 1e-12));
+    assert!((row.spec.camera_to_world.to_homogeneous() - frame.camera_to_world.to_homogeneous()).amax() < 1e-12);
     let gt = truth(&row.spec);
     let against_frame = psnr(&row.rgb, frame.rgb.as_raw());
     let against_truth = psnr(&row.rgb, gt.rgb.as_raw());

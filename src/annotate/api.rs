@@ -17,6 +17,7 @@ use super::fit_box::{FitError, Region, MAX_POLYGON_VERTICES};
 use super::preview::render_preview;
 use super::session::Session;
 use crate::boxes::{parse_boxes, Box3, BoxError, BoxSet};
+use crate::glam_bridge::ToGlam;
 use glam::{DMat3, DVec3};
 use serde_json::{json, Value};
 
@@ -211,7 +212,7 @@ pub fn fit(session: &Session, body: &[u8]) -> Reply {
 pub fn frames(session: &Session) -> Reply {
     let frames: Vec<Value> = (session.scan.frames.iter())
         .map(|f| {
-            let m = f.camera_to_world;
+            let m = f.camera_to_world.to_glam();
             json!({
                 "stem": f.name,
                 "id": f.id,

@@ -5,6 +5,7 @@
 //! surface points within 25° of it (the floor or the table), and to a world
 //! axis when within half a degree of one (exact in generated scenes).
 
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::symmetric_eigen;
 use crate::rng::Rng;
 use crate::scan::Scan;
@@ -48,7 +49,7 @@ impl Ground {
     /// The scan's up axis from its cameras and surface points (world metres).
     pub fn estimate(scan: &Scan, points: &[DVec3]) -> Ground {
         let cameras: DVec3 = (scan.frames.iter())
-            .map(|f| -f.camera_to_world.y_axis.truncate())
+            .map(|f| -f.camera_to_world.to_glam().y_axis.truncate())
             .filter(|v| v.is_finite())
             .sum();
         let guess = if cameras.length() > 1e-9 {
@@ -139,8 +140,8 @@ fn plane_normal(points: &[DVec3], guess: DVec3) -> Option<DVec3> {
         let q = *p - mean;
         cov += DMat3::from_cols(q * q.x, q * q.y, q * q.z);
     }
-    let (_, vectors) = symmetric_eigen(cov);
-    let refined = vectors.z_axis;
+    let (_, vectors) = symmetric_eigen(cov.to_na());
+    let refined = vectors.to_glam().z_axis;
     let refined = if refined.dot(n) < 0.0 { -refined } else { refined };
     refined.is_finite().then_some(refined.normalize())
 }

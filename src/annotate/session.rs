@@ -82,7 +82,8 @@ impl Session {
         if samples.points.is_empty() {
             return Err(SessionError::NoDepth(scan_dir.display().to_string()));
         }
-        let ground = Ground::estimate(&scan, &samples.points);
+        let points = crate::glam_bridge::points_to_glam(&samples.points);
+        let ground = Ground::estimate(&scan, &points);
         let options = CloudOptions {
             voxels_per_extent: CLOUD_VOXELS,
             ..CloudOptions::default()
@@ -97,13 +98,10 @@ impl Session {
                 // Two voxels: the averaged point of a voxel the sensor saw
                 // lies within one of the sensor's own samples.
                 let near = 2.0 * cloud.voxel_size;
-                let fit = FitPoints::with_unseen(ground, &samples.points, cell, &rendered, near);
+                let fit = FitPoints::with_unseen(ground, &points, cell, &rendered, near);
                 (fit, cloud)
             }
-            None => (
-                FitPoints::new(ground, &samples.points, cell),
-                fuse_cloud(&scan, &options)?,
-            ),
+            None => (FitPoints::new(ground, &points, cell), fuse_cloud(&scan, &options)?),
         };
         let cloud_bin = cloud_bin::encode(&cloud, ground.up, CLOUD_POINTS);
         Ok(Session {
@@ -112,7 +110,7 @@ impl Session {
             boxes_path,
             model,
             fit,
-            surface: samples.points,
+            surface: points,
             cloud_bin,
             writing: Mutex::new(()),
         })

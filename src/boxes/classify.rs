@@ -4,6 +4,7 @@
 //! [`Overlap::Deepest`], to the box it lies deepest inside.
 
 use super::parse::BoxSet;
+use crate::glam_bridge::ToNalgebra;
 use crate::poses::DAabb;
 use glam::{DMat3, DVec3};
 
@@ -42,8 +43,8 @@ impl Prepared {
     fn ray(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let o = self.world_to_box * (origin - self.center);
         let d = self.world_to_box * dir;
-        DAabb::new(-self.half, self.half)
-            .line_crossing(o, d)
+        DAabb::new((-self.half).to_na(), self.half.to_na())
+            .line_crossing(&o.to_na(), &crate::glam_bridge::vector(d))
             .map(|c| (c.t_near, c.t_far))
     }
 }

@@ -17,6 +17,7 @@ use super::reach::{self, Contested};
 use super::support::{excluded_planes, ExcludedPlane};
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use super::tsdf::BoxTsdf;
+use crate::glam_bridge::ToGlam;
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::march::ray_interval;
@@ -176,7 +177,7 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        Ok(self.exclude_supports_among(&samples.points))
+        Ok(self.exclude_supports_among(&crate::glam_bridge::points_to_glam(&samples.points)))
     }
 
     /// [`Self::exclude_supports`] with the scan's surface points (world
@@ -266,7 +267,7 @@ impl<'a> Labeler<'a> {
     /// [`Self::surface`] of the pixels (x, y) that `keep` accepts.
     pub fn surface_where(&self, frame: &Frame, keep: &dyn Fn(u32, u32) -> bool) -> FrameSurface {
         let (w, h) = frame.size();
-        let c2w = frame.camera_to_world;
+        let c2w = frame.camera_to_world.to_glam();
         let k = frame.intrinsics;
         let origin = c2w.w_axis.truncate();
         let rot = DMat3::from_mat4(c2w);
@@ -294,7 +295,7 @@ impl<'a> Labeler<'a> {
                 if (!full && !candidate[y as usize * w as usize + x as usize]) || !keep(x, y) {
                     continue;
                 }
-                let dir = (rot * k.unproject(x as f64, y as f64)).normalize();
+                let dir = (rot * k.unproject(x as f64, y as f64).to_glam()).normalize();
                 let box_far = self.classifier.ray_interval(origin, dir).map(|(_, t1)| t1);
                 box_pixels += box_far.is_some() as usize;
                 if full || box_far.is_some() {
@@ -309,7 +310,7 @@ impl<'a> Labeler<'a> {
         };
         let sensor = |j: &Job| match &self.sensor_fusion {
             Some(tsdf) => {
-                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let ray = rot * k.unproject(j.x as f64, j.y as f64).to_glam();
                 let len = ray.length();
                 tsdf.depth_along(origin, ray / len, 1.0 / len)
             }
@@ -336,7 +337,7 @@ impl<'a> Labeler<'a> {
     /// Label one frame (its rays are rendered in parallel packets).
     pub fn label_frame(&self, frame: &Frame) -> FrameLabel {
         let (w, h) = frame.size();
-        let c2w = frame.camera_to_world;
+        let c2w = frame.camera_to_world.to_glam();
         let k = frame.intrinsics;
         let origin = c2w.w_axis.truncate();
         let rot = DMat3::from_mat4(c2w);
@@ -364,14 +365,14 @@ impl<'a> Labeler<'a> {
             z_image = z_image_of_jobs();
         }
         let mut contested = Contested::default();
-        let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64) * z);
+        let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64).to_glam() * z);
         for (j, &z) in jobs.iter().zip(&depths) {
             let index = j.y as usize * w as usize + j.x as usize;
             if let Some(d) = depth_m.as_mut() {
                 d[index] = z as f32;
             }
             if z > 0.0 && j.box_far.is_some() {
-                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let ray = rot * k.unproject(j.x as f64, j.y as f64).to_glam();
                 let len = ray.length();
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
                 let dir = ray / len;
@@ -442,7 +443,7 @@ impl<'a> Labeler<'a> {
         };
         let (w, h) = frame.size();
         let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
-        let scale = renderer.transform.scale;
+        let scale = renderer.transform.scale();
         let near = opts.rule.min_step;
         let (field, grid) = (&renderer.model.field, renderer.grid());
         let crossing = CrossingOptions {
@@ -617,7 +618,14 @@ mod tests {
             height: h,
             metres: vec![2.0; (w * h) as usize],
         };
-        let frame = Frame::new(7, "000007", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let frame = Frame::new(
+            7,
+            "000007",
+            image::RgbImage::new(w, h),
+            Some(depth),
+            nalgebra::IsometryMatrix3::identity(),
+            k,
+        );
         let cube = Box3 {
             label: "cube".into(),
             instance_id: 1,
@@ -704,7 +712,14 @@ mod tests {
             height: h,
             metres,
         };
-        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let frame = Frame::new(
+            0,
+            "000000",
+            image::RgbImage::new(w, h),
+            Some(depth),
+            nalgebra::IsometryMatrix3::identity(),
+            k,
+        );
         let b = Box3 {
             label: "face".into(),
             instance_id: 1,
@@ -766,7 +781,14 @@ mod tests {
             height: h,
             metres: (0..w * h).map(|i| metres(i % w)).collect(),
         };
-        let frame = Frame::new(0, "000000", image::RgbImage::new(w, h), Some(depth), DMat4::IDENTITY, k);
+        let frame = Frame::new(
+            0,
+            "000000",
+            image::RgbImage::new(w, h),
+            Some(depth),
+            nalgebra::IsometryMatrix3::identity(),
+            k,
+        );
         let left = Box3 {
             label: "a".into(),
             instance_id: 1,

@@ -132,6 +132,7 @@ pub fn project_box(b: &Box3, camera_to_world: &DMat4, k: &Intrinsics, size: (u32
 mod tests {
     use super::*;
     use crate::boxes::{BoxClassifier, BoxSet};
+    use crate::glam_bridge::ToGlam;
     use crate::rng::Rng;
     use glam::{DMat3, DQuat};
 
@@ -187,7 +188,7 @@ mod tests {
             let rot = DMat3::from_mat4(pose);
             for y in 0..h {
                 for x in 0..w {
-                    let dir = rot * k.unproject(x as f64, y as f64);
+                    let dir = rot * k.unproject(x as f64, y as f64).to_glam();
                     if classifier.ray_interval(origin, dir).is_some() {
                         let r = rect.unwrap_or_else(|| panic!("pixel ({x}, {y}) hits but no rectangle"));
                         assert!(r.contains(x, y), "pixel ({x}, {y}) outside {r:?}");

@@ -6,6 +6,7 @@
 //! NeRFing-it paper.
 
 use super::parse::BoxSet;
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::DAabb;
 use crate::scan::Frame;
 use glam::{DMat3, DVec3};
@@ -64,8 +65,8 @@ impl Block {
     /// Ray parameters where the ray is inside the block.
     fn interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
         let hi = self.origin + DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
-        DAabb::new(self.origin, hi)
-            .ray_interval(origin, dir)
+        DAabb::new(self.origin.to_na(), hi.to_na())
+            .ray_interval(&origin.to_na(), &crate::glam_bridge::vector(dir))
             .filter(|(t0, t1)| t0 < t1)
     }
 }
@@ -160,8 +161,8 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
         .iter()
         .filter(|f| f.depth.is_some())
         .map(|f| {
-            let rot = DMat3::from_mat4(f.camera_to_world).transpose();
-            (rot, f.camera_to_world.w_axis.truncate(), f)
+            let rot = DMat3::from_mat4(f.camera_to_world.to_glam()).transpose();
+            (rot, f.camera_to_world.to_glam().w_axis.truncate(), f)
         })
         .collect();
     block
@@ -207,6 +208,7 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
 mod tests {
     use super::*;
     use crate::boxes::parse::Box3;
+    use crate::glam_bridge::ToNalgebra;
     use crate::rng::Rng;
     use crate::scan::{DepthMap, Intrinsics};
     use glam::{DMat4, DVec4};
@@ -246,7 +248,7 @@ mod tests {
                     format!("{i:06}"),
                     image::RgbImage::new(80, 60),
                     Some(depth),
-                    looking_down(eye),
+                    looking_down(eye).to_na(),
                     k,
                 )
             })

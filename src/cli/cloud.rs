@@ -82,8 +82,8 @@ fn cloud_bounds(scan: &Scan, model: &Model) -> anyhow::Result<DAabb> {
     }
     let transform = model.scene_transform()?;
     let corners = (0..8).map(|i| {
-        let unit = glam::DVec3::new((i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64);
-        transform.local_to_world_point(unit)
+        let unit = nalgebra::Point3::new((i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64);
+        transform.local_to_world_point(&unit)
     });
     DAabb::from_points(corners).context("the model's scene box is empty")
 }

@@ -7,8 +7,9 @@ use super::label::lift_masks;
 use super::verbosity::{note, say};
 use super::SynthArgs;
 use anyhow::bail;
-use glam::DVec3;
+use nalgebra::{Point3, Vector3};
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
+use nerflabel::glam_bridge::ToGlam;
 use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 use nerflabel::synth::{
@@ -113,7 +114,8 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
                 .transpose()?;
             // A mask object's surface first; the boxes label the rest. Each
             // loses the support and wall planes `label` excludes from it.
-            let classify = |p: DVec3, normal: Option<DVec3>| -> u32 {
+            let classify = |p: Point3<f64>, normal: Option<Vector3<f64>>| -> u32 {
+                let (p, normal) = (p.to_glam(), normal.map(|n| n.to_glam()));
                 let id = from_masks.classify(p);
                 if id > 0 {
                     let on_support = region_of

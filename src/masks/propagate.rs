@@ -16,6 +16,7 @@ use super::votes::VoteVolume;
 use crate::boxes::label::{finish_mask, instances_of, surface_normal};
 use crate::boxes::output::FrameLabelling;
 use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::symmetric_eigen;
 use crate::scan::{Frame, Scan};
 use glam::{DMat3, DVec3};
@@ -339,7 +340,8 @@ fn voxel_size(points: &[(u32, u32, f64)], frame: &Frame, labeler: &Labeler) -> f
 fn world_point(frame: &Frame, x: u32, y: u32, z: f64) -> DVec3 {
     frame
         .camera_to_world
-        .transform_point3(frame.intrinsics.unproject(x as f64, y as f64) * z)
+        .to_glam()
+        .transform_point3(frame.intrinsics.unproject(x as f64, y as f64).to_glam() * z)
 }
 
 /// Vote weight of each pixel from its distance (4-neighbour steps) to the
@@ -405,7 +407,8 @@ fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
         let d = *p - mean;
         cov += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
     }
-    let (_, mut axes) = symmetric_eigen(cov * (1.0 / n));
+    let (_, axes) = symmetric_eigen((cov * (1.0 / n)).to_na());
+    let mut axes = axes.to_glam();
     if axes.determinant() < 0.0 {
         axes.z_axis = -axes.z_axis;
     }
@@ -523,12 +526,14 @@ impl FrameLabelling for MaskLabeler<'_> {
         if given.is_none() {
             mask = finish_mask(mask, frame, &self.options);
         }
-        let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.inverse());
+        let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.to_glam().inverse());
         let in_view = self
             .all
             .boxes
             .iter()
-            .filter(|b| crate::boxes::project_box(b, &frame.camera_to_world, &frame.intrinsics, (w, h)).is_some())
+            .filter(|b| {
+                crate::boxes::project_box(b, &frame.camera_to_world.to_glam(), &frame.intrinsics, (w, h)).is_some()
+            })
             .map(|b| b.instance_id)
             .collect();
         FrameLabel {

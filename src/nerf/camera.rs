@@ -3,8 +3,7 @@
 
 use crate::poses::Aabb;
 use crate::scan::Intrinsics;
-use glam::DMat4;
-use glam::Vec3;
+use nalgebra::{IsometryMatrix3, Point3, Vector3};
 
 /// A pinhole camera in local coordinates (OpenCV axes).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -23,15 +22,15 @@ pub struct LocalCamera {
 
 impl LocalCamera {
     /// Camera from a camera-to-local pose (rotation part orthonormal).
-    pub fn new(camera_to_local: &DMat4, k: &Intrinsics, width: u32, height: u32) -> LocalCamera {
-        let m = camera_to_local;
+    pub fn new(camera_to_local: &IsometryMatrix3<f64>, k: &Intrinsics, width: u32, height: u32) -> LocalCamera {
+        let m = camera_to_local.rotation.matrix();
         let mut rotation = [[0.0f32; 3]; 3];
         for (r, row) in rotation.iter_mut().enumerate() {
             for (c, v) in row.iter_mut().enumerate() {
-                *v = m.col(c)[r] as f32;
+                *v = m[(r, c)] as f32;
             }
         }
-        let t = m.w_axis;
+        let t = camera_to_local.translation.vector;
         LocalCamera {
             rotation,
             origin: [t.x as f32, t.y as f32, t.z as f32],
@@ -92,7 +91,7 @@ impl LocalRay {
 
 /// Parameter interval of a ray inside [0,1]^3 (t >= 0), `None` on a miss.
 pub fn unit_cube_interval(o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
-    Aabb::UNIT.ray_interval(Vec3::from(o), Vec3::from(d))
+    Aabb::UNIT.ray_interval(&Point3::from(o), &Vector3::from(d))
 }
 
 #[cfg(test)]

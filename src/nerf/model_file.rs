@@ -171,9 +171,10 @@ impl Model {
         }
         let mut changed = 0;
         for (frame, pose) in scan.frames.iter_mut().zip(poses) {
-            let pose = glam::DMat4::from_cols_array(pose);
-            if pose.is_finite() && pose != frame.camera_to_world {
-                frame.camera_to_world = pose;
+            // Column-major, as written by `fit`.
+            let pose = nalgebra::Matrix4::from_column_slice(pose);
+            if pose.iter().all(|x| x.is_finite()) && pose != frame.camera_to_world.to_homogeneous() {
+                frame.camera_to_world = crate::scan::isometry(&pose);
                 changed += 1;
             }
         }
@@ -299,7 +300,12 @@ mod tests {
             scan: "scan".into(),
             scan_frames: Some(2),
             scan_fingerprint: Some(11),
-            fitted_poses: Some(vec![glam::DMat4::from_translation(glam::DVec3::X).to_cols_array(); 2]),
+            fitted_poses: Some(vec![
+                std::array::from_fn(
+                    |i| nalgebra::Translation3::new(1.0, 0.0, 0.0).to_homogeneous()[i]
+                );
+                2
+            ]),
             appearance: Some(vec![
                 crate::nerf::appearance::IDENTITY,
                 [0.9, 0.0, 0.0, 0.02, 0.0, 1.1, 0.0, -0.01, 0.0, 0.0, 1.0, 0.0],

@@ -2,7 +2,7 @@
 //! f64 ([`DAabb`], for scene geometry), with a slab ray test that never
 //! produces NaN and treats the box as closed (faces belong to it).
 
-use glam::{DVec3, Vec3};
+use nalgebra::{Point3, Vector3};
 
 /// Where a line crosses a box: parameters of entry and exit and the axes
 /// of the faces crossed there (see `line_crossing`).
@@ -15,34 +15,34 @@ pub struct SlabCrossing<T> {
 }
 
 macro_rules! aabb_type {
-    ($name:ident, $vec:ident, $t:ident, $doc:literal) => {
+    ($name:ident, $t:ident, $doc:literal) => {
         #[doc = $doc]
         #[derive(Clone, Copy, Debug, Default, PartialEq)]
         pub struct $name {
-            pub min: $vec,
-            pub max: $vec,
+            pub min: Point3<$t>,
+            pub max: Point3<$t>,
         }
 
         impl $name {
             /// Box from its two corners (not checked; see [`Self::is_valid`]).
             #[inline]
-            pub const fn new(min: $vec, max: $vec) -> Self {
+            pub const fn new(min: Point3<$t>, max: Point3<$t>) -> Self {
                 Self { min, max }
             }
 
             /// The unit cube [0, 1]^3.
             pub const UNIT: Self = Self {
-                min: $vec::ZERO,
-                max: $vec::ONE,
+                min: Point3::new(0.0, 0.0, 0.0),
+                max: Point3::new(1.0, 1.0, 1.0),
             };
 
             /// Smallest box holding every finite point; `None` when there is none.
-            pub fn from_points<I: IntoIterator<Item = $vec>>(points: I) -> Option<Self> {
+            pub fn from_points<I: IntoIterator<Item = Point3<$t>>>(points: I) -> Option<Self> {
                 let mut out: Option<Self> = None;
-                for p in points.into_iter().filter(|p| p.is_finite()) {
+                for p in points.into_iter().filter(|p| p.iter().all(|x| x.is_finite())) {
                     out = Some(match out {
                         None => Self::new(p, p),
-                        Some(b) => b.including(p),
+                        Some(b) => b.including(&p),
                     });
                 }
                 out
@@ -51,74 +51,78 @@ macro_rules! aabb_type {
             /// Finite corners with `min <= max` on every axis.
             #[inline]
             pub fn is_valid(&self) -> bool {
-                self.min.is_finite() && self.max.is_finite() && self.min.cmple(self.max).all()
+                self.min.iter().chain(self.max.iter()).all(|x| x.is_finite())
+                    && (0..3).all(|a| self.min[a] <= self.max[a])
             }
 
             /// Edge lengths.
             #[inline]
-            pub fn extent(&self) -> $vec {
+            pub fn extent(&self) -> Vector3<$t> {
                 self.max - self.min
             }
 
             /// Longest edge length.
             #[inline]
             pub fn max_extent(&self) -> $t {
-                self.extent().max_element()
+                self.extent().max()
             }
 
             /// Centre point.
             #[inline]
-            pub fn center(&self) -> $vec {
-                (self.min + self.max) * 0.5
+            pub fn center(&self) -> Point3<$t> {
+                nalgebra::center(&self.min, &self.max)
             }
 
             /// Volume (0 for flat boxes).
             #[inline]
             pub fn volume(&self) -> $t {
-                let e = self.extent().max($vec::ZERO);
+                let e = self.extent().sup(&Vector3::zeros());
                 e.x * e.y * e.z
             }
 
             /// Whether `p` lies inside or on the boundary.
             #[inline]
-            pub fn contains(&self, p: $vec) -> bool {
-                self.min.cmple(p).all() && p.cmple(self.max).all()
+            pub fn contains(&self, p: &Point3<$t>) -> bool {
+                (0..3).all(|a| self.min[a] <= p[a] && p[a] <= self.max[a])
             }
 
             /// Whether `other` lies entirely inside this box.
             #[inline]
             pub fn contains_box(&self, other: &Self) -> bool {
-                self.contains(other.min) && self.contains(other.max)
+                self.contains(&other.min) && self.contains(&other.max)
             }
 
             /// This box grown to hold `p`.
             #[inline]
-            pub fn including(&self, p: $vec) -> Self {
-                Self::new(self.min.min(p), self.max.max(p))
+            pub fn including(&self, p: &Point3<$t>) -> Self {
+                Self::new(self.min.inf(p), self.max.sup(p))
             }
 
             /// Smallest box holding both boxes.
             #[inline]
             pub fn union(&self, other: &Self) -> Self {
-                Self::new(self.min.min(other.min), self.max.max(other.max))
+                Self::new(self.min.inf(&other.min), self.max.sup(&other.max))
             }
 
             /// Overlap of both boxes; `None` when they are disjoint.
             pub fn intersection(&self, other: &Self) -> Option<Self> {
-                let b = Self::new(self.min.max(other.min), self.max.min(other.max));
-                b.min.cmple(b.max).all().then_some(b)
+                let b = Self::new(self.min.sup(&other.min), self.max.inf(&other.max));
+                (0..3).all(|a| b.min[a] <= b.max[a]).then_some(b)
             }
 
             /// This box grown by `margin` on every side.
             #[inline]
             pub fn padded(&self, margin: $t) -> Self {
-                Self::new(self.min - $vec::splat(margin), self.max + $vec::splat(margin))
+                Self::new(
+                    self.min - Vector3::repeat(margin),
+                    self.max + Vector3::repeat(margin),
+                )
             }
 
             /// The eight corners, bit i of the index selecting max on axis i.
-            pub fn corners(&self) -> [$vec; 8] {
+            pub fn corners(&self) -> [Point3<$t>; 8] {
                 std::array::from_fn(|i| {
-                    $vec::new(
+                    Point3::new(
                         if i & 1 == 0 { self.min.x } else { self.max.x },
                         if i & 2 == 0 { self.min.y } else { self.max.y },
                         if i & 4 == 0 { self.min.z } else { self.max.z },
@@ -132,9 +136,9 @@ macro_rules! aabb_type {
             /// to (a zero component, or one so small its reciprocal
             /// overflows) only decide hit or miss, so nothing is NaN.
             #[inline]
-            pub fn line_crossing(&self, origin: $vec, dir: $vec) -> Option<SlabCrossing<$t>> {
-                let (o, d) = (origin.to_array(), dir.to_array());
-                let (lo, hi) = (self.min.to_array(), self.max.to_array());
+            pub fn line_crossing(&self, origin: &Point3<$t>, dir: &Vector3<$t>) -> Option<SlabCrossing<$t>> {
+                let (o, d) = (origin, dir);
+                let (lo, hi) = (self.min, self.max);
                 let mut c = SlabCrossing {
                     t_near: $t::NEG_INFINITY,
                     t_far: $t::INFINITY,
@@ -172,8 +176,8 @@ macro_rules! aabb_type {
             /// count as hits. A zero direction, a non-finite input or an
             /// invalid box is a miss.
             #[inline]
-            pub fn ray_interval(&self, origin: $vec, dir: $vec) -> Option<($t, $t)> {
-                if !self.is_valid() || !origin.is_finite() || !dir.is_finite() {
+            pub fn ray_interval(&self, origin: &Point3<$t>, dir: &Vector3<$t>) -> Option<($t, $t)> {
+                if !self.is_valid() || !origin.iter().chain(dir.iter()).all(|x| x.is_finite()) {
                     return None;
                 }
                 let c = self.line_crossing(origin, dir)?;
@@ -185,23 +189,22 @@ macro_rules! aabb_type {
     };
 }
 
-aabb_type!(Aabb, Vec3, f32, "Axis-aligned box in f32 (renderer, local units).");
+aabb_type!(Aabb, f32, "Axis-aligned box in f32 (renderer, local units).");
 aabb_type!(
     DAabb,
-    DVec3,
     f64,
     "Axis-aligned box in f64 (scene geometry, metres or local units)."
 );
 
 impl From<DAabb> for Aabb {
     fn from(b: DAabb) -> Self {
-        Aabb::new(b.min.as_vec3(), b.max.as_vec3())
+        Aabb::new(b.min.cast::<f32>(), b.max.cast::<f32>())
     }
 }
 
 impl From<Aabb> for DAabb {
     fn from(b: Aabb) -> Self {
-        DAabb::new(b.min.as_dvec3(), b.max.as_dvec3())
+        DAabb::new(b.min.cast::<f64>(), b.max.cast::<f64>())
     }
 }
 
@@ -209,17 +212,18 @@ impl From<Aabb> for DAabb {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+    use nalgebra::{Point3 as P, Vector3 as V};
 
     fn unit() -> DAabb {
-        DAabb::new(DVec3::ZERO, DVec3::ONE)
+        DAabb::UNIT
     }
 
     #[test]
     fn ray_from_outside_enters_and_leaves_at_the_faces() {
-        let (t0, t1) = unit().ray_interval(DVec3::new(-1.0, 0.5, 0.5), DVec3::X).unwrap();
+        let (t0, t1) = unit().ray_interval(&P::new(-1.0, 0.5, 0.5), &V::x()).unwrap();
         assert_eq!((t0, t1), (1.0, 2.0));
         let (t0, t1) = unit()
-            .ray_interval(DVec3::new(2.0, 0.5, 0.5), DVec3::new(-2.0, 0.0, 0.0))
+            .ray_interval(&P::new(2.0, 0.5, 0.5), &V::new(-2.0, 0.0, 0.0))
             .unwrap();
         assert_eq!((t0, t1), (0.5, 1.0));
     }
@@ -227,7 +231,7 @@ mod tests {
     #[test]
     fn origin_inside_clamps_near_to_zero() {
         let (t0, t1) = unit()
-            .ray_interval(DVec3::splat(0.5), DVec3::new(0.0, 0.0, 1.0))
+            .ray_interval(&P::new(0.5, 0.5, 0.5), &V::new(0.0, 0.0, 1.0))
             .unwrap();
         assert_eq!(t0, 0.0);
         assert!(t0.is_sign_positive());
@@ -236,53 +240,56 @@ mod tests {
 
     #[test]
     fn looking_away_misses() {
-        assert_eq!(unit().ray_interval(DVec3::new(-1.0, 0.5, 0.5), -DVec3::X), None);
-        assert_eq!(unit().ray_interval(DVec3::new(2.0, 2.0, 2.0), DVec3::ONE), None);
+        assert_eq!(unit().ray_interval(&P::new(-1.0, 0.5, 0.5), &-V::x()), None);
+        assert_eq!(unit().ray_interval(&P::new(2.0, 2.0, 2.0), &V::repeat(1.0)), None);
     }
 
     #[test]
     fn zero_and_negative_zero_components_inside_the_slab_hit() {
-        for d in [DVec3::new(1.0, 0.0, 0.0), DVec3::new(1.0, -0.0, -0.0)] {
-            let (t0, t1) = unit().ray_interval(DVec3::new(-1.0, 0.25, 0.75), d).unwrap();
+        for d in [V::new(1.0, 0.0, 0.0), V::new(1.0, -0.0, -0.0)] {
+            let (t0, t1) = unit().ray_interval(&P::new(-1.0, 0.25, 0.75), &d).unwrap();
             assert_eq!((t0, t1), (1.0, 2.0));
         }
-        for d in [DVec3::new(0.0, 1.0, 0.0), DVec3::new(-0.0, 1.0, 0.0)] {
-            assert_eq!(unit().ray_interval(DVec3::new(1.5, -1.0, 0.5), d), None);
+        for d in [V::new(0.0, 1.0, 0.0), V::new(-0.0, 1.0, 0.0)] {
+            assert_eq!(unit().ray_interval(&P::new(1.5, -1.0, 0.5), &d), None);
         }
     }
 
     #[test]
     fn ray_along_a_face_with_origin_on_it_is_a_grazing_hit() {
         // Origin exactly on the x = 0 face, direction parallel to it.
-        let hit = unit().ray_interval(DVec3::new(0.0, -1.0, 0.5), DVec3::new(-0.0, 1.0, 0.0));
+        let hit = unit().ray_interval(&P::new(0.0, -1.0, 0.5), &V::new(-0.0, 1.0, 0.0));
         assert_eq!(hit, Some((1.0, 2.0)));
         // Along the x = 1, z = 1 edge.
-        let hit = unit().ray_interval(DVec3::new(1.0, 3.0, 1.0), DVec3::new(0.0, -1.0, 0.0));
+        let hit = unit().ray_interval(&P::new(1.0, 3.0, 1.0), &V::new(0.0, -1.0, 0.0));
         assert_eq!(hit, Some((2.0, 3.0)));
         // Just outside the face: a miss.
-        let o = DVec3::new(-1e-12, -1.0, 0.5);
-        assert_eq!(unit().ray_interval(o, DVec3::Y), None);
+        let o = P::new(-1e-12, -1.0, 0.5);
+        assert_eq!(unit().ray_interval(&o, &V::y()), None);
     }
 
     #[test]
     fn ray_touching_only_an_edge_gives_a_point_interval() {
         // Passes through the edge x = 0, y = 1 at t = 1 and nowhere else.
-        let hit = unit().ray_interval(DVec3::new(-1.0, 0.0, 0.5), DVec3::new(1.0, 1.0, 0.0));
+        let hit = unit().ray_interval(&P::new(-1.0, 0.0, 0.5), &V::new(1.0, 1.0, 0.0));
         assert_eq!(hit, Some((1.0, 1.0)));
         // Same direction shifted off the edge: a miss.
-        let hit = unit().ray_interval(DVec3::new(-1.0, 1.0, 0.5), DVec3::new(1.0, 1.0, 0.0));
+        let hit = unit().ray_interval(&P::new(-1.0, 1.0, 0.5), &V::new(1.0, 1.0, 0.0));
         assert_eq!(hit, None);
     }
 
     #[test]
     fn degenerate_inputs_are_clean_misses() {
         let b = unit();
-        assert_eq!(b.ray_interval(DVec3::splat(0.5), DVec3::ZERO), None);
-        assert_eq!(b.ray_interval(DVec3::splat(0.5), DVec3::new(f64::NAN, 1.0, 0.0)), None);
-        assert_eq!(b.ray_interval(DVec3::new(f64::NAN, 0.5, 0.5), DVec3::X), None);
-        assert_eq!(b.ray_interval(DVec3::new(f64::INFINITY, 0.5, 0.5), -DVec3::X), None);
-        let inverted = DAabb::new(DVec3::ONE, DVec3::ZERO);
-        assert_eq!(inverted.ray_interval(DVec3::splat(-1.0), DVec3::ONE), None);
+        assert_eq!(b.ray_interval(&P::new(0.5, 0.5, 0.5), &V::zeros()), None);
+        assert_eq!(
+            b.ray_interval(&P::new(0.5, 0.5, 0.5), &V::new(f64::NAN, 1.0, 0.0)),
+            None
+        );
+        assert_eq!(b.ray_interval(&P::new(f64::NAN, 0.5, 0.5), &V::x()), None);
+        assert_eq!(b.ray_interval(&P::new(f64::INFINITY, 0.5, 0.5), &-V::x()), None);
+        let inverted = DAabb::new(P::new(1.0, 1.0, 1.0), P::origin());
+        assert_eq!(inverted.ray_interval(&P::new(-1.0, -1.0, -1.0), &V::repeat(1.0)), None);
     }
 
     #[test]
@@ -290,27 +297,24 @@ mod tests {
         let b = Aabb::UNIT;
         // Origin on a face with a subnormal direction: 1/d would be inf; a
         // direction too small to move along any axis is a miss, like zero.
-        assert_eq!(
-            b.ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0)),
-            None
-        );
+        assert_eq!(b.ray_interval(&P::new(0.0, 0.5, 0.5), &V::new(1e-40, 0.0, 0.0)), None);
         // With another axis moving, the subnormal one is parallel.
         let (t0, t1) = b
-            .ray_interval(Vec3::new(0.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 1.0))
+            .ray_interval(&P::new(0.0, 0.5, 0.5), &V::new(1e-40, 0.0, 1.0))
             .unwrap();
         assert_eq!((t0, t1), (0.0, 0.5));
         let (t0, t1) = b
-            .ray_interval(Vec3::new(-1.0, 0.5, 0.5), Vec3::new(1e-40, 0.0, 0.0))
+            .ray_interval(&P::new(-1.0, 0.5, 0.5), &V::new(1e-40, 0.0, 0.0))
             .map_or((0.0, 0.0), |x| x);
         assert!(!t0.is_nan() && !t1.is_nan());
-        let far = Vec3::new(-f32::MAX, 0.5, 0.5);
-        let hit = b.ray_interval(far, Vec3::X);
+        let far = P::new(-f32::MAX, 0.5, 0.5);
+        let hit = b.ray_interval(&far, &V::x());
         assert!(hit.is_none_or(|(a, c)| a.is_finite() && c.is_finite() && a <= c));
     }
 
     /// Brute-force reference: is the point at t inside, with a tolerance band
     /// of `eps` around the faces where the answer is not checked?
-    fn classify(b: &DAabb, p: DVec3, eps: f64) -> Option<bool> {
+    fn classify(b: &DAabb, p: &P<f64>, eps: f64) -> Option<bool> {
         let inside = b.padded(-eps).contains(p);
         let outside = !b.padded(eps).contains(p);
         if inside {
@@ -327,16 +331,20 @@ mod tests {
         let mut rng = Rng::new(42, 0);
         let mut hits = 0;
         for case in 0..2000 {
-            let c = DVec3::new(rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-2.0, 2.0));
-            let e = DVec3::new(rng.range(0.1, 2.0), rng.range(0.1, 2.0), rng.range(0.1, 2.0));
+            let c = P::new(rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-2.0, 2.0));
+            let e = V::new(rng.range(0.1, 2.0), rng.range(0.1, 2.0), rng.range(0.1, 2.0));
             let b = DAabb::new(c - e, c + e);
-            let mut o = DVec3::new(rng.range(-5.0, 5.0), rng.range(-5.0, 5.0), rng.range(-5.0, 5.0));
+            let mut o = P::new(rng.range(-5.0, 5.0), rng.range(-5.0, 5.0), rng.range(-5.0, 5.0));
             // Aim near the box half the time, else anywhere.
-            let target = c + e * DVec3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
+            let target = c + e.component_mul(&V::new(
+                rng.range(-1.3, 1.3),
+                rng.range(-1.3, 1.3),
+                rng.range(-1.3, 1.3),
+            ));
             let mut d = if rng.below(2) == 0 {
                 (target - o) * rng.range(0.1, 3.0)
             } else {
-                DVec3::new(rng.normal(), rng.normal(), rng.normal())
+                V::new(rng.normal(), rng.normal(), rng.normal())
             };
             // Axis-parallel rays, often with the origin inside the slab or
             // exactly on one of its faces.
@@ -351,8 +359,8 @@ mod tests {
                     };
                 }
             }
-            let got = b.ray_interval(o, d);
-            let got32 = Aabb::from(b).ray_interval(o.as_vec3(), d.as_vec3());
+            let got = b.ray_interval(&o, &d);
+            let got32 = Aabb::from(b).ray_interval(&o.cast::<f32>(), &d.cast::<f32>());
             // The f32 box agrees with the f64 one up to rounding.
             match (got, got32) {
                 (Some((a, c)), Some((a32, c32))) => {
@@ -366,12 +374,12 @@ mod tests {
                 (None, Some((a, c))) => assert!(c - a < 1e-4, "case {case}: f32 hit {got32:?}"),
                 (None, None) => {}
             }
-            let step = 1e-3 / d.length().max(1e-9);
+            let step = 1e-3 / d.norm().max(1e-9);
             let mut t = 0.0;
-            while t < 20.0 / d.length().max(1e-9) && d != DVec3::ZERO {
+            while t < 20.0 / d.norm().max(1e-9) && d != V::zeros() {
                 let p = o + d * t;
                 // On-face origins of parallel rays sit in the tolerance band.
-                match (classify(&b, p, 1e-6), got) {
+                match (classify(&b, &p, 1e-6), got) {
                     (Some(true), Some((t0, t1))) => assert!(t >= t0 - 1e-9 && t <= t1 + 1e-9, "case {case} t {t}"),
                     (Some(true), None) => panic!("case {case}: inside at t {t} but reported a miss"),
                     (Some(false), Some((t0, t1))) => assert!(t < t0 + 1e-6 || t > t1 - 1e-6, "case {case} t {t}"),
@@ -388,12 +396,13 @@ mod tests {
 
     #[test]
     fn from_points_ignores_non_finite_and_union_contains_both() {
-        let b = DAabb::from_points([DVec3::ONE, DVec3::splat(f64::NAN), -DVec3::ONE]).unwrap();
-        assert_eq!(b, DAabb::new(-DVec3::ONE, DVec3::ONE));
-        assert!(DAabb::from_points([DVec3::splat(f64::INFINITY)]).is_none());
-        let u = b.union(&DAabb::new(DVec3::splat(2.0), DVec3::splat(3.0)));
-        assert!(u.contains_box(&b) && u.contains(DVec3::splat(3.0)));
+        let one = P::new(1.0, 1.0, 1.0);
+        let b = DAabb::from_points([one, P::new(f64::NAN, f64::NAN, f64::NAN), -one]).unwrap();
+        assert_eq!(b, DAabb::new(-one, one));
+        assert!(DAabb::from_points([P::new(f64::INFINITY, f64::INFINITY, f64::INFINITY)]).is_none());
+        let u = b.union(&DAabb::new(P::new(2.0, 2.0, 2.0), P::new(3.0, 3.0, 3.0)));
+        assert!(u.contains_box(&b) && u.contains(&P::new(3.0, 3.0, 3.0)));
         assert_eq!(b.volume(), 8.0);
-        assert_eq!(b.corners()[5], DVec3::new(1.0, -1.0, 1.0));
+        assert_eq!(b.corners()[5], P::new(1.0, -1.0, 1.0));
     }
 }

@@ -25,7 +25,7 @@
 
 use super::{DAabb, GeometryError};
 use crate::scan::{Frame, Scan};
-use glam::DVec3;
+use nalgebra::Point3;
 use rayon::prelude::*;
 
 /// Lower core percentile (the part of the cloud that is certainly scene).
@@ -100,7 +100,7 @@ pub struct PointStats {
 #[derive(Clone, Debug, Default)]
 pub struct DepthSamples {
     /// World points, frame by frame in scan order.
-    pub points: Vec<DVec3>,
+    pub points: Vec<Point3<f64>>,
     /// Their depths in metres, same order.
     pub depths: Vec<f32>,
     /// Frames that carry a depth map.
@@ -121,9 +121,9 @@ pub struct SceneBounds {
     /// Statistics of the depth points.
     pub stats: PointStats,
     /// Every sampled depth point (outliers included), for the normalisation.
-    pub samples: Vec<DVec3>,
+    pub samples: Vec<Point3<f64>>,
     /// Camera centres, scan order.
-    pub cameras: Vec<DVec3>,
+    pub cameras: Vec<Point3<f64>>,
     /// Options the bounds were made with (the normalisation reuses them).
     pub options: BoundsOptions,
 }
@@ -139,34 +139,34 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
     }
     let cameras = camera_centers(scan)?;
     let samples = sample_depth_points(scan, options.max_points)?;
-    let point_box = robust_box(&samples.points, |p| p, options.low_percentile, options.high_percentile);
+    let point_box = robust_box(&samples.points, |p| *p, options.low_percentile, options.high_percentile);
     let mut stats = depth_stats(&samples);
     stats.point_box = point_box;
     if let Some(b) = point_box {
-        stats.rejected = samples.points.par_iter().filter(|p| !b.contains(**p)).count();
+        stats.rejected = samples.points.par_iter().filter(|p| !b.contains(p)).count();
     }
     let (aabb, source) = if let Some(user) = scan.bounds {
         let b = DAabb::new(user.min, user.max);
-        if !b.is_valid() || !b.min.cmplt(b.max).all() {
+        if !b.is_valid() || !(0..3).all(|a| b.min[a] < b.max[a]) {
             return Err(GeometryError::InvalidUserBounds {
-                min: user.min,
-                max: user.max,
+                min: user.min.into(),
+                max: user.max.into(),
             });
         }
         // Bounds holding (almost) none of the measured surface train nothing.
         let total = samples.points.len();
-        let inside = samples.points.par_iter().filter(|p| b.contains(**p)).count();
+        let inside = samples.points.par_iter().filter(|p| b.contains(p)).count();
         if total > 0 && inside * USER_BOUNDS_MIN_SHARE < total {
             return Err(GeometryError::UserBoundsMissScene {
-                min: user.min,
-                max: user.max,
+                min: user.min.into(),
+                max: user.max.into(),
                 inside,
                 total,
             });
         }
         (b, BoundsSource::User)
     } else if let Some(b) = point_box {
-        let b = cameras.iter().fold(b, |b, c| b.including(*c));
+        let b = cameras.iter().fold(b, |b, c| b.including(c));
         (pad_relative(&b, options.padding), BoundsSource::Depth)
     } else {
         (frusta_bounds(scan, &cameras, options)?, BoundsSource::CameraFrusta)
@@ -185,11 +185,11 @@ pub fn scene_bounds(scan: &Scan, options: &BoundsOptions) -> Result<SceneBounds,
 }
 
 /// Camera centres, failing on a non-finite pose.
-pub(crate) fn camera_centers(scan: &Scan) -> Result<Vec<DVec3>, GeometryError> {
+pub(crate) fn camera_centers(scan: &Scan) -> Result<Vec<Point3<f64>>, GeometryError> {
     scan.frames
         .iter()
         .map(|f| {
-            if f.camera_to_world.is_finite() {
+            if is_finite(&f.camera_to_world) {
                 Ok(f.camera_center())
             } else {
                 Err(GeometryError::BadPose { frame: f.name.clone() })
@@ -210,7 +210,7 @@ pub fn sample_depth_points(scan: &Scan, max_points: usize) -> Result<DepthSample
         }
     }
     let stride = candidate_pixels.div_ceil(max_points.max(1) as u64).max(1);
-    let per_frame: Vec<(Vec<DVec3>, Vec<f32>)> = scan
+    let per_frame: Vec<(Vec<Point3<f64>>, Vec<f32>)> = scan
         .frames
         .par_iter()
         .enumerate()
@@ -232,14 +232,14 @@ pub fn sample_depth_points(scan: &Scan, max_points: usize) -> Result<DepthSample
 }
 
 /// Sample one frame's depth from flat pixel index `phase` on, every `stride`.
-fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<DVec3>, Vec<f32>), GeometryError> {
+fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<Point3<f64>>, Vec<f32>), GeometryError> {
     let Some(depth) = &frame.depth else {
         return Ok((Vec::new(), Vec::new()));
     };
     let Some(k) = depth_intrinsics(frame)? else {
         return Ok((Vec::new(), Vec::new()));
     };
-    if !frame.camera_to_world.is_finite() {
+    if !is_finite(&frame.camera_to_world) {
         return Err(GeometryError::BadPose {
             frame: frame.name.clone(),
         });
@@ -251,8 +251,8 @@ fn sample_frame(frame: &Frame, stride: u64, phase: u64) -> Result<(Vec<DVec3>, V
     while let Some(&z) = usize::try_from(idx).ok().and_then(|i| depth.metres.get(i)) {
         if z > 0.0 && z.is_finite() {
             let (u, v) = ((idx % w) as f64, (idx / w) as f64);
-            let p = frame.camera_to_world.transform_point3(k.unproject(u, v) * f64::from(z));
-            if p.is_finite() {
+            let p = frame.camera_to_world * Point3::from(k.unproject(u, v) * f64::from(z));
+            if p.iter().all(|x| x.is_finite()) {
                 points.push(p);
                 depths.push(z);
             }
@@ -290,9 +290,9 @@ pub(crate) fn depth_intrinsics(frame: &Frame) -> Result<Option<crate::scan::Intr
 
 /// Robust per-axis box of `points` after `map` (see the module rule, step 2);
 /// `None` without points.
-pub(crate) fn robust_box<F>(points: &[DVec3], map: F, low: f64, high: f64) -> Option<DAabb>
+pub(crate) fn robust_box<F>(points: &[Point3<f64>], map: F, low: f64, high: f64) -> Option<DAabb>
 where
-    F: Fn(DVec3) -> DVec3 + Sync,
+    F: Fn(&Point3<f64>) -> Point3<f64> + Sync,
 {
     if points.is_empty() {
         return None;
@@ -300,7 +300,7 @@ where
     let axes: Vec<Vec<f64>> = (0..3)
         .into_par_iter()
         .map(|a| {
-            let mut v: Vec<f64> = points.iter().map(|p| map(*p)[a]).collect();
+            let mut v: Vec<f64> = points.iter().map(|p| map(p)[a]).collect();
             v.sort_unstable_by(f64::total_cmp);
             v
         })
@@ -313,8 +313,8 @@ where
     let size = axes.iter().map(|v| v[core_hi] - v[core_lo]).fold(0.0, f64::max);
     let gap = GAP_FRACTION * size;
     let reach = MAX_REACH * size;
-    let mut lo = DVec3::ZERO;
-    let mut hi = DVec3::ZERO;
+    let mut lo = Point3::origin();
+    let mut hi = Point3::origin();
     for (a, v) in axes.iter().enumerate() {
         let mut j = core_hi;
         while j < outer_hi && v[j + 1] - v[j] <= gap {
@@ -337,12 +337,12 @@ pub(crate) fn pad_relative(b: &DAabb, fraction: f64) -> DAabb {
 }
 
 /// Union of the frusta truncated at `far` (module rule), padded.
-fn frusta_bounds(scan: &Scan, cameras: &[DVec3], options: &BoundsOptions) -> Result<DAabb, GeometryError> {
+fn frusta_bounds(scan: &Scan, cameras: &[Point3<f64>], options: &BoundsOptions) -> Result<DAabb, GeometryError> {
     let no_scale = GeometryError::NoScale { cameras: cameras.len() };
     let Some(centres) = DAabb::from_points(cameras.iter().copied()) else {
         return Err(no_scale);
     };
-    let far = options.far_factor * centres.extent().length();
+    let far = options.far_factor * centres.extent().norm();
     if !(far.is_finite() && far > 0.0) {
         return Err(no_scale);
     }
@@ -351,13 +351,22 @@ fn frusta_bounds(scan: &Scan, cameras: &[DVec3], options: &BoundsOptions) -> Res
         let (w, h) = f.size();
         let (w, h) = (f64::from(w), f64::from(h));
         for (u, v) in [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)] {
-            let p = f.camera_to_world.transform_point3(f.intrinsics.unproject(u, v) * far);
-            if p.is_finite() {
-                b = b.including(p);
+            let p = f.camera_to_world * Point3::from(f.intrinsics.unproject(u, v) * far);
+            if p.iter().all(|x| x.is_finite()) {
+                b = b.including(&p);
             }
         }
     }
     Ok(pad_relative(&b, options.padding))
+}
+
+/// Whether every element of a pose is finite.
+pub(crate) fn is_finite(pose: &nalgebra::IsometryMatrix3<f64>) -> bool {
+    pose.rotation
+        .matrix()
+        .iter()
+        .chain(pose.translation.vector.iter())
+        .all(|x| x.is_finite())
 }
 
 /// Depth minimum, median and maximum of the samples.
@@ -393,10 +402,11 @@ mod tests {
     use super::*;
     use crate::poses::test_scene::Room;
     use crate::scan::Bounds;
+    use nalgebra::Vector3;
 
     fn room_box(room: &Room) -> DAabb {
         let (lo, hi) = room.local_box();
-        DAabb::new(room.to_world(lo), room.to_world(hi))
+        DAabb::new(room.to_world(&lo), room.to_world(&hi))
     }
 
     #[test]
@@ -408,12 +418,12 @@ mod tests {
         let pad = 0.05 * walls.max_extent();
         // Padding added on top of the exact walls, up to the discrete sampling.
         assert!(
-            (b.aabb.min - (walls.min - pad)).abs().max_element() < 0.02,
+            (b.aabb.min - (walls.min - Vector3::repeat(pad))).amax() < 0.02,
             "{:?}",
             b.aabb
         );
         assert!(
-            (b.aabb.max - (walls.max + pad)).abs().max_element() < 0.02,
+            (b.aabb.max - (walls.max + Vector3::repeat(pad))).amax() < 0.02,
             "{:?}",
             b.aabb
         );
@@ -435,9 +445,10 @@ mod tests {
     fn robust_box_cuts_a_far_cluster_beyond_the_gap() {
         // 97 % of values in [0, 1], 3 % at 1000: the outer percentile lands in
         // the far cluster but the gap rule stops at 1.
-        let mut pts: Vec<DVec3> = (0..970).map(|i| DVec3::splat(i as f64 / 969.0)).collect();
-        pts.extend((0..30).map(|i| DVec3::splat(1000.0 + i as f64)));
-        let b = robust_box(&pts, |p| p, 0.5, 99.5).unwrap();
+        let splat = |x: f64| Point3::new(x, x, x);
+        let mut pts: Vec<Point3<f64>> = (0..970).map(|i| splat(i as f64 / 969.0)).collect();
+        pts.extend((0..30).map(|i| splat(1000.0 + i as f64)));
+        let b = robust_box(&pts, |p| *p, 0.5, 99.5).unwrap();
         assert!((b.max.x - 1.0).abs() < 1e-12 && b.min.x < 0.01, "{b:?}");
     }
 
@@ -445,16 +456,16 @@ mod tests {
     fn user_box_overrides_and_invalid_box_is_an_error() {
         let mut scan = Room::default().scan();
         let user = Bounds {
-            min: DVec3::new(-1.0, -1.0, -1.0),
-            max: DVec3::new(1.0, 2.0, 3.0),
+            min: nalgebra::Point3::new(-1.0, -1.0, -1.0),
+            max: nalgebra::Point3::new(1.0, 2.0, 3.0),
         };
         scan.bounds = Some(user);
         let b = scene_bounds(&scan, &BoundsOptions::default()).unwrap();
         assert_eq!(b.source, BoundsSource::User);
         assert_eq!((b.aabb.min, b.aabb.max), (user.min, user.max));
         scan.bounds = Some(Bounds {
-            min: DVec3::ONE,
-            max: DVec3::new(2.0, 0.5, 2.0),
+            min: nalgebra::Point3::new(1.0, 1.0, 1.0),
+            max: nalgebra::Point3::new(2.0, 0.5, 2.0),
         });
         let err = scene_bounds(&scan, &BoundsOptions::default()).unwrap_err();
         assert!(matches!(err, GeometryError::InvalidUserBounds { .. }), "{err}");

@@ -11,7 +11,7 @@
 use super::bounds::depth_intrinsics;
 use super::{scene_bounds, BoundsOptions, DAabb, GeometryError};
 use crate::scan::{DepthMap, Frame, Intrinsics, Scan};
-use glam::{DMat3, DVec3, Mat3, Vec3};
+use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -122,7 +122,7 @@ type VoxelMap = HashMap<u64, Acc, BuildHasherDefault<VoxelHasher>>;
 /// The voxel grid over the kept box.
 #[derive(Clone, Copy, Debug)]
 struct Grid {
-    min: DVec3,
+    min: Point3<f64>,
     voxel: f64,
     dims: [u64; 3],
 }
@@ -157,7 +157,7 @@ pub fn fuse_depth_maps<'s>(
     };
     let grid = make_grid(&bounds, options)?;
     for frame in &scan.frames {
-        if !frame.camera_to_world.is_finite() {
+        if !super::bounds::is_finite(&frame.camera_to_world) {
             return Err(GeometryError::BadPose {
                 frame: frame.name.clone(),
             });
@@ -185,11 +185,11 @@ pub fn fuse_depth_maps<'s>(
     cloud.colors.reserve(voxels.len());
     for (key, acc) in voxels {
         let n = acc.count as f64;
-        let index = DVec3::new((key >> 32) as f64, ((key >> 16) & 0xffff) as f64, (key & 0xffff) as f64);
+        let index = Vector3::new((key >> 32) as f64, ((key >> 16) & 0xffff) as f64, (key & 0xffff) as f64);
         let frac =
-            DVec3::new(acc.offset[0] as f64, acc.offset[1] as f64, acc.offset[2] as f64) / (n * f64::from(FIXED_ONE));
+            Vector3::new(acc.offset[0] as f64, acc.offset[1] as f64, acc.offset[2] as f64) / (n * f64::from(FIXED_ONE));
         let p = grid.min + (index + frac) * grid.voxel;
-        cloud.positions.push(p.as_vec3().to_array());
+        cloud.positions.push(p.coords.cast::<f32>().into());
         cloud
             .colors
             .push(acc.rgb.map(|c| ((c + acc.count / 2) / acc.count).min(255) as u8));
@@ -220,11 +220,11 @@ fn make_grid(bounds: &DAabb, options: &CloudOptions) -> Result<Grid, GeometryErr
     if !(voxel.is_finite() && voxel > 0.0) {
         return Err(bad("it must be a positive finite number".into()));
     }
-    let per_axis = (bounds.extent() / voxel).ceil().max(DVec3::ONE);
-    if per_axis.max_element() > MAX_VOXELS_PER_AXIS as f64 {
+    let per_axis = (bounds.extent() / voxel).map(|n| n.ceil().max(1.0));
+    if per_axis.max() > MAX_VOXELS_PER_AXIS as f64 {
         return Err(bad(format!(
             "it needs {} voxels along one axis, at most {MAX_VOXELS_PER_AXIS}",
-            per_axis.max_element()
+            per_axis.max()
         )));
     }
     let dims = [per_axis.x as u64, per_axis.y as u64, per_axis.z as u64];
@@ -245,9 +245,9 @@ fn frame_voxels(frame: &Frame, depth: &DepthMap, k: &Intrinsics, grid: &Grid) ->
         return map;
     }
     // Camera point (x, y, 1) * z to grid coordinates: g = z * (A (x, y, 1)) + b.
-    let a: Mat3 = (DMat3::from_mat4(frame.camera_to_world) / grid.voxel).as_mat3();
-    let b: Vec3 = ((frame.camera_center() - grid.min) / grid.voxel).as_vec3();
-    let dims = Vec3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
+    let a: Matrix3<f32> = (frame.camera_to_world.rotation.matrix() / grid.voxel).cast();
+    let b: Vector3<f32> = ((frame.camera_center() - grid.min) / grid.voxel).cast();
+    let dims = Vector3::new(grid.dims[0] as f32, grid.dims[1] as f32, grid.dims[2] as f32);
     // The rgb pixel on each depth pixel's ray (the nearest centre).
     let rgb_k = frame.intrinsics;
     let nearest =
@@ -255,24 +255,26 @@ fn frame_voxels(frame: &Frame, depth: &DepthMap, k: &Intrinsics, grid: &Grid) ->
     let rgb_col: Vec<u32> = (0..w)
         .map(|u| nearest((u as f64 - k.cx) / k.fx, rgb_k.fx, rgb_k.cx, rw))
         .collect();
-    let xs: Vec<Vec3> = (0..w).map(|u| a.x_axis * ((u as f64 - k.cx) / k.fx) as f32).collect();
+    let xs: Vec<Vector3<f32>> = (0..w)
+        .map(|u| a.column(0) * ((u as f64 - k.cx) / k.fx) as f32)
+        .collect();
     // Neighbouring pixels mostly share a voxel: sum runs locally first.
     let mut run: Option<(u64, Acc)> = None;
     for (v, row) in depth.metres.chunks_exact(w).enumerate().take(h) {
         let rgb_row = nearest((v as f64 - k.cy) / k.fy, rgb_k.fy, rgb_k.cy, rh);
-        let row_dir = a.y_axis * ((v as f64 - k.cy) / k.fy) as f32 + a.z_axis;
+        let row_dir = a.column(1) * ((v as f64 - k.cy) / k.fy) as f32 + a.column(2);
         for (u, &z) in row.iter().enumerate() {
             if !(z > 0.0 && z.is_finite()) {
                 continue;
             }
             let g = (xs[u] + row_dir) * z + b;
             // Also rejects NaN.
-            if !(g.cmpge(Vec3::ZERO).all() && g.cmplt(dims).all()) {
+            if !(0..3).all(|i| g[i] >= 0.0 && g[i] < dims[i]) {
                 continue;
             }
             // g >= 0, so truncation is floor (and avoids a libm call).
-            let cell = g.as_uvec3();
-            let frac = ((g - cell.as_vec3()) * FIXED_ONE).min(Vec3::splat(FIXED_ONE - 1.0));
+            let cell = g.map(|x| x as u32);
+            let frac = (g - cell.map(|c| c as f32)).map(|f| (f * FIXED_ONE).min(FIXED_ONE - 1.0));
             let key = (u64::from(cell.x) << 32) | (u64::from(cell.y) << 16) | u64::from(cell.z);
             let px = frame.rgb.get_pixel(rgb_col[u], rgb_row).0;
             let acc = match &mut run {
@@ -359,10 +361,9 @@ mod tests {
             let d = f.depth.as_ref().unwrap();
             for (i, z) in d.metres.iter().enumerate() {
                 let (u, v) = ((i % 64) as f64, (i / 64) as f64);
-                let p = f
-                    .camera_to_world
-                    .transform_point3(f.intrinsics.unproject(u, v) * *z as f64);
-                keys.insert(((p - cloud.bounds.min) / voxel).floor().as_i64vec3().to_array());
+                let p = f.camera_to_world * Point3::from(f.intrinsics.unproject(u, v) * *z as f64);
+                let key: [i64; 3] = ((p - cloud.bounds.min) / voxel).map(|x| x.floor() as i64).into();
+                keys.insert(key);
             }
         }
         let ratio = cloud.len() as f64 / keys.len() as f64;
@@ -373,10 +374,10 @@ mod tests {
             keys.len()
         );
         for p in &cloud.positions {
-            let p = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            let p = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             // Distance to the nearest wall of the room: points are averages of
             // wall points, so only voxels on edges may leave the wall a little.
-            let d = (p.abs() - room.half).abs().min_element();
+            let d = (p.abs() - room.half).abs().min();
             assert!(d < 0.05, "{p} is {d} m from every wall");
         }
     }
@@ -384,7 +385,7 @@ mod tests {
     #[test]
     fn fusion_is_deterministic_and_crops_to_the_bounds() {
         let scan = Room::default().scan();
-        let box_ = DAabb::new(DVec3::new(0.0, -2.0, -2.0), DVec3::new(3.0, 2.0, 2.0));
+        let box_ = DAabb::new(Point3::new(0.0, -2.0, -2.0), Point3::new(3.0, 2.0, 2.0));
         let opts = CloudOptions {
             bounds: Some(box_),
             voxels_per_extent: 64,

@@ -1,6 +1,5 @@
 //! Errors from scene geometry; every message names the frame, file or value.
 
-use glam::DVec3;
 use std::path::PathBuf;
 
 /// Why scene bounds, the normalisation or the point cloud could not be made.
@@ -21,14 +20,14 @@ pub enum GeometryError {
         "scene bounds (bbox.txt) are invalid: min {min:?} max {max:?}; \
          expected finite values with min < max on every axis"
     )]
-    InvalidUserBounds { min: DVec3, max: DVec3 },
+    InvalidUserBounds { min: [f64; 3], max: [f64; 3] },
     #[error(
         "scene bounds (bbox.txt) min {min:?} max {max:?} hold {inside} of {total} sampled depth points: \
          they miss the scene the depth shows; fix or delete bbox.txt"
     )]
     UserBoundsMissScene {
-        min: DVec3,
-        max: DVec3,
+        min: [f64; 3],
+        max: [f64; 3],
         inside: usize,
         total: usize,
     },

@@ -14,9 +14,8 @@
 use super::bounds::{pad_relative, robust_box};
 use super::orient::{min_volume_rotation, principal_axes};
 use super::{BoundsSource, DAabb, GeometryError, SceneBounds};
-use glam::{DMat3, DMat4, DQuat, DVec3};
+use nalgebra::{IsometryMatrix3, Point3, Quaternion, Similarity3, Translation3, UnitQuaternion, Vector3};
 use std::collections::HashMap;
-use std::ops::Mul;
 
 /// Cells per side of the grid the orientation is measured on.
 const ORIENT_CELLS: f64 = 64.0;
@@ -56,12 +55,8 @@ impl Default for NormalizeOptions {
 /// Similarity `local = scale * (rotation * world) + translation` (f64).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SceneTransform {
-    /// World-to-local rotation.
-    pub rotation: DQuat,
-    /// Local-frame offset, applied after rotation and scaling.
-    pub translation: DVec3,
-    /// Local units per metre.
-    pub scale: f64,
+    /// World to local.
+    pub world_to_local: Similarity3<f64>,
 }
 
 /// The normalisation of one scene.
@@ -80,16 +75,43 @@ impl SceneTransform {
     pub const ARRAY_LEN: usize = 8;
 
     /// The identity mapping.
-    pub const IDENTITY: SceneTransform = SceneTransform {
-        rotation: DQuat::IDENTITY,
-        translation: DVec3::ZERO,
-        scale: 1.0,
-    };
+    pub fn identity() -> SceneTransform {
+        SceneTransform::new(UnitQuaternion::identity(), Vector3::zeros(), 1.0)
+    }
+
+    /// `local = scale * (rotation * world) + translation`.
+    pub fn new(rotation: UnitQuaternion<f64>, translation: Vector3<f64>, scale: f64) -> SceneTransform {
+        SceneTransform {
+            world_to_local: Similarity3::from_parts(Translation3::from(translation), rotation, scale),
+        }
+    }
+
+    /// World-to-local rotation.
+    #[inline]
+    pub fn rotation(&self) -> UnitQuaternion<f64> {
+        self.world_to_local.isometry.rotation
+    }
+
+    /// Local-frame offset, applied after rotation and scaling.
+    #[inline]
+    pub fn translation(&self) -> Vector3<f64> {
+        self.world_to_local.isometry.translation.vector
+    }
+
+    /// Local units per metre.
+    #[inline]
+    pub fn scale(&self) -> f64 {
+        self.world_to_local.scaling()
+    }
 
     /// Map that rotates by `rotation` and places `rotated_box` (a box in
     /// rotated world coordinates, metres) centred in [0, 1]^3, its longest
     /// edge spanning `1 - 2 * margin`.
-    pub fn fit(rotation: DQuat, rotated_box: &DAabb, margin: f64) -> Result<SceneTransform, GeometryError> {
+    pub fn fit(
+        rotation: UnitQuaternion<f64>,
+        rotated_box: &DAabb,
+        margin: f64,
+    ) -> Result<SceneTransform, GeometryError> {
         let extent = rotated_box.max_extent();
         if !(rotated_box.is_valid() && extent > 0.0) {
             return Err(GeometryError::InvalidTransform(format!(
@@ -102,91 +124,77 @@ impl SceneTransform {
             )));
         }
         let scale = (1.0 - 2.0 * margin) / extent;
-        let translation = DVec3::splat(0.5) - rotated_box.center() * scale;
-        Ok(SceneTransform {
-            rotation: rotation.normalize(),
+        let translation = Vector3::repeat(0.5) - rotated_box.center().coords * scale;
+        Ok(SceneTransform::new(
+            UnitQuaternion::new_normalize(rotation.into_inner()),
             translation,
             scale,
-        })
+        ))
     }
 
     /// World point (metres) to local coordinates.
     #[inline]
-    pub fn world_to_local_point(&self, p: DVec3) -> DVec3 {
-        self.rotation * p * self.scale + self.translation
+    pub fn world_to_local_point(&self, p: &Point3<f64>) -> Point3<f64> {
+        self.world_to_local.transform_point(p)
     }
 
     /// Local point to world coordinates (metres).
     #[inline]
-    pub fn local_to_world_point(&self, p: DVec3) -> DVec3 {
-        self.rotation.inverse() * ((p - self.translation) / self.scale)
+    pub fn local_to_world_point(&self, p: &Point3<f64>) -> Point3<f64> {
+        self.world_to_local.inverse_transform_point(p)
     }
 
     /// World direction to local (rotation only; lengths are kept).
     #[inline]
-    pub fn world_to_local_direction(&self, d: DVec3) -> DVec3 {
-        self.rotation * d
+    pub fn world_to_local_direction(&self, d: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation() * d
     }
 
     /// Local direction to world (rotation only; lengths are kept).
     #[inline]
-    pub fn local_to_world_direction(&self, d: DVec3) -> DVec3 {
-        self.rotation.inverse() * d
+    pub fn local_to_world_direction(&self, d: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation().inverse_transform_vector(d)
     }
 
     /// Metres to local units.
     #[inline]
     pub fn world_to_local_distance(&self, metres: f64) -> f64 {
-        metres * self.scale
+        metres * self.scale()
     }
 
     /// Local units to metres.
     #[inline]
     pub fn local_to_world_distance(&self, local: f64) -> f64 {
-        local / self.scale
+        local / self.scale()
     }
 
     /// World camera-to-world pose to a local camera-to-local pose (the
     /// rotation part stays orthonormal; the camera axes are unchanged).
-    pub fn world_to_local_pose(&self, camera_to_world: &DMat4) -> DMat4 {
-        let r = DMat3::from_quat(self.rotation) * DMat3::from_mat4(*camera_to_world);
-        let t = self.world_to_local_point(camera_to_world.w_axis.truncate());
-        pose(r, t)
+    pub fn world_to_local_pose(&self, camera_to_world: &IsometryMatrix3<f64>) -> IsometryMatrix3<f64> {
+        let r = self.rotation().to_rotation_matrix() * camera_to_world.rotation;
+        let t = self.world_to_local_point(&Point3::from(camera_to_world.translation.vector));
+        IsometryMatrix3::from_parts(Translation3::from(t.coords), r)
     }
 
     /// Local camera-to-local pose back to a world camera-to-world pose.
-    pub fn local_to_world_pose(&self, camera_to_local: &DMat4) -> DMat4 {
-        let r = DMat3::from_quat(self.rotation.inverse()) * DMat3::from_mat4(*camera_to_local);
-        let t = self.local_to_world_point(camera_to_local.w_axis.truncate());
-        pose(r, t)
+    pub fn local_to_world_pose(&self, camera_to_local: &IsometryMatrix3<f64>) -> IsometryMatrix3<f64> {
+        let r = self.rotation().inverse().to_rotation_matrix() * camera_to_local.rotation;
+        let t = self.local_to_world_point(&Point3::from(camera_to_local.translation.vector));
+        IsometryMatrix3::from_parts(Translation3::from(t.coords), r)
     }
 
     /// The inverse similarity (local to world).
     pub fn inverse(&self) -> SceneTransform {
-        let rotation = self.rotation.inverse();
-        let scale = 1.0 / self.scale;
         SceneTransform {
-            rotation,
-            translation: -(rotation * self.translation) * scale,
-            scale,
+            world_to_local: self.world_to_local.inverse(),
         }
-    }
-
-    /// Apply `self`, then `next`.
-    pub fn then(&self, next: &SceneTransform) -> SceneTransform {
-        *next * *self
-    }
-
-    /// World-to-local as a 4x4 matrix.
-    pub fn to_matrix(&self) -> DMat4 {
-        DMat4::from_scale_rotation_translation(DVec3::splat(self.scale), self.rotation, self.translation)
     }
 
     /// `[qx, qy, qz, qw, tx, ty, tz, scale]` for the model file.
     pub fn to_array(&self) -> [f64; Self::ARRAY_LEN] {
-        let q = self.rotation;
-        let t = self.translation;
-        [q.x, q.y, q.z, q.w, t.x, t.y, t.z, self.scale]
+        let q = self.rotation();
+        let t = self.translation();
+        [q.i, q.j, q.k, q.w, t.x, t.y, t.z, self.scale()]
     }
 
     /// Read [`Self::to_array`] back, checking that it is a valid similarity.
@@ -194,11 +202,11 @@ impl SceneTransform {
         if a.iter().any(|x| !x.is_finite()) {
             return Err(GeometryError::InvalidTransform(format!("non-finite value in {a:?}")));
         }
-        let q = DQuat::from_xyzw(a[0], a[1], a[2], a[3]);
-        if (q.length() - 1.0).abs() > 1e-6 {
+        let q = Quaternion::new(a[3], a[0], a[1], a[2]);
+        if (q.norm() - 1.0).abs() > 1e-6 {
             return Err(GeometryError::InvalidTransform(format!(
                 "rotation quaternion has length {}",
-                q.length()
+                q.norm()
             )));
         }
         if a[7] <= 0.0 {
@@ -208,59 +216,32 @@ impl SceneTransform {
             )));
         }
         // Keep an already unit quaternion bit for bit, so save/load/save is exact.
-        let rotation = if (q.length_squared() - 1.0).abs() < 1e-14 {
-            q
+        let rotation = if (q.norm_squared() - 1.0).abs() < 1e-14 {
+            UnitQuaternion::new_unchecked(q)
         } else {
-            q.normalize()
+            UnitQuaternion::new_normalize(q)
         };
-        Ok(SceneTransform {
-            rotation,
-            translation: DVec3::new(a[4], a[5], a[6]),
-            scale: a[7],
-        })
+        Ok(SceneTransform::new(rotation, Vector3::new(a[4], a[5], a[6]), a[7]))
     }
-}
-
-/// Composition: `(a * b)(x) = a(b(x))`.
-impl Mul for SceneTransform {
-    type Output = SceneTransform;
-
-    fn mul(self, b: SceneTransform) -> SceneTransform {
-        SceneTransform {
-            rotation: (self.rotation * b.rotation).normalize(),
-            translation: self.rotation * b.translation * self.scale + self.translation,
-            scale: self.scale * b.scale,
-        }
-    }
-}
-
-/// Rigid 4x4 from a rotation and a translation.
-fn pose(r: DMat3, t: DVec3) -> DMat4 {
-    DMat4::from_cols(
-        r.x_axis.extend(0.0),
-        r.y_axis.extend(0.0),
-        r.z_axis.extend(0.0),
-        t.extend(1.0),
-    )
 }
 
 /// Fit the world-to-local similarity of a scene (module doc for the rule).
 pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Normalization, GeometryError> {
     let world_box = bounds.aabb;
-    let mut chosen = (DQuat::IDENTITY, world_box, false);
+    let mut chosen = (UnitQuaternion::identity(), world_box, false);
     let point_box = bounds.stats.point_box.filter(|_| bounds.source == BoundsSource::Depth);
     if let (Some(point_box), true) = (point_box, options.orientation != Orientation::Identity) {
-        let inliers: Vec<DVec3> = bounds
+        let inliers: Vec<Point3<f64>> = bounds
             .samples
             .iter()
             .copied()
-            .filter(|p| point_box.contains(*p))
+            .filter(|p| point_box.contains(p))
             .collect();
         let cells = cell_centroids(&inliers, &point_box);
         if cells.len() >= 2 {
-            let mut best = min_volume_rotation(&cells, DQuat::IDENTITY);
+            let mut best = min_volume_rotation(&cells, UnitQuaternion::identity());
             if let Some(axes) = principal_axes(&cells) {
-                let pca = min_volume_rotation(&cells, DQuat::from_mat3(&axes.transpose()));
+                let pca = min_volume_rotation(&cells, UnitQuaternion::from_rotation_matrix(&axes.inverse()));
                 if pca.1 < best.1 {
                     best = pca;
                 }
@@ -274,7 +255,7 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
                 opts.high_percentile,
             );
             if let Some(b) = rotated {
-                let b = bounds.cameras.iter().fold(b, |b, c| b.including(rotation * *c));
+                let b = bounds.cameras.iter().fold(b, |b, c| b.including(&(rotation * c)));
                 let b = pad_relative(&b, opts.padding);
                 let smaller = b.volume() < ROTATE_IF_VOLUME_BELOW * world_box.volume();
                 if options.orientation == Orientation::Oriented || smaller {
@@ -285,11 +266,8 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
     }
     let (rotation, rotated_box, rotated) = chosen;
     let transform = SceneTransform::fit(rotation, &rotated_box, options.margin)?;
-    let s = transform.scale;
-    let local_aabb = DAabb::new(
-        rotated_box.min * s + transform.translation,
-        rotated_box.max * s + transform.translation,
-    );
+    let (s, t) = (transform.scale(), transform.translation());
+    let local_aabb = DAabb::new(rotated_box.min * s + t, rotated_box.max * s + t);
     Ok(Normalization {
         transform,
         local_aabb,
@@ -299,21 +277,24 @@ pub fn normalize(bounds: &SceneBounds, options: &NormalizeOptions) -> Result<Nor
 
 /// Mean point of every occupied cell of a `ORIENT_CELLS`^3 grid over `b`, in
 /// cell order (deterministic).
-fn cell_centroids(points: &[DVec3], b: &DAabb) -> Vec<DVec3> {
+fn cell_centroids(points: &[Point3<f64>], b: &DAabb) -> Vec<Point3<f64>> {
     let cell = b.max_extent() / ORIENT_CELLS;
     if !(cell.is_finite() && cell > 0.0) {
         return points.to_vec();
     }
-    let mut cells: HashMap<[i64; 3], (DVec3, u64)> = HashMap::new();
+    let mut cells: HashMap<[i64; 3], (Vector3<f64>, u64)> = HashMap::new();
     for p in points {
-        let k = ((*p - b.min) / cell).floor().as_i64vec3().to_array();
-        let e = cells.entry(k).or_insert((DVec3::ZERO, 0));
-        e.0 += *p;
+        let k = ((p - b.min) / cell).map(|x| x.floor() as i64).into();
+        let e = cells.entry(k).or_insert((Vector3::zeros(), 0));
+        e.0 += p.coords;
         e.1 += 1;
     }
     let mut sorted: Vec<_> = cells.into_iter().collect();
     sorted.sort_unstable_by_key(|(k, _)| *k);
-    sorted.into_iter().map(|(_, (sum, n))| sum / n as f64).collect()
+    sorted
+        .into_iter()
+        .map(|(_, (sum, n))| Point3::from(sum / n as f64))
+        .collect()
 }
 
 #[cfg(test)]
@@ -322,13 +303,9 @@ mod tests {
     use crate::rng::Rng;
 
     fn random_transform(rng: &mut Rng) -> SceneTransform {
-        let q = DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize();
-        let t = DVec3::new(rng.normal(), rng.normal(), rng.normal());
-        SceneTransform {
-            rotation: q,
-            translation: t,
-            scale: rng.range(0.01, 100.0),
-        }
+        let q = UnitQuaternion::new_normalize(Quaternion::new(rng.normal(), rng.normal(), rng.normal(), rng.normal()));
+        let t = Vector3::new(rng.normal(), rng.normal(), rng.normal());
+        SceneTransform::new(q, t, rng.range(0.01, 100.0))
     }
 
     #[test]
@@ -336,18 +313,19 @@ mod tests {
         let mut rng = Rng::new(3, 0);
         for _ in 0..100 {
             let (a, b) = (random_transform(&mut rng), random_transform(&mut rng));
-            let p = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0;
-            let tol = 1e-9 * (1.0 + a.scale * b.scale * p.length());
+            let p = Point3::from(Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 10.0);
+            let tol = 1e-9 * (1.0 + a.scale() * b.scale() * p.coords.norm());
+            let ab = SceneTransform {
+                world_to_local: a.world_to_local * b.world_to_local,
+            };
+            assert!((ab.world_to_local_point(&p) - a.world_to_local_point(&b.world_to_local_point(&p))).norm() < tol);
+            let m = a.world_to_local.to_homogeneous();
+            assert!((m.transform_point(&p) - a.world_to_local_point(&p)).norm() < tol);
+            let inverse = a.inverse();
             assert!(
-                ((a * b).world_to_local_point(p) - a.world_to_local_point(b.world_to_local_point(p))).length() < tol
+                (inverse.world_to_local_point(&a.world_to_local_point(&p)) - p).norm() < 1e-9 * (1.0 + p.coords.norm())
             );
-            assert!((b.then(&a).world_to_local_point(p) - (a * b).world_to_local_point(p)).length() < tol);
-            assert!((a.to_matrix().transform_point3(p) - a.world_to_local_point(p)).length() < tol);
-            let id = a * a.inverse();
-            assert!((id.world_to_local_point(p) - p).length() < 1e-9 * (1.0 + p.length()));
-            assert!(
-                (a.inverse().world_to_local_point(a.world_to_local_point(p)) - p).length() < 1e-9 * (1.0 + p.length())
-            );
+            assert!((a.local_to_world_point(&a.world_to_local_point(&p)) - p).norm() < 1e-9 * (1.0 + p.coords.norm()));
         }
     }
 
@@ -371,14 +349,16 @@ mod tests {
 
     #[test]
     fn fit_centres_the_box_with_the_margin() {
-        let b = DAabb::new(DVec3::new(-3.0, 10.0, 0.0), DVec3::new(1.0, 12.0, 1.0));
-        let t = SceneTransform::fit(DQuat::IDENTITY, &b, 0.05).unwrap();
-        let lo = t.world_to_local_point(b.min);
-        let hi = t.world_to_local_point(b.max);
-        assert!((lo - DVec3::new(0.05, 0.275, 0.3875)).length() < 1e-12, "{lo}");
-        assert!((hi - DVec3::new(0.95, 0.725, 0.6125)).length() < 1e-12, "{hi}");
-        assert!(SceneTransform::fit(DQuat::IDENTITY, &DAabb::new(DVec3::ONE, DVec3::ONE), 0.05).is_err());
-        assert!(SceneTransform::fit(DQuat::IDENTITY, &b, 0.5).is_err());
+        let b = DAabb::new(Point3::new(-3.0, 10.0, 0.0), Point3::new(1.0, 12.0, 1.0));
+        let id = UnitQuaternion::identity();
+        let t = SceneTransform::fit(id, &b, 0.05).unwrap();
+        let lo = t.world_to_local_point(&b.min);
+        let hi = t.world_to_local_point(&b.max);
+        assert!((lo - Point3::new(0.05, 0.275, 0.3875)).norm() < 1e-12, "{lo}");
+        assert!((hi - Point3::new(0.95, 0.725, 0.6125)).norm() < 1e-12, "{hi}");
+        let one = Point3::new(1.0, 1.0, 1.0);
+        assert!(SceneTransform::fit(id, &DAabb::new(one, one), 0.05).is_err());
+        assert!(SceneTransform::fit(id, &b, 0.5).is_err());
     }
 
     #[test]
@@ -386,19 +366,20 @@ mod tests {
         use crate::poses::test_scene::Room;
         use crate::poses::{scene_bounds, BoundsOptions};
         let room = Room {
-            rotation: DQuat::from_rotation_z(0.5) * DQuat::from_rotation_x(0.2),
+            rotation: UnitQuaternion::from_scaled_axis(Vector3::z() * 0.5)
+                * UnitQuaternion::from_scaled_axis(Vector3::x() * 0.2),
             ..Room::default()
         };
         let bounds = scene_bounds(&room.scan(), &BoundsOptions::default()).unwrap();
         let n = normalize(&bounds, &NormalizeOptions::default()).unwrap();
         assert!(n.rotated);
         // The oriented box is the padded room: 4 x 3 x 2.5 m plus 2 x 5 % of 4 m.
-        let e = n.local_aabb.extent() / n.transform.scale;
-        assert!((e - DVec3::new(4.4, 3.4, 2.9)).abs().max_element() < 0.05, "{e}");
+        let e = n.local_aabb.extent() / n.transform.scale();
+        assert!((e - Vector3::new(4.4, 3.4, 2.9)).amax() < 0.05, "{e}");
         // Room axes map onto the local axes.
-        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
-            let local = n.transform.world_to_local_direction(room.rotation * axis);
-            assert!(local.dot(axis) > 0.999, "{axis} -> {local}");
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            let local = n.transform.world_to_local_direction(&(room.rotation * axis));
+            assert!(local.dot(&axis) > 0.999, "{axis} -> {local}");
         }
         let straight = normalize(
             &scene_bounds(&Room::default().scan(), &BoundsOptions::default()).unwrap(),
@@ -408,11 +389,11 @@ mod tests {
     }
 
     /// Bounds as `scene_bounds` would make them from these points and cameras.
-    fn bounds_from(samples: Vec<DVec3>, cameras: Vec<DVec3>) -> SceneBounds {
+    fn bounds_from(samples: Vec<Point3<f64>>, cameras: Vec<Point3<f64>>) -> SceneBounds {
         use crate::poses::{BoundsOptions, PointStats};
         let options = BoundsOptions::default();
-        let point_box = robust_box(&samples, |p| p, options.low_percentile, options.high_percentile);
-        let b = cameras.iter().fold(point_box.unwrap(), |b, c| b.including(*c));
+        let point_box = robust_box(&samples, |p| *p, options.low_percentile, options.high_percentile);
+        let b = cameras.iter().fold(point_box.unwrap(), |b, c| b.including(c));
         SceneBounds {
             aabb: pad_relative(&b, options.padding),
             source: BoundsSource::Depth,
@@ -430,8 +411,8 @@ mod tests {
     fn planar_and_collinear_scenes_normalise_to_finite_thin_boxes() {
         // A tilted plane, cameras in it too: no thickness at all.
         let mut rng = Rng::new(8, 0);
-        let plane = |x: f64, y: f64| DVec3::new(x, y, 0.3 * x - 0.2 * y);
-        let samples: Vec<DVec3> = (0..20_000)
+        let plane = |x: f64, y: f64| Point3::new(x, y, 0.3 * x - 0.2 * y);
+        let samples: Vec<Point3<f64>> = (0..20_000)
             .map(|_| plane(rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)))
             .collect();
         let cameras = vec![plane(-0.5, 0.0), plane(0.5, 0.2)];
@@ -440,16 +421,16 @@ mod tests {
         assert!(n.rotated, "the plane's own frame is much thinner than the world box");
         assert!(DAabb::UNIT.contains_box(&n.local_aabb));
         let e = n.local_aabb.extent();
-        assert!(e.min_element() < 0.2 * e.max_element(), "{e}");
+        assert!(e.min() < 0.2 * e.max(), "{e}");
         assert!(samples
             .iter()
-            .all(|p| n.local_aabb.padded(1e-9).contains(n.transform.world_to_local_point(*p))));
+            .all(|p| n.local_aabb.padded(1e-9).contains(&n.transform.world_to_local_point(p))));
         // A line of points: still a valid similarity.
-        let line: Vec<DVec3> = (0..1000)
-            .map(|i| DVec3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0))
+        let line: Vec<Point3<f64>> = (0..1000)
+            .map(|i| Point3::new(1.0, 2.0, -1.0) * (i as f64 / 999.0))
             .collect();
-        let n = normalize(&bounds_from(line, vec![DVec3::ZERO]), &NormalizeOptions::default()).unwrap();
-        assert!(n.transform.scale.is_finite() && n.transform.scale > 0.0);
+        let n = normalize(&bounds_from(line, vec![Point3::origin()]), &NormalizeOptions::default()).unwrap();
+        assert!(n.transform.scale().is_finite() && n.transform.scale() > 0.0);
         assert!(DAabb::UNIT.contains_box(&n.local_aabb));
     }
 }

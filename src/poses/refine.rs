@@ -10,9 +10,11 @@
 
 use super::GeometryError;
 use crate::scan::{Frame, Scan, EDGE_RELATIVE_GAP};
-use glam::{DMat3, DMat4, DQuat, DVec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
-use nalgebra::{Matrix3, Matrix6, SymmetricEigen, Vector3, Vector6};
+use nalgebra::{
+    IsometryMatrix3, Matrix3, Matrix6, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3,
+    Vector6,
+};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
@@ -63,7 +65,7 @@ pub struct FrameCorrection {
 /// changed.
 #[derive(Clone, Debug)]
 pub struct PoseRefinement {
-    pub camera_to_world: Vec<DMat4>,
+    pub camera_to_world: Vec<IsometryMatrix3<f64>>,
     pub frames: Vec<FrameCorrection>,
 }
 
@@ -180,7 +182,7 @@ const MAD_TO_SIGMA: f64 = 1.4826;
 /// Align every frame with depth to the other frames' depth. `None` when
 /// fewer than two frames have depth (nothing to align against).
 pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefinement>, GeometryError> {
-    let samples: Vec<Vec<DVec3>> = scan
+    let samples: Vec<Vec<Point3<f64>>> = scan
         .frames
         .par_iter()
         .enumerate()
@@ -203,7 +205,8 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
             break;
         }
         previous_scale = scale;
-        let steps: Vec<Option<DMat4>> = matches.par_iter().map(|m| gauss_newton_step(m, scale)).collect();
+        let steps: Vec<Option<IsometryMatrix3<f64>>> =
+            matches.par_iter().map(|m| gauss_newton_step(m, scale)).collect();
         for (pose, step) in poses.iter_mut().zip(steps) {
             if let Some(step) = step {
                 *pose = step * *pose;
@@ -228,9 +231,9 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
 /// cloud; keep the refined one only where it fits better.
 fn keep_what_fits(
     scan: &Scan,
-    samples: &[Vec<DVec3>],
-    captured: &[DMat4],
-    refined: Vec<DMat4>,
+    samples: &[Vec<Point3<f64>>],
+    captured: &[IsometryMatrix3<f64>],
+    refined: Vec<IsometryMatrix3<f64>>,
     neighbours: usize,
 ) -> PoseRefinement {
     let cloud = Cloud::new(samples, &refined);
@@ -263,16 +266,16 @@ fn keep_what_fits(
 }
 
 /// Camera displacement (metres) and rotation angle (degrees) from `a` to `b`.
-pub fn pose_difference(a: &DMat4, b: &DMat4) -> (f64, f64) {
-    let translation = (b.w_axis.truncate() - a.w_axis.truncate()).length();
-    let ra = DQuat::from_mat3(&DMat3::from_mat4(*a));
-    let rb = DQuat::from_mat3(&DMat3::from_mat4(*b));
-    (translation, ra.angle_between(rb).to_degrees())
+pub fn pose_difference(a: &IsometryMatrix3<f64>, b: &IsometryMatrix3<f64>) -> (f64, f64) {
+    let translation = (b.translation.vector - a.translation.vector).norm();
+    let ra = UnitQuaternion::from_rotation_matrix(&a.rotation);
+    let rb = UnitQuaternion::from_rotation_matrix(&b.rotation);
+    (translation, ra.angle_to(&rb).to_degrees())
 }
 
 /// Camera-frame points of a frame's depth on a regular pixel grid, skipping
 /// pixels beside a depth edge (mixed foreground and background returns).
-pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Result<Vec<DVec3>, GeometryError> {
+pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Result<Vec<Point3<f64>>, GeometryError> {
     let Some(depth) = &frame.depth else {
         return Ok(Vec::new());
     };
@@ -295,7 +298,7 @@ pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Re
         while x < w {
             let z = depth.get(x, y);
             if z > 0.0 && z.is_finite() && away_from_edges(depth, x, y, z, reach) {
-                points.push(k.unproject(f64::from(x), f64::from(y)) * f64::from(z));
+                points.push(Point3::from(k.unproject(f64::from(x), f64::from(y)) * f64::from(z)));
             }
             x += stride;
         }
@@ -330,19 +333,19 @@ pub(super) struct Cloud {
 /// One frame's matches: its world point (before the step), the plane it is
 /// matched to and the signed distance to it.
 struct FrameMatches {
-    centre: DVec3,
-    points: Vec<DVec3>,
-    normals: Vec<DVec3>,
+    centre: Point3<f64>,
+    points: Vec<Point3<f64>>,
+    normals: Vec<Vector3<f64>>,
     residuals: Vec<f64>,
 }
 
 impl Cloud {
-    pub(super) fn new(samples: &[Vec<DVec3>], poses: &[DMat4]) -> Cloud {
+    pub(super) fn new(samples: &[Vec<Point3<f64>>], poses: &[IsometryMatrix3<f64>]) -> Cloud {
         let mut points = Vec::new();
         let mut frame_of = Vec::new();
         for (i, (s, pose)) in samples.iter().zip(poses).enumerate() {
             for p in s {
-                points.push(pose.transform_point3(*p).to_array());
+                points.push((pose * p).into());
                 frame_of.push(i as u32);
             }
         }
@@ -352,23 +355,29 @@ impl Cloud {
 
     /// Each frame's points matched to planes fitted to the nearest points of
     /// other frames.
-    fn correspondences(&self, samples: &[Vec<DVec3>], poses: &[DMat4], neighbours: usize) -> Vec<FrameMatches> {
+    fn correspondences(
+        &self,
+        samples: &[Vec<Point3<f64>>],
+        poses: &[IsometryMatrix3<f64>],
+        neighbours: usize,
+    ) -> Vec<FrameMatches> {
         samples
             .par_iter()
             .zip(poses)
             .enumerate()
             .map(|(i, (s, pose))| {
                 let mut m = FrameMatches {
-                    centre: DVec3::ZERO,
+                    centre: Point3::origin(),
                     points: Vec::new(),
                     normals: Vec::new(),
                     residuals: Vec::new(),
                 };
-                let world: Vec<DVec3> = s.iter().map(|p| pose.transform_point3(*p)).collect();
-                m.centre = world.iter().copied().sum::<DVec3>() / world.len().max(1) as f64;
+                let world: Vec<Point3<f64>> = s.iter().map(|p| pose * p).collect();
+                m.centre =
+                    Point3::from(world.iter().map(|x| x.coords).sum::<Vector3<f64>>() / world.len().max(1) as f64);
                 for x in world {
-                    if let Some((centroid, normal)) = self.plane_near(x, i as u32, neighbours) {
-                        m.residuals.push(normal.dot(x - centroid));
+                    if let Some((centroid, normal)) = self.plane_near(&x, i as u32, neighbours) {
+                        m.residuals.push(normal.dot(&(x - centroid)));
                         m.points.push(x);
                         m.normals.push(normal);
                     }
@@ -379,11 +388,11 @@ impl Cloud {
     }
 
     /// Distance from `x` to the nearest point another frame measured.
-    pub(super) fn nearest_other(&self, x: DVec3, own_frame: u32) -> Option<f64> {
+    pub(super) fn nearest_other(&self, x: &Point3<f64>, own_frame: u32) -> Option<f64> {
         let wanted = NonZeroUsize::new(8)?;
         let found = self
             .tree
-            .query(&x.to_array())
+            .query(&(*x).into())
             .nearest_n::<SquaredEuclidean<f64>>(wanted)
             .execute();
         found
@@ -394,29 +403,34 @@ impl Cloud {
 
     /// Plane (centroid, unit normal) through the `neighbours` points nearest
     /// to `x` that other frames measured; `None` where they do not form one.
-    pub(super) fn plane_near(&self, x: DVec3, own_frame: u32, neighbours: usize) -> Option<(DVec3, DVec3)> {
+    pub(super) fn plane_near(
+        &self,
+        x: &Point3<f64>,
+        own_frame: u32,
+        neighbours: usize,
+    ) -> Option<(Point3<f64>, Vector3<f64>)> {
         // Own points are a sampling stride apart, other frames' much denser:
         // a few extra candidates make up for the own ones dropped.
         let wanted = NonZeroUsize::new(neighbours + neighbours / 2)?;
         let found = self
             .tree
-            .query(&x.to_array())
+            .query(&(*x).into())
             .nearest_n::<SquaredEuclidean<f64>>(wanted)
             .execute();
-        let near: Vec<DVec3> = found
+        let near: Vec<Point3<f64>> = found
             .iter()
             .map(|r| r.item as usize)
             .filter(|&j| self.frame_of.get(j).is_some_and(|&f| f != own_frame))
-            .filter_map(|j| self.points.get(j).map(|p| DVec3::from_array(*p)))
+            .filter_map(|j| self.points.get(j).map(|p| Point3::from(*p)))
             .take(neighbours)
             .collect();
         if near.len() < neighbours.div_ceil(2).max(3) {
             return None;
         }
-        let centroid = near.iter().copied().sum::<DVec3>() / near.len() as f64;
+        let centroid = Point3::from(near.iter().map(|p| p.coords).sum::<Vector3<f64>>() / near.len() as f64);
         let mut cov = Matrix3::<f64>::zeros();
         for p in &near {
-            let d = Vector3::new(p.x - centroid.x, p.y - centroid.y, p.z - centroid.z);
+            let d = p - centroid;
             cov += d * d.transpose();
         }
         let eig = SymmetricEigen::new(cov);
@@ -427,9 +441,10 @@ impl Cloud {
         if !(middle > 0.0) || smallest > 0.25 * middle {
             return None;
         }
-        let n = eig.eigenvectors.column(order[0]);
-        let normal = DVec3::new(n[0], n[1], n[2]).normalize_or_zero();
-        (normal != DVec3::ZERO).then_some((centroid, normal))
+        let n = eig.eigenvectors.column(order[0]).into_owned();
+        // Times the reciprocal length, as glam's normalize_or_zero did (same bits).
+        let rcp = 1.0 / n.norm();
+        (rcp.is_finite() && rcp > 0.0).then(|| (centroid, n * rcp))
     }
 }
 
@@ -448,12 +463,12 @@ fn robust_scale(matches: &[FrameMatches]) -> f64 {
 /// points constrain it. Directions the frame's geometry barely constrains
 /// (sliding along a wall it alone sees) are left alone rather than moved by
 /// noise.
-fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<DMat4> {
+fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<IsometryMatrix3<f64>> {
     let cutoff = TUKEY_C * scale;
     // Rotations are measured as the motion they cause at the frame's typical
     // point distance, so that all six directions are in metres.
     let lever_length =
-        (m.points.iter().map(|x| (*x - m.centre).length_squared()).sum::<f64>() / m.points.len().max(1) as f64).sqrt();
+        (m.points.iter().map(|x| (x - m.centre).norm_squared()).sum::<f64>() / m.points.len().max(1) as f64).sqrt();
     if !(lever_length > 0.0) {
         return None;
     }
@@ -466,7 +481,7 @@ fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<DMat4> {
         }
         let u = 1.0 - (r / cutoff).powi(2);
         let weight = u * u;
-        let lever = (*x - m.centre).cross(*n) / lever_length;
+        let lever = (x - m.centre).cross(n) / lever_length;
         let j = Vector6::new(lever.x, lever.y, lever.z, n.x, n.y, n.z);
         hessian += weight * j * j.transpose();
         gradient += weight * r * j;
@@ -491,26 +506,26 @@ fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<DMat4> {
     if !delta.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let omega = DVec3::new(delta[0], delta[1], delta[2]) / lever_length;
-    let translation = DVec3::new(delta[3], delta[4], delta[5]);
-    let rotation = if omega.length() > 0.0 {
-        DMat4::from_axis_angle(omega.normalize(), omega.length())
-    } else {
-        DMat4::IDENTITY
-    };
+    let omega = Vector3::new(delta[0], delta[1], delta[2]) / lever_length;
+    let translation = Vector3::new(delta[3], delta[4], delta[5]);
     // x -> R (x - c) + c + t
-    Some(DMat4::from_translation(m.centre + translation) * rotation * DMat4::from_translation(-m.centre))
+    let rotation = IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(omega));
+    Some(Translation3::from(m.centre.coords + translation) * rotation * Translation3::from(-m.centre.coords))
 }
 
 /// The rigid motion that best carries every frame's points as `moved` puts
 /// them onto where `reference` puts them.
-fn best_rigid_fit(samples: &[Vec<DVec3>], moved: &[DMat4], reference: &[DMat4]) -> DMat4 {
+fn best_rigid_fit(
+    samples: &[Vec<Point3<f64>>],
+    moved: &[IsometryMatrix3<f64>],
+    reference: &[IsometryMatrix3<f64>],
+) -> IsometryMatrix3<f64> {
     let mut from = Vec::new();
     let mut to = Vec::new();
     for ((s, a), b) in samples.iter().zip(moved).zip(reference) {
         for p in s {
-            from.push(a.transform_point3(*p));
-            to.push(b.transform_point3(*p));
+            from.push(a * p);
+            to.push(b * p);
         }
     }
     rigid_fit(&from, &to)
@@ -518,54 +533,51 @@ fn best_rigid_fit(samples: &[Vec<DVec3>], moved: &[DMat4], reference: &[DMat4]) 
 
 /// The rigid motion that best carries trajectory `moved` onto `reference`:
 /// each camera's centre and points `reach` ahead of it along its axes.
-pub fn trajectory_alignment(moved: &[DMat4], reference: &[DMat4], reach: f64) -> DMat4 {
-    let probes = [DVec3::ZERO, DVec3::X * reach, DVec3::Y * reach, DVec3::Z * reach];
-    let from: Vec<DVec3> = moved
-        .iter()
-        .flat_map(|m| probes.map(|p| m.transform_point3(p)))
-        .collect();
-    let to: Vec<DVec3> = reference
-        .iter()
-        .flat_map(|m| probes.map(|p| m.transform_point3(p)))
-        .collect();
+pub fn trajectory_alignment(
+    moved: &[IsometryMatrix3<f64>],
+    reference: &[IsometryMatrix3<f64>],
+    reach: f64,
+) -> IsometryMatrix3<f64> {
+    let probes = [
+        Point3::origin(),
+        Point3::new(reach, 0.0, 0.0),
+        Point3::new(0.0, reach, 0.0),
+        Point3::new(0.0, 0.0, reach),
+    ];
+    let from: Vec<Point3<f64>> = moved.iter().flat_map(|m| probes.map(|p| m * p)).collect();
+    let to: Vec<Point3<f64>> = reference.iter().flat_map(|m| probes.map(|p| m * p)).collect();
     rigid_fit(&from, &to)
 }
 
 /// Least-squares rigid motion from `from` onto `to` (Kabsch, by SVD).
-fn rigid_fit(from: &[DVec3], to: &[DVec3]) -> DMat4 {
+fn rigid_fit(from: &[Point3<f64>], to: &[Point3<f64>]) -> IsometryMatrix3<f64> {
     if from.len() < 3 || from.len() != to.len() {
-        return DMat4::IDENTITY;
+        return IsometryMatrix3::identity();
     }
     let n = from.len() as f64;
     let (ca, cb) = (
-        from.iter().copied().sum::<DVec3>() / n,
-        to.iter().copied().sum::<DVec3>() / n,
+        from.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n,
+        to.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n,
     );
     let mut cov = Matrix3::<f64>::zeros();
     for (a, b) in from.iter().zip(to) {
-        let (a, b) = (*a - ca, *b - cb);
-        cov += Vector3::new(b.x, b.y, b.z) * Vector3::new(a.x, a.y, a.z).transpose();
+        let (a, b) = (a.coords - ca, b.coords - cb);
+        cov += b * a.transpose();
     }
     let svd = cov.svd(true, true);
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return DMat4::IDENTITY;
+        return IsometryMatrix3::identity();
     };
     let mut fix = Matrix3::<f64>::identity();
     if (u * v_t).determinant() < 0.0 {
         fix[(2, 2)] = -1.0;
     }
-    let r = u * fix * v_t;
-    let rotation = DMat3::from_cols(
-        DVec3::new(r[(0, 0)], r[(1, 0)], r[(2, 0)]),
-        DVec3::new(r[(0, 1)], r[(1, 1)], r[(2, 1)]),
-        DVec3::new(r[(0, 2)], r[(1, 2)], r[(2, 2)]),
-    );
-    let translation = cb - rotation * ca;
-    let out = DMat4::from_mat3_translation(rotation, translation);
-    if out.is_finite() {
+    let rotation = Rotation3::from_matrix_unchecked(u * fix * v_t);
+    let out = IsometryMatrix3::from_parts(Translation3::from(cb - rotation * ca), rotation);
+    if out.to_homogeneous().iter().all(|x| x.is_finite()) {
         out
     } else {
-        DMat4::IDENTITY
+        IsometryMatrix3::identity()
     }
 }
 
@@ -597,16 +609,16 @@ mod tests {
         let mut scan = truth.clone();
         let mut rng = crate::rng::Rng::new(7, 0);
         for f in &mut scan.frames {
-            let axis = DVec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
+            let axis = Vector3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
             let angle = 0.3f64.to_radians() * rng.normal();
-            let shift = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
-            let centre = f.camera_center();
-            let perturb = DMat4::from_translation(centre + shift)
-                * DMat4::from_axis_angle(axis, angle)
-                * DMat4::from_translation(-centre);
+            let shift = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
+            let centre = f.camera_center().coords;
+            let perturb = Translation3::from(centre + shift)
+                * IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(axis * angle))
+                * Translation3::from(-centre);
             f.camera_to_world = perturb * f.camera_to_world;
         }
-        let error = |poses: &[DMat4]| {
+        let error = |poses: &[IsometryMatrix3<f64>]| {
             let (mut t, mut r) = (0.0, 0.0);
             for (p, f) in poses.iter().zip(&truth.frames) {
                 let (dt, dr) = pose_difference(&f.camera_to_world, p);

@@ -10,7 +10,7 @@
 use super::refine::{camera_points, Cloud};
 use super::GeometryError;
 use crate::scan::Scan;
-use glam::{DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3};
 use rayon::prelude::*;
 
 /// Depth points per frame for the scale search (a cost needs far fewer
@@ -76,12 +76,12 @@ impl ScaleEstimate {
 
 /// Camera-to-world poses with every camera position multiplied by `scale`
 /// (about the world origin, so the world frame keeps its origin and axes).
-pub fn scale_poses(poses: &[DMat4], scale: f64) -> Vec<DMat4> {
+pub fn scale_poses(poses: &[IsometryMatrix3<f64>], scale: f64) -> Vec<IsometryMatrix3<f64>> {
     poses
         .iter()
         .map(|p| {
             let mut q = *p;
-            q.w_axis = (p.w_axis.truncate() * scale).extend(1.0);
+            q.translation.vector *= scale;
             q
         })
         .collect()
@@ -91,7 +91,7 @@ pub fn scale_poses(poses: &[DMat4], scale: f64) -> Vec<DMat4> {
 /// two frames have depth (see [`ScaleEstimate::is_determined`] for scans
 /// whose depth cannot tell).
 pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, GeometryError> {
-    let samples: Vec<Vec<DVec3>> = scan
+    let samples: Vec<Vec<Point3<f64>>> = scan
         .frames
         .par_iter()
         .enumerate()
@@ -163,7 +163,7 @@ fn golden_section(lo: f64, hi: f64, tolerance: f64, cost: &dyn Fn(f64) -> f64) -
 /// Median over all depth points of the distance to the nearest point another
 /// frame measured, or (`to_planes`) to the plane through the nearest points
 /// of other frames; infinite where there is none.
-fn disagreement(samples: &[Vec<DVec3>], poses: &[DMat4], to_planes: bool) -> f64 {
+fn disagreement(samples: &[Vec<Point3<f64>>], poses: &[IsometryMatrix3<f64>], to_planes: bool) -> f64 {
     let cloud = Cloud::new(samples, poses);
     let distances: Vec<f64> = samples
         .par_iter()
@@ -172,13 +172,13 @@ fn disagreement(samples: &[Vec<DVec3>], poses: &[DMat4], to_planes: bool) -> f64
         .flat_map_iter(|(i, (s, pose))| {
             let cloud = &cloud;
             s.iter().map(move |p| {
-                let x = pose.transform_point3(*p);
+                let x = pose * p;
                 let d = if to_planes {
                     cloud
-                        .plane_near(x, i as u32, PLANE_NEIGHBOURS)
-                        .map(|(c, n)| n.dot(x - c).abs())
+                        .plane_near(&x, i as u32, PLANE_NEIGHBOURS)
+                        .map(|(c, n)| n.dot(&(x - c)).abs())
                 } else {
-                    cloud.nearest_other(x, i as u32)
+                    cloud.nearest_other(&x, i as u32)
                 };
                 d.unwrap_or(f64::INFINITY)
             })

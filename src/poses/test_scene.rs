@@ -3,16 +3,16 @@
 
 use crate::rng::Rng;
 use crate::scan::{DepthMap, Frame, Intrinsics, Layout, RgbImage, Scan};
-use glam::{DMat3, DMat4, DQuat, DVec3};
+use nalgebra::{IsometryMatrix3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use std::f64::consts::TAU;
 
 /// What room to build and how to film it.
 #[derive(Clone, Debug)]
 pub struct Room {
     /// Half edge lengths in the room's own frame (before `scale`).
-    pub half: DVec3,
+    pub half: Vector3<f64>,
     /// Room frame to world rotation, about the world origin.
-    pub rotation: DQuat,
+    pub rotation: UnitQuaternion<f64>,
     /// Uniform scale applied after the rotation.
     pub scale: f64,
     pub frames: usize,
@@ -27,8 +27,8 @@ pub struct Room {
 impl Default for Room {
     fn default() -> Self {
         Room {
-            half: DVec3::new(2.0, 1.5, 1.25),
-            rotation: DQuat::IDENTITY,
+            half: Vector3::new(2.0, 1.5, 1.25),
+            rotation: UnitQuaternion::identity(),
             scale: 1.0,
             frames: 24,
             width: 64,
@@ -41,31 +41,29 @@ impl Default for Room {
 
 impl Room {
     /// Room corners in the room frame (centred on the origin).
-    pub fn local_box(&self) -> (DVec3, DVec3) {
-        (-self.half, self.half)
+    pub fn local_box(&self) -> (Point3<f64>, Point3<f64>) {
+        (Point3::from(-self.half), Point3::from(self.half))
     }
 
     /// Room frame point to world.
-    pub fn to_world(&self, p: DVec3) -> DVec3 {
+    pub fn to_world(&self, p: &Point3<f64>) -> Point3<f64> {
         self.rotation * p * self.scale
     }
 
     /// Camera-to-world pose of frame `k` in the room frame (unscaled).
-    fn room_pose(&self, k: usize) -> DMat4 {
+    fn room_pose(&self, k: usize) -> IsometryMatrix3<f64> {
         let yaw = TAU * k as f64 / self.frames as f64;
-        let eye = DVec3::new(
+        let eye = Vector3::new(
             0.35 * self.half.x * yaw.cos(),
             0.35 * self.half.y * yaw.sin(),
             0.1 * self.half.z * yaw.sin(),
         );
-        let forward = DVec3::new((yaw + 0.3).cos(), (yaw + 0.3).sin(), 0.4 * (3.0 * yaw).sin()).normalize();
-        let right = forward.cross(DVec3::Z).normalize();
-        let down = forward.cross(right);
-        DMat4::from_cols(
-            right.extend(0.0),
-            down.extend(0.0),
-            forward.extend(0.0),
-            eye.extend(1.0),
+        let forward = Vector3::new((yaw + 0.3).cos(), (yaw + 0.3).sin(), 0.4 * (3.0 * yaw).sin()).normalize();
+        let right = forward.cross(&Vector3::z()).normalize();
+        let down = forward.cross(&right);
+        IsometryMatrix3::from_parts(
+            Translation3::from(eye),
+            Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[right, down, forward])),
         )
     }
 
@@ -78,19 +76,19 @@ impl Room {
             cx: (w as f64 - 1.0) / 2.0,
             cy: (h as f64 - 1.0) / 2.0,
         };
-        let world_rot = DMat4::from_quat(self.rotation);
+        let world_rot = self.rotation.to_rotation_matrix();
         let frames = (0..self.frames)
             .map(|i| {
                 let pose = self.room_pose(i);
-                let rot = DMat3::from_mat4(pose);
-                let eye = pose.w_axis.truncate();
+                let rot = pose.rotation;
+                let eye = Point3::from(pose.translation.vector);
                 let mut rng = Rng::new(99, i as u64);
                 let mut rgb = RgbImage::new(w, h);
                 let mut metres = vec![0.0f32; (w * h) as usize];
                 for v in 0..h {
                     for u in 0..w {
                         let d = rot * k.unproject(u as f64, v as f64);
-                        let (t, axis) = exit(eye, d, self.half);
+                        let (t, axis) = exit(&eye, &d, &self.half);
                         let mut z = (t * self.scale) as f32;
                         if rng.f64() < self.flying {
                             z *= 1000.0;
@@ -100,8 +98,10 @@ impl Room {
                         rgb.put_pixel(u, v, image::Rgb([shade, 255 - shade, 60 + 30 * axis as u8]));
                     }
                 }
-                let mut c2w = world_rot * pose;
-                c2w.w_axis = (self.to_world(eye)).extend(1.0);
+                let c2w = IsometryMatrix3::from_parts(
+                    Translation3::from(self.to_world(&eye).coords),
+                    world_rot * pose.rotation,
+                );
                 Frame {
                     id: i as u64,
                     name: format!("{i:06}"),
@@ -130,7 +130,7 @@ impl Room {
 
 /// Ray parameter where `o + t d` leaves the box [-half, half] from inside,
 /// and the axis of the wall it hits (0..6).
-fn exit(o: DVec3, d: DVec3, half: DVec3) -> (f64, usize) {
+fn exit(o: &Point3<f64>, d: &Vector3<f64>, half: &Vector3<f64>) -> (f64, usize) {
     let mut best = (f64::INFINITY, 0);
     for a in 0..3 {
         if d[a] != 0.0 {

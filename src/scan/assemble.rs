@@ -3,10 +3,10 @@
 //! the colour grid and intrinsics to the colour resolution.
 
 use super::image_io::{decode_depth, decode_rgb, dimensions};
-use super::rigid::rigid_inverse;
+use super::rigid::isometry;
 use super::validate::{accept_pose, check_intrinsics};
 use super::{resample_depth_to, Bounds, Frame, Intrinsics, Layout, LoadOptions, Scan, ScanError, MAX_FRAMES};
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Matrix4};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -27,7 +27,7 @@ pub(crate) struct FrameSpec {
     pub rgb: PathBuf,
     pub depth: Option<PathBuf>,
     /// Pose as read (direction given by [`Listing::pose_kind`]).
-    pub pose: DMat4,
+    pub pose: Matrix4<f64>,
     /// Where the pose came from, for messages (`pose/000012.txt`, `groundtruth.txt line 40`).
     pub pose_source: String,
     pub intrinsics: Intrinsics,
@@ -103,18 +103,25 @@ pub(crate) fn assemble(mut listing: Listing, options: &LoadOptions) -> Result<Sc
         }
     }
     let mut warnings = std::mem::take(&mut listing.warnings);
-    for spec in &mut listing.frames {
-        let pose = accept_pose(spec.pose, &spec.pose_source, options.fix_poses, &mut warnings)?;
-        spec.pose = match listing.pose_kind {
+    let mut camera_to_world = Vec::with_capacity(listing.frames.len());
+    for spec in &listing.frames {
+        let pose = isometry(&accept_pose(
+            spec.pose,
+            &spec.pose_source,
+            options.fix_poses,
+            &mut warnings,
+        )?);
+        camera_to_world.push(match listing.pose_kind {
             PoseKind::CameraToWorld => pose,
-            PoseKind::WorldToCamera => rigid_inverse(&pose),
-        };
+            PoseKind::WorldToCamera => pose.inverse(),
+        });
     }
     check_pixel_budget(&listing)?;
     let decoded: Vec<Result<Frame, ScanError>> = listing
         .frames
         .par_iter()
-        .map(|spec| decode_frame(spec, &listing))
+        .zip(&camera_to_world)
+        .map(|(spec, pose)| decode_frame(spec, pose, &listing))
         .collect();
     let mut frames = Vec::with_capacity(decoded.len());
     for result in decoded {
@@ -238,7 +245,11 @@ fn check_depth_sizes(frames: &[Frame], listing: &Listing) -> Result<(), ScanErro
 }
 
 /// Decode one frame's colour and depth (one rayon task).
-fn decode_frame(spec: &FrameSpec, listing: &Listing) -> Result<Frame, ScanError> {
+fn decode_frame(
+    spec: &FrameSpec,
+    camera_to_world: &IsometryMatrix3<f64>,
+    listing: &Listing,
+) -> Result<Frame, ScanError> {
     let rgb = decode_rgb(&spec.rgb)?;
     let (w, h) = rgb.dimensions();
     let intrinsics = match spec.intrinsics_size {
@@ -268,7 +279,7 @@ fn decode_frame(spec: &FrameSpec, listing: &Listing) -> Result<Frame, ScanError>
         rgb,
         depth,
         depth_size,
-        camera_to_world: spec.pose,
+        camera_to_world: *camera_to_world,
         intrinsics,
     })
 }

@@ -48,7 +48,7 @@ struct Camera {
 /// One image of `images.txt`.
 #[derive(Clone, Debug, PartialEq)]
 struct Image {
-    world_to_camera: glam::DMat4,
+    world_to_camera: nalgebra::Isometry3<f64>,
     camera_id: u64,
     name: String,
     line: usize,
@@ -119,7 +119,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
             name,
             rgb,
             depth,
-            pose: image.world_to_camera,
+            pose: image.world_to_camera.to_homogeneous(),
             pose_source: format!("{} line {}", images_path.display(), image.line),
             intrinsics: camera.intrinsics,
             intrinsics_size: Some(camera.size),
@@ -322,13 +322,13 @@ mod tests {
             ("b.jpg", 1, 3)
         );
         assert_eq!(
-            images[0].world_to_camera.w_axis.truncate(),
-            glam::DVec3::new(0.5, 0.0, 0.0)
+            images[0].world_to_camera.translation.vector,
+            nalgebra::Vector3::new(0.5, 0.0, 0.0)
         );
         assert_eq!(images[1].name, "a name.jpg");
         // 90 degrees about y: the world x axis becomes the camera's -z.
-        let x = images[1].world_to_camera.transform_vector3(glam::DVec3::X);
-        assert!((x - glam::DVec3::new(0.0, 0.0, -1.0)).length() < 1e-12, "{x}");
+        let x = images[1].world_to_camera * nalgebra::Vector3::x();
+        assert!((x - nalgebra::Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-12, "{x}");
         assert!(parse_images("1 1 0 0 0 0 0 0 1\n")
             .unwrap_err()
             .reason

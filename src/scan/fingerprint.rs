@@ -43,7 +43,7 @@ pub fn scan_fingerprint(scan: &Scan) -> u64 {
         let k = f.intrinsics;
         for v in [k.fx, k.fy, k.cx, k.cy]
             .into_iter()
-            .chain(f.camera_to_world.to_cols_array())
+            .chain(f.camera_to_world.to_homogeneous().iter().copied())
         {
             h.u64(v.to_bits());
         }

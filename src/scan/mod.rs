@@ -30,11 +30,11 @@ mod validate;
 pub use depth::{resample_depth_to, DepthMap, EDGE_RELATIVE_GAP};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
-pub use rigid::rigid_inverse;
+pub use rigid::isometry;
 pub use summary::{summarize, DepthRange, ScanSummary};
 pub use validate::{check_intrinsics, check_pose, PoseCheck, POSE_TOLERANCE};
 
-use glam::{DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3, Vector3};
 use std::path::{Path, PathBuf};
 
 /// Largest accepted image side, in pixels (guards against absurd headers).
@@ -69,13 +69,13 @@ impl Intrinsics {
 
     /// Camera-frame direction (z = 1) through pixel (u, v).
     #[inline]
-    pub fn unproject(&self, u: f64, v: f64) -> DVec3 {
-        DVec3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0)
+    pub fn unproject(&self, u: f64, v: f64) -> Vector3<f64> {
+        Vector3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0)
     }
 
     /// Pixel of a camera-frame point; `None` behind the camera.
     #[inline]
-    pub fn project(&self, p: DVec3) -> Option<(f64, f64)> {
+    pub fn project(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
         if p.z <= 0.0 {
             return None;
         }
@@ -102,7 +102,7 @@ pub struct Frame {
     /// to the colour grid; `None` when the frame has no depth file.
     pub depth_size: Option<(u32, u32)>,
     /// Camera-to-world pose, OpenCV camera axes, scan world frame.
-    pub camera_to_world: DMat4,
+    pub camera_to_world: IsometryMatrix3<f64>,
     /// Intrinsics for the colour resolution.
     pub intrinsics: Intrinsics,
 }
@@ -114,7 +114,7 @@ impl Frame {
         name: impl Into<String>,
         rgb: RgbImage,
         depth: Option<DepthMap>,
-        camera_to_world: DMat4,
+        camera_to_world: IsometryMatrix3<f64>,
         intrinsics: Intrinsics,
     ) -> Frame {
         let depth_size = depth.as_ref().map(|d| (d.width, d.height));
@@ -135,16 +135,16 @@ impl Frame {
     }
 
     /// Camera centre in world coordinates.
-    pub fn camera_center(&self) -> DVec3 {
-        self.camera_to_world.w_axis.truncate()
+    pub fn camera_center(&self) -> Point3<f64> {
+        Point3::from(self.camera_to_world.translation.vector)
     }
 }
 
 /// Scene bounds given by the user (`bbox.txt`), world frame, metres.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Bounds {
-    pub min: DVec3,
-    pub max: DVec3,
+    pub min: Point3<f64>,
+    pub max: Point3<f64>,
 }
 
 /// A whole scan, every layout read into the same form.
@@ -171,12 +171,12 @@ impl Scan {
     }
 
     /// Every frame's camera-to-world pose, in frame order.
-    pub fn poses(&self) -> Vec<DMat4> {
+    pub fn poses(&self) -> Vec<IsometryMatrix3<f64>> {
         self.frames.iter().map(|f| f.camera_to_world).collect()
     }
 
     /// Replace the frames' poses, in frame order.
-    pub fn set_poses(&mut self, poses: &[DMat4]) {
+    pub fn set_poses(&mut self, poses: &[IsometryMatrix3<f64>]) {
         for (frame, pose) in self.frames.iter_mut().zip(poses) {
             frame.camera_to_world = *pose;
         }

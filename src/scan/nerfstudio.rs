@@ -14,7 +14,7 @@ use super::native::require_file;
 use super::rigid::opengl_to_opencv;
 use super::text::read_text;
 use super::{Intrinsics, Layout, ScanError};
-use glam::{DMat4, DVec4};
+use nalgebra::Matrix4;
 use serde::Deserialize;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -197,7 +197,7 @@ fn resolve(base: &Path, file: &str, exts: &[&str]) -> Option<PathBuf> {
 }
 
 /// A 4x4 (or 3x4) row-major matrix from JSON rows.
-fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<DMat4, String> {
+fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<Matrix4<f64>, String> {
     let shape_ok = (rows.len() == 4 || rows.len() == 3) && rows.iter().all(|r| r.len() == 4);
     if !shape_ok {
         return Err(format!("transform_matrix must be 4x4, found {} rows", rows.len()));
@@ -208,12 +208,7 @@ fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<DMat4, String> {
             .copied()
             .unwrap_or(if r == c { 1.0 } else { 0.0 })
     };
-    Ok(DMat4::from_cols(
-        DVec4::new(at(0, 0), at(1, 0), at(2, 0), at(3, 0)),
-        DVec4::new(at(0, 1), at(1, 1), at(2, 1), at(3, 1)),
-        DVec4::new(at(0, 2), at(1, 2), at(2, 2), at(3, 2)),
-        DVec4::new(at(0, 3), at(1, 3), at(2, 3), at(3, 3)),
-    ))
+    Ok(Matrix4::from_fn(at))
 }
 
 /// Intrinsics (integer pixel centres) and the resolution they refer to.
@@ -276,6 +271,6 @@ mod tests {
             vec![0.0, 0.0, 1.0, 4.0],
         ])
         .unwrap();
-        assert_eq!(m.w_axis, DVec4::new(2.0, 3.0, 4.0, 1.0));
+        assert_eq!(m.column(3), nalgebra::Vector4::new(2.0, 3.0, 4.0, 1.0));
     }
 }

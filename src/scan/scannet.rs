@@ -44,7 +44,7 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
         let Some(pose_path) = poses.get(id) else { continue };
         let pose = text::matrix4(&read_text(pose_path)?).map_err(|e| ScanError::parse(pose_path, e))?;
         listing.inputs.push(pose_path.clone());
-        if !pose.is_finite() {
+        if !pose.iter().all(|v| v.is_finite()) {
             lost.push(*id);
             continue;
         }

@@ -11,7 +11,7 @@ use super::native::require_file;
 use super::rigid::pose_from_translation_quaternion;
 use super::text::{self, read_text, Table, TextError};
 use super::{Layout, ScanError};
-use glam::DMat4;
+use nalgebra::Matrix4;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -72,12 +72,12 @@ pub(crate) fn list(root: &Path) -> Result<Listing, ScanError> {
 }
 
 /// Camera-to-world pose and line number of every frame in `odometry.csv`.
-fn read_odometry(path: &Path) -> Result<HashMap<u64, (DMat4, usize)>, ScanError> {
+fn read_odometry(path: &Path) -> Result<HashMap<u64, (Matrix4<f64>, usize)>, ScanError> {
     let table = text::csv(&read_text(path)?);
     parse_odometry(&table).map_err(|e| ScanError::parse(path, e))
 }
 
-fn parse_odometry(table: &Table) -> Result<HashMap<u64, (DMat4, usize)>, TextError> {
+fn parse_odometry(table: &Table) -> Result<HashMap<u64, (Matrix4<f64>, usize)>, TextError> {
     let names = ["x", "y", "z", "qx", "qy", "qz", "qw"];
     // Columns by header name, else by position (9 columns with timestamp and
     // frame, or 7 without, one row per frame).
@@ -132,7 +132,7 @@ fn parse_odometry(table: &Table) -> Result<HashMap<u64, (DMat4, usize)>, TextErr
             line,
             reason: "pose has NaN/infinite values or a zero quaternion".into(),
         })?;
-        poses.insert(frame, (pose, line));
+        poses.insert(frame, (pose.to_homogeneous(), line));
     }
     Ok(poses)
 }
@@ -145,12 +145,12 @@ mod tests {
     fn odometry_with_and_without_header() {
         let with = text::csv("timestamp, frame, x, y, z, qx, qy, qz, qw\n0.1, 3, 1, 2, 3, 0, 0, 0, 1\n");
         let poses = parse_odometry(&with).unwrap();
-        assert_eq!(poses[&3].0.w_axis.truncate().to_array(), [1.0, 2.0, 3.0]);
+        assert_eq!(poses[&3].0.fixed_view::<3, 1>(0, 3).as_slice(), [1.0, 2.0, 3.0]);
         assert_eq!(poses[&3].1, 2);
         let plain = text::csv("0.1,5,1,2,3,0,0,0,1\n");
         assert!(parse_odometry(&plain).unwrap().contains_key(&5));
         let old = text::csv("1,2,3,0,0,0,1\n4,5,6,0,0,0,1\n");
-        assert_eq!(parse_odometry(&old).unwrap()[&1].0.w_axis.x, 4.0);
+        assert_eq!(parse_odometry(&old).unwrap()[&1].0[(0, 3)], 4.0);
         let bad = text::csv("timestamp, frame, x, y\n0,0,0,0\n");
         assert_eq!(parse_odometry(&bad).unwrap_err().line, 1);
         let short = text::csv("timestamp, frame, x, y, z, qx, qy, qz, qw\n0.1, 3, 1\n");

@@ -96,7 +96,7 @@ pub fn summarize(scan: &Scan) -> ScanSummary {
         .frames
         .windows(2)
         .map(|w| match w {
-            [a, b] => (b.camera_center() - a.camera_center()).length(),
+            [a, b] => (b.camera_center() - a.camera_center()).norm(),
             _ => 0.0,
         })
         .sum();
@@ -181,7 +181,7 @@ impl fmt::Display for ScanSummary {
 mod tests {
     use super::*;
     use crate::scan::{DepthMap, Frame, Intrinsics, RgbImage};
-    use glam::{DMat4, DVec3};
+    use nalgebra::IsometryMatrix3;
 
     fn frame(id: u64, x: f64, depth: Option<Vec<f32>>) -> Frame {
         let k = Intrinsics {
@@ -200,7 +200,7 @@ mod tests {
             format!("{id:06}"),
             RgbImage::new(2, 2),
             depth,
-            DMat4::from_translation(DVec3::new(x, 0.0, 0.0)),
+            IsometryMatrix3::translation(x, 0.0, 0.0),
             k,
         );
         f.depth_size = f.depth_size.map(|_| (1, 1));

@@ -3,7 +3,7 @@
 //! `timestamp value...` lists. They never panic, whatever the input.
 
 use super::{Bounds, Intrinsics, ScanError};
-use glam::{DMat4, DVec3, DVec4};
+use nalgebra::{Matrix4, Point3};
 use std::path::Path;
 
 /// Largest text file read (TUM groundtruth files of hour-long runs are ~20 MB).
@@ -112,7 +112,7 @@ fn flat(text: &str) -> Result<(usize, usize, Vec<f64>), TextError> {
 }
 
 /// A 4x4 transform: 4x4, 3x4 (bottom row 0 0 0 1 implied) or 16/12 numbers on one line.
-pub fn matrix4(text: &str) -> Result<DMat4, TextError> {
+pub fn matrix4(text: &str) -> Result<Matrix4<f64>, TextError> {
     let (rows, cols, v) = flat(text)?;
     let shape_ok = matches!((rows, cols), (4, 4) | (3, 4) | (1, 16) | (1, 12));
     if !shape_ok {
@@ -124,13 +124,15 @@ pub fn matrix4(text: &str) -> Result<DMat4, TextError> {
     } else {
         [0.0, 0.0, 0.0, 1.0]
     };
-    // Rows in the file; glam takes columns.
-    Ok(DMat4::from_cols(
-        DVec4::new(at(0), at(4), at(8), bottom[0]),
-        DVec4::new(at(1), at(5), at(9), bottom[1]),
-        DVec4::new(at(2), at(6), at(10), bottom[2]),
-        DVec4::new(at(3), at(7), at(11), bottom[3]),
-    ))
+    // Rows in the file, as `Matrix4::new` takes them.
+    #[rustfmt::skip]
+    let m = Matrix4::new(
+        at(0), at(1), at(2), at(3),
+        at(4), at(5), at(6), at(7),
+        at(8), at(9), at(10), at(11),
+        bottom[0], bottom[1], bottom[2], bottom[3],
+    );
+    Ok(m)
 }
 
 /// Pinhole intrinsics from a 3x3 K, a 4x4 or 3x4 with K top-left, or one
@@ -191,8 +193,8 @@ pub fn bounds(text: &str) -> Result<Bounds, TextError> {
             format!("expected 6 numbers (min xyz, max xyz), found {}", v.len()),
         ));
     };
-    let (min, max) = (DVec3::new(x0, y0, z0), DVec3::new(x1, y1, z1));
-    if !(min.is_finite() && max.is_finite()) || min.cmpge(max).any() {
+    let (min, max) = (Point3::new(x0, y0, z0), Point3::new(x1, y1, z1));
+    if !v.iter().all(|x| x.is_finite()) || (0..3).any(|i| min[i] >= max[i]) {
         return Err(TextError::new(0, "bounds must be finite with min < max on every axis"));
     }
     Ok(Bounds { min, max })
@@ -248,18 +250,19 @@ pub fn timestamped(text: &str) -> Result<Vec<TimedLine<'_>>, TextError> {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+    use nalgebra::Vector4;
 
     #[test]
     fn matrix4_reads_rows_and_comments() {
         let m = matrix4("# T_CW\n1 0 0 5\n0 1 0 6\n\n0 0 1 7 # z\n0 0 0 1\n").unwrap();
-        assert_eq!(m.w_axis.truncate(), DVec3::new(5.0, 6.0, 7.0));
-        assert_eq!(m.x_axis.x, 1.0);
+        assert_eq!(m.column(3), Vector4::new(5.0, 6.0, 7.0, 1.0));
+        assert_eq!(m[(0, 0)], 1.0);
         let m3 = matrix4("1,0,0,1\n0,1,0,2\n0,0,1,3\n").unwrap();
-        assert_eq!(m3.w_axis, DVec4::new(1.0, 2.0, 3.0, 1.0));
+        assert_eq!(m3.column(3), Vector4::new(1.0, 2.0, 3.0, 1.0));
         let one = matrix4("0 -1 0 1 1 0 0 2 0 0 1 3 0 0 0 1").unwrap();
         // Row 0 is (0, -1, 0, 1): first column's x is 0, second column's x is -1.
-        assert_eq!(one.y_axis.x, -1.0);
-        assert_eq!(one.x_axis.y, 1.0);
+        assert_eq!(one[(0, 1)], -1.0);
+        assert_eq!(one[(1, 0)], 1.0);
     }
 
     #[test]
@@ -275,7 +278,7 @@ mod tests {
         assert_eq!(e.line, 2);
         assert_eq!(matrix4("").unwrap_err().line, 0);
         // ScanNet marks lost tracking with -inf: parsed, rejected later by validation.
-        assert!(matrix4(&"-inf ".repeat(16)).unwrap().x_axis.x.is_infinite());
+        assert!(matrix4(&"-inf ".repeat(16)).unwrap()[(0, 0)].is_infinite());
     }
 
     #[test]
@@ -303,8 +306,8 @@ mod tests {
     #[test]
     fn bounds_take_first_six_and_check_order() {
         let b = bounds("-1 -2 -3 1 2 3 0.01\n").unwrap();
-        assert_eq!(b.min, DVec3::new(-1.0, -2.0, -3.0));
-        assert_eq!(b.max, DVec3::new(1.0, 2.0, 3.0));
+        assert_eq!(b.min, Point3::new(-1.0, -2.0, -3.0));
+        assert_eq!(b.max, Point3::new(1.0, 2.0, 3.0));
         assert!(bounds("1 1 1 0 2 2").is_err());
         assert!(bounds("1 2 3").is_err());
     }

@@ -11,7 +11,7 @@ use super::files::{id_list, stem};
 use super::native::require_file;
 use super::text::{self, read_text, TextError};
 use super::{Intrinsics, Layout, ScanError};
-use glam::{DMat4, DQuat, DVec3};
+use nalgebra::{Isometry3, Matrix4, Translation3, UnitQuaternion, Vector3};
 use std::path::{Path, PathBuf};
 
 /// Largest timestamp gap accepted when associating, in seconds.
@@ -55,8 +55,8 @@ pub const TUM_DEFAULT: Intrinsics = Intrinsics {
 struct Sample {
     t: f64,
     line: usize,
-    translation: DVec3,
-    rotation: DQuat,
+    translation: Vector3<f64>,
+    rotation: UnitQuaternion<f64>,
 }
 
 /// List the frames of a TUM RGB-D sequence.
@@ -221,7 +221,7 @@ fn read_groundtruth(path: &Path) -> Result<Vec<Sample>, ScanError> {
             let reason = "pose has NaN/infinite values or a zero quaternion".to_string();
             return Err(ScanError::parse(path, TextError { line, reason }));
         };
-        let (_, rotation, translation) = pose.to_scale_rotation_translation();
+        let (rotation, translation) = (pose.rotation, pose.translation.vector);
         samples.push(Sample {
             t,
             line,
@@ -235,7 +235,7 @@ fn read_groundtruth(path: &Path) -> Result<Vec<Sample>, ScanError> {
 
 /// Camera-to-world at time `t`: interpolated between the samples around `t`
 /// when both are close, else the nearest sample within the gap.
-fn pose_at(samples: &[Sample], t: f64) -> Option<(DMat4, usize)> {
+fn pose_at(samples: &[Sample], t: f64) -> Option<(Matrix4<f64>, usize)> {
     let at = samples.partition_point(|s| s.t < t);
     let before = at.checked_sub(1).and_then(|i| samples.get(i));
     let after = samples.get(at);
@@ -243,20 +243,28 @@ fn pose_at(samples: &[Sample], t: f64) -> Option<(DMat4, usize)> {
     match (before.filter(near), after.filter(near)) {
         (Some(a), Some(b)) if b.t > a.t => {
             let alpha = (t - a.t) / (b.t - a.t);
-            let translation = a.translation.lerp(b.translation, alpha);
-            let rotation = a.rotation.slerp(b.rotation, alpha).normalize();
+            let translation = a.translation.lerp(&b.translation, alpha);
+            // Shortest-path slerp; nearly equal rotations (no stable angle) interpolate linearly.
+            let rotation = a.rotation.try_slerp(&b.rotation, alpha, 1e-12).unwrap_or_else(|| {
+                let sign = if a.rotation.coords.dot(&b.rotation.coords) < 0.0 {
+                    -1.0
+                } else {
+                    1.0
+                };
+                UnitQuaternion::new_normalize(a.rotation.into_inner().lerp(&(b.rotation.into_inner() * sign), alpha))
+            });
             let line = if alpha < 0.5 { a.line } else { b.line };
-            Some((DMat4::from_rotation_translation(rotation, translation), line))
+            Some((pose(rotation, translation), line))
         }
-        (Some(a), Some(b)) => Some((
-            DMat4::from_rotation_translation(b.rotation, b.translation),
-            a.line.min(b.line),
-        )),
-        (Some(s), None) | (None, Some(s)) => {
-            Some((DMat4::from_rotation_translation(s.rotation, s.translation), s.line))
-        }
+        (Some(a), Some(b)) => Some((pose(b.rotation, b.translation), a.line.min(b.line))),
+        (Some(s), None) | (None, Some(s)) => Some((pose(s.rotation, s.translation), s.line)),
         (None, None) => None,
     }
+}
+
+/// Rigid 4x4 from a rotation and a translation.
+fn pose(rotation: UnitQuaternion<f64>, translation: Vector3<f64>) -> Matrix4<f64> {
+    Isometry3::from_parts(Translation3::from(translation), rotation).to_homogeneous()
 }
 
 /// Intrinsics, the resolution they are for (None = the images'), and their source.
@@ -331,8 +339,8 @@ mod tests {
         Sample {
             t,
             line: 1,
-            translation: DVec3::new(x, 0.0, 0.0),
-            rotation: DQuat::from_rotation_y(yaw),
+            translation: Vector3::new(x, 0.0, 0.0),
+            rotation: UnitQuaternion::from_euler_angles(0.0, yaw, 0.0),
         }
     }
 
@@ -340,11 +348,11 @@ mod tests {
     fn poses_interpolate_within_gap() {
         let s = [sample(1.00, 0.0, 0.0), sample(1.01, 1.0, 0.2), sample(2.0, 5.0, 0.0)];
         let (m, _) = pose_at(&s, 1.005).unwrap();
-        assert!((m.w_axis.x - 0.5).abs() < 1e-12);
-        let (_, rot, _) = m.to_scale_rotation_translation();
-        assert!(rot.abs_diff_eq(DQuat::from_rotation_y(0.1), 1e-12));
+        assert!((m[(0, 3)] - 0.5).abs() < 1e-12);
+        let rot = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
+        assert!(rot.angle_to(&nalgebra::Rotation3::from_euler_angles(0.0, 0.1, 0.0)) < 1e-12);
         // Beyond the last sample but within 20 ms: nearest.
-        assert_eq!(pose_at(&s, 2.015).unwrap().0.w_axis.x, 5.0);
+        assert_eq!(pose_at(&s, 2.015).unwrap().0[(0, 3)], 5.0);
         // Between samples that are both > 20 ms away: none.
         assert!(pose_at(&s, 1.5).is_none());
         assert!(pose_at(&[], 1.0).is_none());

@@ -3,7 +3,7 @@
 
 use super::rigid::{orthonormality_error, orthonormalize};
 use super::{Intrinsics, Scan, ScanError, MAX_FRAMES};
-use glam::{DMat3, DMat4, DVec3, DVec4};
+use nalgebra::{Matrix4, Point3, RowVector4};
 
 /// Tolerance on `|R^T R - I|` entries and on `det R - 1`.
 pub const POSE_TOLERANCE: f64 = 1e-3;
@@ -47,14 +47,14 @@ impl PoseCheck {
 
 /// Check a 4x4 rigid pose (either direction): finite, bottom row `0 0 0 1`,
 /// rotation orthonormal with det +1 within [`POSE_TOLERANCE`].
-pub fn check_pose(pose: &DMat4) -> PoseCheck {
-    if !pose.is_finite() {
+pub fn check_pose(pose: &Matrix4<f64>) -> PoseCheck {
+    if !pose.iter().all(|v| v.is_finite()) {
         return PoseCheck::NonFinite;
     }
-    if !pose.row(3).abs_diff_eq(DVec4::new(0.0, 0.0, 0.0, 1.0), 1e-6) {
+    if !((pose.row(3) - RowVector4::new(0.0, 0.0, 0.0, 1.0)).amax() <= 1e-6) {
         return PoseCheck::BadBottomRow;
     }
-    let det = DMat3::from_mat4(*pose).determinant();
+    let det = pose.fixed_view::<3, 3>(0, 0).determinant();
     if det < 0.0 {
         return PoseCheck::Reflection;
     }
@@ -97,11 +97,11 @@ pub fn check_intrinsics(k: &Intrinsics, width: u32, height: u32) -> Result<(), S
 /// Accept a pose read from `source` (a file name or `file line N`), or with
 /// `fix` re-orthonormalise a bad rotation and record a warning.
 pub(crate) fn accept_pose(
-    pose: DMat4,
+    pose: Matrix4<f64>,
     source: &str,
     fix: bool,
     warnings: &mut Vec<String>,
-) -> Result<DMat4, ScanError> {
+) -> Result<Matrix4<f64>, ScanError> {
     let check = check_pose(&pose);
     let Some(problem) = check.problem() else {
         return Ok(pose);
@@ -152,7 +152,7 @@ pub(crate) fn check_scan(scan: &Scan) -> Result<(), ScanError> {
             )));
         }
         check_intrinsics(&frame.intrinsics, w, h).map_err(frame_err)?;
-        if let Some(problem) = check_pose(&frame.camera_to_world).problem() {
+        if let Some(problem) = check_pose(&frame.camera_to_world.to_homogeneous()).problem() {
             return Err(frame_err(problem));
         }
         if let Some(depth) = &frame.depth {
@@ -187,19 +187,19 @@ pub(crate) fn exclude_outlier_poses(scan: &mut Scan) -> Result<(), ScanError> {
     if n < 3 {
         return Ok(());
     }
-    let centres: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
+    let centres: Vec<Point3<f64>> = scan.frames.iter().map(|f| f.camera_center()).collect();
     let median = |mut v: Vec<f64>| -> f64 {
         v.sort_by(|a, b| a.total_cmp(b));
         v.get(v.len() / 2).copied().unwrap_or(0.0)
     };
-    let centre = DVec3::new(
+    let centre = Point3::new(
         median(centres.iter().map(|c| c.x).collect()),
         median(centres.iter().map(|c| c.y).collect()),
         median(centres.iter().map(|c| c.z).collect()),
     );
-    let distances: Vec<f64> = centres.iter().map(|c| c.distance(centre)).collect();
+    let distances: Vec<f64> = centres.iter().map(|c| nalgebra::distance(c, &centre)).collect();
     let spread = median(distances.clone());
-    let step = median(centres.windows(2).map(|w| w[0].distance(w[1])).collect());
+    let step = median(centres.windows(2).map(|w| nalgebra::distance(&w[0], &w[1])).collect());
     let depth = median(
         scan.frames
             .iter()
@@ -248,33 +248,34 @@ pub(crate) fn exclude_outlier_poses(scan: &mut Scan) -> Result<(), ScanError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::{DQuat, DVec3};
+    use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+
+    fn scaling(x: f64, y: f64, z: f64) -> Matrix4<f64> {
+        Matrix4::new_nonuniform_scaling(&Vector3::new(x, y, z))
+    }
 
     #[test]
     fn pose_checks() {
-        let good = DMat4::from_rotation_translation(DQuat::from_rotation_z(0.5), DVec3::new(1.0, 2.0, 3.0));
+        let good = Isometry3::new(Vector3::new(1.0, 2.0, 3.0), Vector3::z() * 0.5).to_homogeneous();
         assert_eq!(check_pose(&good), PoseCheck::Ok);
         let mut nan = good;
-        nan.w_axis.x = f64::NAN;
+        nan[(0, 3)] = f64::NAN;
         assert_eq!(check_pose(&nan), PoseCheck::NonFinite);
         let mut bottom = good;
-        bottom.x_axis.w = 0.5;
+        bottom[(3, 0)] = 0.5;
         assert_eq!(check_pose(&bottom), PoseCheck::BadBottomRow);
-        assert_eq!(
-            check_pose(&DMat4::from_scale(DVec3::new(1.0, -1.0, 1.0))),
-            PoseCheck::Reflection
-        );
-        let scaled = DMat4::from_scale(DVec3::splat(1.01));
+        assert_eq!(check_pose(&scaling(1.0, -1.0, 1.0)), PoseCheck::Reflection);
+        let scaled = scaling(1.01, 1.01, 1.01);
         assert!(matches!(check_pose(&scaled), PoseCheck::NotOrthonormal { error } if error > 0.01));
         let mut tiny = good;
-        tiny.x_axis.x += 5e-4;
+        tiny[(0, 0)] += 5e-4;
         assert_eq!(check_pose(&tiny), PoseCheck::Ok);
     }
 
     #[test]
     fn accept_pose_fixes_only_when_asked() {
-        let mut bad = DMat4::from_rotation_y(0.3);
-        bad.x_axis.y += 0.01;
+        let mut bad = UnitQuaternion::from_euler_angles(0.0, 0.3, 0.0).to_homogeneous();
+        bad[(1, 0)] += 0.01;
         let mut warnings = Vec::new();
         let err = accept_pose(bad, "pose/000004.txt", false, &mut warnings)
             .unwrap_err()
@@ -285,13 +286,13 @@ mod tests {
         assert_eq!(warnings.len(), 1);
         assert!(warnings[0].contains("re-orthonormalised"));
         // Regression: a rotation scaled x2 is a wrong matrix, not rounding.
-        let doubled = DMat4::from_scale(DVec3::splat(2.0));
+        let doubled = scaling(2.0, 2.0, 2.0);
         let err = accept_pose(doubled, "pose/000001.txt", true, &mut warnings)
             .unwrap_err()
             .to_string();
         assert!(err.contains("too far from a rotation for --fix-poses"), "{err}");
         // A reflection is never "fixed".
-        let mirror = DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0));
+        let mirror = scaling(1.0, 1.0, -1.0);
         assert!(accept_pose(mirror, "p", true, &mut warnings).is_err());
     }
 

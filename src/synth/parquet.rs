@@ -244,10 +244,10 @@ impl SynthWriter {
                 [k.fx, k.fy, k.cx, k.cy]
             })
             .collect();
-        // glam's to_cols_array of the transpose is the row-major order.
+        // The transpose's column-major storage is the row-major order.
         let poses: Vec<f64> = views
             .iter()
-            .flat_map(|v| v.spec.camera_to_world.transpose().to_cols_array())
+            .flat_map(|v| v.spec.camera_to_world.to_homogeneous().transpose().as_slice().to_vec())
             .collect();
         let fixed = |values: Vec<f64>, size: i32| -> Result<ArrayRef, SynthError> {
             let list = FixedSizeListArray::try_new(f64_item(), size, Arc::new(Float64Array::from(values)), None)
@@ -322,13 +322,12 @@ mod tests {
     use arrow_array::cast::AsArray;
     use arrow_array::types::{Float32Type, Float64Type, Int32Type};
     use arrow_array::Array;
-    use glam::{DMat4, DVec3};
     use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 
     fn view(i: usize) -> SynthView {
         SynthView {
             spec: ViewSpec {
-                camera_to_world: DMat4::from_translation(DVec3::new(i as f64, 2.0, 3.0)),
+                camera_to_world: nalgebra::IsometryMatrix3::translation(i as f64, 2.0, 3.0),
                 intrinsics: Intrinsics {
                     fx: 100.0,
                     fy: 101.0,

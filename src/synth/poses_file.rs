@@ -3,7 +3,7 @@
 
 use super::error::PosesFileError;
 use crate::scan::{check_intrinsics, check_pose, Intrinsics, MAX_FRAMES, MAX_IMAGE_SIDE};
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Matrix4};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
@@ -18,7 +18,7 @@ pub const MAX_VIEW_PIXELS: u64 = 1 << 26;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ViewSpec {
     /// Camera-to-world pose, OpenCV axes, scan world frame (metres).
-    pub camera_to_world: DMat4,
+    pub camera_to_world: IsometryMatrix3<f64>,
     pub intrinsics: Intrinsics,
     pub width: u32,
     pub height: u32,
@@ -144,11 +144,11 @@ fn parse_view(v: &Value, ctx: ViewCtx) -> Result<ViewSpec, PosesFileError> {
         let values = ctx.numbers(row, field, 4, &format!("in row {r}"))?;
         m[r].copy_from_slice(&values);
     }
-    // glam is column-major: column c holds m[0..4][c].
-    let camera_to_world = DMat4::from_cols_array_2d(&[0, 1, 2, 3].map(|c| m.map(|row| row[c])));
-    if let Some(problem) = check_pose(&camera_to_world).problem() {
+    let matrix = Matrix4::from_fn(|r, c| m[r][c]);
+    if let Some(problem) = check_pose(&matrix).problem() {
         return Err(ctx.err(field, problem));
     }
+    let camera_to_world = crate::scan::isometry(&matrix);
 
     let field = "intrinsics";
     let k = ctx.numbers(ctx.field(v, field)?, field, 4, "[fx, fy, cx, cy]")?;
@@ -170,7 +170,7 @@ fn parse_view(v: &Value, ctx: ViewCtx) -> Result<ViewSpec, PosesFileError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::{DMat3, DVec3};
+    use nalgebra::{Rotation3, Vector3};
     use serde_json::json;
 
     fn good_view() -> Value {
@@ -201,13 +201,10 @@ mod tests {
                 cy: 240.0
             }
         );
-        assert_eq!(v.camera_to_world.w_axis.truncate(), DVec3::new(0.5, -0.25, 1.5));
+        assert_eq!(v.camera_to_world.translation.vector, Vector3::new(0.5, -0.25, 1.5));
         // Row 0 is (0, -1, 0): the camera's y axis maps to world -x.
-        assert_eq!(
-            v.camera_to_world.transform_vector3(DVec3::Y),
-            DVec3::new(-1.0, 0.0, 0.0)
-        );
-        assert!((DMat3::from_mat4(v.camera_to_world).determinant() - 1.0).abs() < 1e-12);
+        assert_eq!(v.camera_to_world * Vector3::y(), Vector3::new(-1.0, 0.0, 0.0));
+        assert!((v.camera_to_world.rotation.matrix().determinant() - 1.0).abs() < 1e-12);
     }
 
     /// Replace `field` of the good view by `value`; `None` removes it.
@@ -224,8 +221,8 @@ mod tests {
     #[test]
     fn every_invalid_view_names_file_view_and_field() {
         let rot = |angle: f64| {
-            let m = DMat3::from_rotation_z(angle);
-            let r = |i: usize| [m.row(i).x, m.row(i).y, m.row(i).z, 0.0];
+            let m = Rotation3::from_axis_angle(&Vector3::z_axis(), angle);
+            let r = |i: usize| [m[(i, 0)], m[(i, 1)], m[(i, 2)], 0.0];
             json!([r(0), r(1), r(2), [0, 0, 0, 1]])
         };
         let cases: Vec<(&str, Option<Value>, &str)> = vec![

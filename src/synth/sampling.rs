@@ -11,8 +11,8 @@
 
 use super::error::SynthError;
 use crate::rng::Rng;
-use glam::{DMat3, DMat4, DVec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use nalgebra::{IsometryMatrix3, Point3, Rotation3, Translation3, Vector3};
 use std::f64::consts::{FRAC_PI_4, PI};
 
 /// Largest tilt of the optical axis about the camera's x and y axes.
@@ -25,17 +25,17 @@ pub const CLEARANCE_FRACTION: f64 = 0.2;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Target {
     /// Look-at point, world metres.
-    pub center: DVec3,
+    pub center: Point3<f64>,
     /// Target-to-world rotation (identity for the scene frame).
-    pub rotation: DMat3,
+    pub rotation: Rotation3<f64>,
 }
 
 /// Where positions are drawn for one target: the camera box in its frame.
 #[derive(Clone, Copy, Debug)]
 struct Region {
     target: Target,
-    min: DVec3,
-    max: DVec3,
+    min: Vector3<f64>,
+    max: Vector3<f64>,
 }
 
 /// Outcome of one candidate.
@@ -46,7 +46,7 @@ pub enum Candidate {
     /// A pose to probe.
     Pose {
         /// Camera-to-world, OpenCV axes.
-        camera_to_world: DMat4,
+        camera_to_world: IsometryMatrix3<f64>,
         /// Index of the target looked at.
         target: usize,
     },
@@ -73,9 +73,9 @@ impl Cloud {
     }
 
     /// Distance from `p` to the nearest point; infinite for an empty cloud.
-    pub fn distance(&self, p: DVec3) -> f64 {
+    pub fn distance(&self, p: &Point3<f64>) -> f64 {
         let Some(tree) = &self.tree else { return f64::INFINITY };
-        let q = p.as_vec3().to_array();
+        let q: [f32; 3] = p.coords.cast::<f32>().into();
         let nearest = tree.query(&q).nearest_one::<SquaredEuclidean<f32>>().execute();
         f64::from(nearest.distance).sqrt()
     }
@@ -84,10 +84,10 @@ impl Cloud {
     /// from the scan's cameras to their nearest scanned point: scaled to how
     /// far the operator kept the camera (0.15 m on the tabletop fixture, whose
     /// cameras keep a median 0.76 m). `None` without points.
-    pub fn default_clearance(&self, cameras: &[DVec3]) -> Option<f64> {
+    pub fn default_clearance(&self, cameras: &[Point3<f64>]) -> Option<f64> {
         let mut d: Vec<f64> = cameras
             .iter()
-            .map(|&c| self.distance(c))
+            .map(|c| self.distance(c))
             .filter(|d| d.is_finite())
             .collect();
         if d.is_empty() {
@@ -109,7 +109,12 @@ pub struct PoseSampler<'a> {
 impl<'a> PoseSampler<'a> {
     /// Sampler over `targets` (at least one) with the bounding boxes of
     /// `cameras` in each target's frame; positions within `clearance` of `cloud` are refused.
-    pub fn new(cameras: &[DVec3], targets: &[Target], cloud: &'a Cloud, clearance: f64) -> Result<Self, SynthError> {
+    pub fn new(
+        cameras: &[Point3<f64>],
+        targets: &[Target],
+        cloud: &'a Cloud,
+        clearance: f64,
+    ) -> Result<Self, SynthError> {
         if cameras.is_empty() {
             return Err(SynthError::NoFrames);
         }
@@ -124,12 +129,11 @@ impl<'a> PoseSampler<'a> {
         let regions = targets
             .iter()
             .map(|&target| {
-                let to_local = |p: DVec3| target.rotation.transpose() * (p - target.center);
-                let (min, max) = cameras
-                    .iter()
-                    .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &c| {
-                        (lo.min(to_local(c)), hi.max(to_local(c)))
-                    });
+                let to_local = |p: &Point3<f64>| target.rotation.inverse() * (p - target.center);
+                let (min, max) = cameras.iter().fold(
+                    (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)),
+                    |(lo, hi), c| (lo.inf(&to_local(c)), hi.sup(&to_local(c))),
+                );
                 Region { target, min, max }
             })
             .collect();
@@ -152,7 +156,7 @@ impl<'a> PoseSampler<'a> {
         let Some(region) = self.regions.get(which) else {
             return Candidate::TooClose;
         };
-        let local = DVec3::new(
+        let local = Vector3::new(
             rng.range(region.min.x, region.max.x),
             rng.range(region.min.y, region.max.y),
             rng.range(region.min.z, region.max.z),
@@ -161,20 +165,17 @@ impl<'a> PoseSampler<'a> {
         let tilt_x = rng.range(-MAX_TILT, MAX_TILT);
         let tilt_y = rng.range(-MAX_TILT, MAX_TILT);
         let roll = rng.range(-PI, PI);
-        let Some(look) = look_at(eye, region.target.center) else {
+        let Some(look) = look_at(&eye, &region.target.center) else {
             return Candidate::TooClose;
         };
-        if self.clearance > 0.0 && self.cloud.distance(eye) < self.clearance {
+        if self.clearance > 0.0 && self.cloud.distance(&eye) < self.clearance {
             return Candidate::TooClose;
         }
-        let rotation =
-            look * DMat3::from_rotation_x(tilt_x) * DMat3::from_rotation_y(tilt_y) * DMat3::from_rotation_z(roll);
-        let camera_to_world = DMat4::from_cols(
-            rotation.x_axis.extend(0.0),
-            rotation.y_axis.extend(0.0),
-            rotation.z_axis.extend(0.0),
-            eye.extend(1.0),
-        );
+        let rotation = look
+            * Rotation3::from_axis_angle(&Vector3::x_axis(), tilt_x)
+            * Rotation3::from_axis_angle(&Vector3::y_axis(), tilt_y)
+            * Rotation3::from_axis_angle(&Vector3::z_axis(), roll);
+        let camera_to_world = IsometryMatrix3::from_parts(Translation3::from(eye.coords), rotation);
         Candidate::Pose {
             camera_to_world,
             target: which,
@@ -184,20 +185,30 @@ impl<'a> PoseSampler<'a> {
 
 /// Camera-to-world rotation (OpenCV axes) whose optical axis points from
 /// `eye` to `target`; the roll is arbitrary but fixed. `None` if they coincide.
-pub fn look_at(eye: DVec3, target: DVec3) -> Option<DMat3> {
-    let z = (target - eye).try_normalize()?;
+pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>) -> Option<Rotation3<f64>> {
+    let z = unit(&(target - eye))?;
     // Any helper axis not parallel to z: the world axis least aligned with it.
     let a = z.abs();
     let helper = if a.x <= a.y && a.x <= a.z {
-        DVec3::X
+        Vector3::x()
     } else if a.y <= a.z {
-        DVec3::Y
+        Vector3::y()
     } else {
-        DVec3::Z
+        Vector3::z()
     };
-    let x = helper.cross(z).normalize();
-    let y = z.cross(x);
-    Some(DMat3::from_cols(x, y, z))
+    let x = unit(&helper.cross(&z))?;
+    let y = z.cross(&x);
+    Some(Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[
+        x, y, z,
+    ])))
+}
+
+/// `v` scaled to unit length by its reciprocal norm (the rounding the
+/// sampler has always used, so sampled poses stay bit for bit); `None` for
+/// a zero or non-finite vector.
+fn unit(v: &Vector3<f64>) -> Option<Vector3<f64>> {
+    let rcp = 1.0 / v.norm();
+    (rcp.is_finite() && rcp > 0.0).then(|| v * rcp)
 }
 
 #[cfg(test)]
@@ -214,18 +225,18 @@ mod tests {
         }
         let mut rng = Rng::new(5, 0);
         for _ in 0..3000 {
-            let d = DVec3::new(rng.normal(), rng.normal(), rng.normal()).normalize() * 0.2;
-            pts.push((DVec3::new(0.3, 0.0, 0.3) + d).as_vec3().to_array());
+            let d = Vector3::new(rng.normal(), rng.normal(), rng.normal()).normalize() * 0.2;
+            pts.push((Vector3::new(0.3, 0.0, 0.3) + d).cast::<f32>().into());
         }
         pts
     }
 
     /// Scan cameras on a ring of radius 1.2 at heights 0.4..0.8.
-    fn cameras() -> Vec<DVec3> {
+    fn cameras() -> Vec<Point3<f64>> {
         (0..24)
             .map(|i| {
                 let a = i as f64 * std::f64::consts::TAU / 24.0;
-                DVec3::new(1.2 * a.cos(), 1.2 * a.sin(), 0.4 + 0.4 * (i % 2) as f64)
+                Point3::new(1.2 * a.cos(), 1.2 * a.sin(), 0.4 + 0.4 * (i % 2) as f64)
             })
             .collect()
     }
@@ -233,20 +244,20 @@ mod tests {
     fn targets() -> Vec<Target> {
         vec![
             Target {
-                center: DVec3::new(0.3, 0.0, 0.3),
-                rotation: DMat3::IDENTITY,
+                center: Point3::new(0.3, 0.0, 0.3),
+                rotation: Rotation3::identity(),
             },
             Target {
-                center: DVec3::new(-0.4, 0.2, 0.05),
-                rotation: DMat3::from_rotation_z(0.7),
+                center: Point3::new(-0.4, 0.2, 0.05),
+                rotation: Rotation3::from_axis_angle(&Vector3::z_axis(), 0.7),
             },
         ]
     }
 
-    fn brute_distance(points: &[[f32; 3]], p: DVec3) -> f64 {
+    fn brute_distance(points: &[[f32; 3]], p: &Point3<f64>) -> f64 {
         points
             .iter()
-            .map(|q| (DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64) - p).length())
+            .map(|q| (Point3::new(q[0] as f64, q[1] as f64, q[2] as f64) - p).norm())
             .fold(f64::INFINITY, f64::min)
     }
 
@@ -261,7 +272,7 @@ mod tests {
             for i in 0..40 {
                 match sampler.candidate(seed, i) {
                     Candidate::Pose { camera_to_world, .. } => {
-                        let d = brute_distance(&points, camera_to_world.w_axis.truncate());
+                        let d = brute_distance(&points, &Point3::from(camera_to_world.translation.vector));
                         assert!(d >= clearance - 1e-5, "seed {seed} candidate {i}: {d} m from the cloud");
                         kept += 1;
                     }
@@ -292,18 +303,21 @@ mod tests {
                     panic!("no clearance, no refusal")
                 };
                 n += 1;
-                let eye = camera_to_world.w_axis.truncate();
-                let r = DMat3::from_mat4(camera_to_world);
-                assert!((r.determinant() - 1.0).abs() < 1e-9 && (r.transpose() * r).abs_diff_eq(DMat3::IDENTITY, 1e-9));
+                let eye = Point3::from(camera_to_world.translation.vector);
+                let r = *camera_to_world.rotation.matrix();
+                assert!(
+                    (r.determinant() - 1.0).abs() < 1e-9
+                        && (r.transpose() * r - nalgebra::Matrix3::identity()).amax() < 1e-9
+                );
                 let to_target = (targets[target].center - eye).normalize();
-                let angle = r.z_axis.dot(to_target).clamp(-1.0, 1.0).acos();
+                let angle = r.column(2).dot(&to_target).clamp(-1.0, 1.0).acos();
                 // The optical axis leaves the look direction by at most acos(cos^2(pi/4)) = pi/3.
                 assert!(angle <= PI / 3.0 + 1e-9 && angle <= FRAC_PI_4 * 2f64.sqrt(), "{angle}");
                 max_axis_angle = max_axis_angle.max(angle);
                 // Recover the angles: Q = Rx(a) Ry(b) Rz(c) relative to the look-at frame.
-                let q = look_at(eye, targets[target].center).unwrap().transpose() * r;
-                let (a, b) = ((-q.z_axis.y).atan2(q.z_axis.z), q.z_axis.x.asin());
-                let c = (-q.y_axis.x).atan2(q.x_axis.x);
+                let q = look_at(&eye, &targets[target].center).unwrap().matrix().transpose() * r;
+                let (a, b) = ((-q[(1, 2)]).atan2(q[(2, 2)]), q[(0, 2)].asin());
+                let c = (-q[(0, 1)]).atan2(q[(0, 0)]);
                 for t in [a, b] {
                     assert!(t.abs() <= MAX_TILT + 1e-9, "tilt {t}");
                     tilt_range = (tilt_range.0.min(t), tilt_range.1.max(t));
@@ -328,29 +342,30 @@ mod tests {
         let cloud = Cloud::new(&[]).unwrap();
         let cams = cameras();
         let t = Target {
-            center: DVec3::new(-0.4, 0.2, 0.05),
-            rotation: DMat3::from_rotation_z(0.7),
+            center: Point3::new(-0.4, 0.2, 0.05),
+            rotation: Rotation3::from_axis_angle(&Vector3::z_axis(), 0.7),
         };
         let sampler = PoseSampler::new(&cams, &[t], &cloud, 0.0).unwrap();
-        let local = |p: DVec3| t.rotation.transpose() * (p - t.center);
-        let (lo, hi) = cams.iter().fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &c| {
-            (a.min(local(c)), b.max(local(c)))
-        });
-        let (mut seen_lo, mut seen_hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
+        let local = |p: &Point3<f64>| t.rotation.inverse() * (p - t.center);
+        let infinite = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
+        let (lo, hi) = cams
+            .iter()
+            .fold(infinite, |(a, b), c| (a.inf(&local(c)), b.sup(&local(c))));
+        let (mut seen_lo, mut seen_hi) = infinite;
         for i in 0..2000 {
             let Candidate::Pose { camera_to_world, .. } = sampler.candidate(3, i) else {
                 panic!()
             };
-            let p = local(camera_to_world.w_axis.truncate());
+            let p = local(&Point3::from(camera_to_world.translation.vector));
             assert!(
-                p.cmpge(lo - 1e-9).all() && p.cmple(hi + 1e-9).all(),
+                (0..3).all(|a| p[a] >= lo[a] - 1e-9 && p[a] <= hi[a] + 1e-9),
                 "{p} outside {lo}..{hi}"
             );
-            seen_lo = seen_lo.min(p);
-            seen_hi = seen_hi.max(p);
+            seen_lo = seen_lo.inf(&p);
+            seen_hi = seen_hi.sup(&p);
         }
         let span = hi - lo;
-        assert!((seen_lo - lo).cmple(span * 0.02).all() && (hi - seen_hi).cmple(span * 0.02).all());
+        assert!((0..3).all(|a| seen_lo[a] - lo[a] <= span[a] * 0.02 && hi[a] - seen_hi[a] <= span[a] * 0.02));
     }
 
     #[test]
@@ -370,7 +385,7 @@ mod tests {
         let points = scene_points();
         let cloud = Cloud::new(&points).unwrap();
         let cams = cameras();
-        let mut d: Vec<f64> = cams.iter().map(|&c| brute_distance(&points, c)).collect();
+        let mut d: Vec<f64> = cams.iter().map(|c| brute_distance(&points, c)).collect();
         d.sort_by(f64::total_cmp);
         let want = CLEARANCE_FRACTION * d[d.len() / 2];
         let got = cloud.default_clearance(&cams).unwrap();

@@ -9,11 +9,12 @@ use super::sampling::{Cloud, PoseSampler, Target};
 use super::triplet::{render_view, Instances, PointClassifier, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
+use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
 use crate::scan::{Scan, MAX_IMAGE_SIDE};
-use glam::DVec3;
+use nalgebra::{Point3, Rotation3, Vector3};
 use rayon::prelude::*;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -120,8 +121,8 @@ impl<'a> Objects<'a> {
                 .boxes
                 .iter()
                 .map(|b| Target {
-                    center: b.center,
-                    rotation: b.rotation,
+                    center: b.center.to_na(),
+                    rotation: Rotation3::from_matrix_unchecked(b.rotation.to_na()),
                 })
                 .collect(),
             instances: Instances { classify, labels },
@@ -132,7 +133,7 @@ impl<'a> Objects<'a> {
 /// What sampling needs from the scan.
 struct Sampling {
     cloud: Cloud,
-    cameras: Vec<DVec3>,
+    cameras: Vec<Point3<f64>>,
     clearance: f64,
     targets: Vec<Target>,
     /// Points in the cloud.
@@ -144,7 +145,7 @@ impl Sampling {
     fn prepare(scan: &Scan, objects: &Objects, clearance: Option<f64>) -> Result<Sampling, SynthError> {
         let fused = fuse_cloud(scan, &CloudOptions::default())?;
         let cloud = Cloud::new(&fused.positions)?;
-        let cameras: Vec<DVec3> = scan.frames.iter().map(|f| f.camera_center()).collect();
+        let cameras: Vec<Point3<f64>> = scan.frames.iter().map(|f| f.camera_center()).collect();
         let clearance = match clearance {
             Some(c) if c > 0.0 && cloud.is_empty() => return Err(SynthError::NoCloud { clearance: c }),
             Some(c) => c,
@@ -153,7 +154,7 @@ impl Sampling {
         let targets = if objects.targets.is_empty() {
             vec![Target {
                 center: fused.bounds.center(),
-                rotation: glam::DMat3::IDENTITY,
+                rotation: Rotation3::identity(),
             }]
         } else {
             objects.targets.clone()
@@ -196,10 +197,13 @@ pub fn synthesize(
     };
     let classifier = BoxClassifier::new(set);
     let supports = support_planes(set, model, scan, options.exact_boxes)?;
-    let classify = |p: DVec3, normal: Option<DVec3>| match classifier.classify(p) {
-        0 => 0,
-        id if supports.excluded_at(id as usize - 1, p, || normal) => 0,
-        id => id,
+    let classify = |p: Point3<f64>, normal: Option<Vector3<f64>>| {
+        let p = p.to_glam();
+        match classifier.classify(p) {
+            0 => 0,
+            id if supports.excluded_at(id as usize - 1, p, || normal.map(|n| n.to_glam())) => 0,
+            id => id,
+        }
     };
     synthesize_objects(scan, model, &Objects::of(set, &classify), options, out, progress, stop)
 }

@@ -8,15 +8,16 @@ use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::label::surface_normal;
 use crate::boxes::LabelOptions;
+use crate::glam_bridge::{vector, ToGlam};
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
-use glam::{DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3, Vector3};
 
 /// Instance id of a world point (0 = none), given the surface normal there
 /// where neighbouring pixels give one (a support plane's band keeps the
 /// foot of an object, which is steep to it).
-pub type PointClassifier<'a> = dyn Fn(DVec3, Option<DVec3>) -> u32 + Sync + 'a;
+pub type PointClassifier<'a> = dyn Fn(Point3<f64>, Option<Vector3<f64>>) -> u32 + Sync + 'a;
 
 /// Maps world points to instance ids (0 = none) and ids to labels.
 pub struct Instances<'a> {
@@ -83,7 +84,7 @@ impl SynthView {
 /// and classified with the surface normal there; pixels without depth are 0.
 pub fn instance_mask(
     depth_m: &[f32],
-    camera_to_world: &DMat4,
+    camera_to_world: &IsometryMatrix3<f64>,
     k: &Intrinsics,
     width: u32,
     classify: &PointClassifier,
@@ -94,8 +95,7 @@ pub fn instance_mask(
         .iter()
         .map(|&z| if z > 0.0 && z.is_finite() { f64::from(z) } else { 0.0 })
         .collect();
-    let point_at =
-        |u: u32, v: u32, z: f64| camera_to_world.transform_point3(k.unproject(f64::from(u), f64::from(v)) * z);
+    let point_at = |u: u32, v: u32, z: f64| camera_to_world * Point3::from(k.unproject(f64::from(u), f64::from(v)) * z);
     z.iter()
         .enumerate()
         .map(|(i, &depth)| {
@@ -103,8 +103,8 @@ pub fn instance_mask(
                 return 0;
             }
             let (u, v) = ((i % w) as u32, (i / w) as u32);
-            let normal = surface_normal(&z, w as u32, h as u32, u, v, &point_at);
-            let id = classify(point_at(u, v, depth), normal);
+            let normal = surface_normal(&z, w as u32, h as u32, u, v, &|u, v, z| point_at(u, v, z).to_glam());
+            let id = classify(point_at(u, v, depth), normal.map(vector));
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16
         })
@@ -189,11 +189,14 @@ mod tests {
     #[test]
     fn mask_back_projects_depth_through_the_pose() {
         // Camera at the origin looking along world +x (camera z = world x).
-        let c2w = DMat4::from_cols(
-            glam::DVec4::new(0.0, -1.0, 0.0, 0.0),
-            glam::DVec4::new(0.0, 0.0, -1.0, 0.0),
-            glam::DVec4::new(1.0, 0.0, 0.0, 0.0),
-            glam::DVec4::new(0.0, 0.0, 0.0, 1.0),
+        #[rustfmt::skip]
+        let c2w = IsometryMatrix3::from_parts(
+            nalgebra::Translation3::identity(),
+            nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(
+                0.0, 0.0, 1.0,
+                -1.0, 0.0, 0.0,
+                0.0, -1.0, 0.0,
+            )),
         );
         let k = Intrinsics {
             fx: 4.0,
@@ -202,7 +205,7 @@ mod tests {
             cy: 1.0,
         };
         // Box 1: world x in [1.5, 2.5] (depth 2 m hits it, depth 1 m does not).
-        let classify = |p: DVec3, _| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
+        let classify = |p: Point3<f64>, _| u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6);
         let depth = [2.0, 2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, f32::NAN];
         let mask = instance_mask(&depth, &c2w, &k, 3, &classify);
         // Pixel (u, v) at depth 2 maps to world (2, -(u - 1) / 2, -(v - 1) / 2): inside the box.

@@ -18,7 +18,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
 use crate::nerf::render::view::ViewRenderer;
 use crate::scan::Intrinsics;
-use glam::DMat4;
+use nalgebra::{IsometryMatrix3, Point3};
 use rayon::prelude::*;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -37,7 +37,7 @@ const CHUNK: u64 = 32;
 /// Why a candidate was turned down, or its pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Verdict {
-    Accept(DMat4),
+    Accept(IsometryMatrix3<f64>),
     TooClose,
     Unobserved,
     NoObject,
@@ -101,7 +101,7 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         return Verdict::Unobserved;
     }
     if instances.max_id() > 0 {
-        let metres_per_unit = 1.0 / renderer.transform.scale;
+        let metres_per_unit = 1.0 / renderer.transform.scale();
         let depth: Vec<f32> = out
             .iter()
             .zip(&pixels)
@@ -118,12 +118,18 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
 }
 
 /// Whether any probe pixel's surface lies in a box.
-fn sees_object(depth: &[f32], c2w: &DMat4, k: &Intrinsics, pixels: &[(f32, f32)], instances: &Instances) -> bool {
+fn sees_object(
+    depth: &[f32],
+    c2w: &IsometryMatrix3<f64>,
+    k: &Intrinsics,
+    pixels: &[(f32, f32)],
+    instances: &Instances,
+) -> bool {
     depth.iter().zip(pixels).any(|(&z, &(u, v))| {
         z > 0.0
             && z.is_finite()
             && (instances.classify)(
-                c2w.transform_point3(k.unproject(f64::from(u), f64::from(v)) * f64::from(z)),
+                c2w * Point3::from(k.unproject(f64::from(u), f64::from(v)) * f64::from(z)),
                 None,
             ) > 0
     })
@@ -194,7 +200,7 @@ impl<'a> ViewStream<'a> {
     }
 
     /// The view of an accepted pose.
-    fn spec(&self, camera_to_world: DMat4) -> ViewSpec {
+    fn spec(&self, camera_to_world: IsometryMatrix3<f64>) -> ViewSpec {
         ViewSpec {
             camera_to_world,
             intrinsics: self.intrinsics,

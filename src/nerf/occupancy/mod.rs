@@ -982,11 +982,10 @@ mod tests {
     #[test]
     fn cells_no_training_camera_sees_are_carved_and_every_cell_it_sees_is_kept() {
         use crate::scan::Intrinsics;
-        use glam::{DMat4, DVec3};
         let res = 16;
         let mut grid = OccupancyGrid::full(res);
         // At (0.5, 0.5, 0.1) looking +z, 90 degrees wide: tan = 32 / 32.
-        let pose = DMat4::from_translation(DVec3::new(0.5, 0.5, 0.1));
+        let pose = nalgebra::IsometryMatrix3::translation(0.5, 0.5, 0.1);
         let k = Intrinsics {
             fx: 32.0,
             fy: 32.0,

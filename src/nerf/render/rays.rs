@@ -479,7 +479,7 @@ mod tests {
     use crate::nerf::render::composite::TERMINATION_TRANSMITTANCE;
     use crate::rng::Rng;
     use crate::scan::Intrinsics;
-    use glam::{DMat4, DVec3};
+    use nalgebra::{IsometryMatrix3, Matrix3, Rotation3, Translation3, Vector3};
 
     /// A random field with a dense blob in the middle of the cube.
     fn blob_field(seed: u64) -> Field {
@@ -606,11 +606,14 @@ mod tests {
 
     /// A camera outside the cube looking at its centre.
     fn camera(size: u32) -> LocalCamera {
-        let eye = DVec3::new(0.5, -0.6, 0.3);
-        let z = (DVec3::splat(0.5) - eye).normalize();
-        let x = DVec3::Z.cross(z).normalize();
-        let y = z.cross(x);
-        let pose = DMat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
+        let eye = Vector3::new(0.5, -0.6, 0.3);
+        let z = (Vector3::repeat(0.5) - eye).normalize();
+        let x = Vector3::z().cross(&z).normalize();
+        let y = z.cross(&x);
+        let pose = IsometryMatrix3::from_parts(
+            Translation3::from(eye),
+            Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z])),
+        );
         let f = size as f64;
         LocalCamera::new(
             &pose,

@@ -14,7 +14,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
 use crate::poses::{GeometryError, SceneTransform};
 use crate::scan::Intrinsics;
-use glam::DMat4;
+use nalgebra::IsometryMatrix3;
 
 /// A rendered view.
 #[derive(Clone, Debug)]
@@ -94,14 +94,20 @@ impl<'a> ViewRenderer<'a> {
     }
 
     /// The camera in the model's local frame.
-    pub fn local_camera(&self, camera_to_world: &DMat4, k: &Intrinsics, width: u32, height: u32) -> LocalCamera {
+    pub fn local_camera(
+        &self,
+        camera_to_world: &IsometryMatrix3<f64>,
+        k: &Intrinsics,
+        width: u32,
+        height: u32,
+    ) -> LocalCamera {
         LocalCamera::new(&self.transform.world_to_local_pose(camera_to_world), k, width, height)
     }
 
     /// Z-depth in metres of a ray's surface through pixel (u, v), 0 = none.
     #[inline]
     fn depth_m(&self, camera: &LocalCamera, o: &RayOutput, u: f32, v: f32) -> f32 {
-        let metres_per_unit = 1.0 / self.transform.scale as f32;
+        let metres_per_unit = 1.0 / self.transform.scale() as f32;
         let t_per_z = camera.ray(u, v).1;
         o.depth_median
             .map(|t| t / t_per_z * metres_per_unit)
@@ -135,7 +141,7 @@ impl<'a> ViewRenderer<'a> {
     /// Render every pixel of a view.
     pub fn render_view(
         &self,
-        camera_to_world: &DMat4,
+        camera_to_world: &IsometryMatrix3<f64>,
         k: &Intrinsics,
         width: u32,
         height: u32,

@@ -59,7 +59,7 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
         .par_iter()
         .map(|frame| {
             let depth = frame.depth.as_ref().map(|d| {
-                let scale = transform.scale as f32;
+                let scale = transform.scale() as f32;
                 d.metres
                     .iter()
                     .map(|&m| if m > 0.0 && m.is_finite() { m * scale } else { 0.0 })

@@ -171,7 +171,7 @@ pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
         bounds.stats.depth_median
     } else {
         let centre = bounds.aabb.center();
-        let mut d: Vec<f64> = bounds.cameras.iter().map(|c| c.distance(centre)).collect();
+        let mut d: Vec<f64> = bounds.cameras.iter().map(|c| nalgebra::distance(c, &centre)).collect();
         d.sort_by(|a, b| a.total_cmp(b));
         d.get(d.len() / 2).copied().unwrap_or(1.0)
     };
@@ -213,7 +213,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let bounds = scene_bounds(scan, &BoundsOptions::default())?;
     let norm = normalize(&bounds, &NormalizeOptions::default())?;
     let transform = norm.transform;
-    let metres_per_unit = 1.0 / transform.scale;
+    let metres_per_unit = 1.0 / transform.scale();
     timings.bounds_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
@@ -537,7 +537,7 @@ fn run(
         field: settings.field.clone(),
         train: settings.train.clone(),
         scene_transform: transform.to_array().to_vec(),
-        units_per_metre: transform.scale,
+        units_per_metre: transform.scale(),
         occupancy_resolution: trainer.occupancy.resolution(),
         background: data.background,
         render_step: settings.render_step,
@@ -546,8 +546,16 @@ fn run(
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
-        fitted_poses: (scaled || refinement.is_some())
-            .then(|| scan.frames.iter().map(|f| f.camera_to_world.to_cols_array()).collect()),
+        fitted_poses: (scaled || refinement.is_some()).then(|| {
+            scan.frames
+                .iter()
+                .map(|f| {
+                    // Column-major (FORMATS.md).
+                    let m = f.camera_to_world.to_homogeneous();
+                    std::array::from_fn(|i| m[i])
+                })
+                .collect()
+        }),
         appearance: trainer
             .appearance
             .as_ref()

@@ -858,21 +858,14 @@ pub(crate) mod tests {
     use crate::nerf::render::composite::optical_depth_backward;
     use crate::nerf::render::rays::{render_pixels, RenderOptions};
     use crate::scan::Intrinsics;
-    use glam::{DMat4, DVec3};
 
     /// Views of a textured plane at local z = 0.6 seen from z ~ 0.15.
     pub(crate) fn plane_views(n: usize, size: u32, with_depth: bool) -> Vec<View> {
         (0..n)
             .map(|i| {
                 let a = i as f64 / n as f64 * std::f64::consts::TAU;
-                let eye = DVec3::new(0.5 + 0.1 * a.cos(), 0.5 + 0.1 * a.sin(), 0.15);
                 // Camera looking along +z (OpenCV: x right, y down, z forward).
-                let pose = DMat4::from_cols(
-                    glam::DVec4::new(1.0, 0.0, 0.0, 0.0),
-                    glam::DVec4::new(0.0, 1.0, 0.0, 0.0),
-                    glam::DVec4::new(0.0, 0.0, 1.0, 0.0),
-                    eye.extend(1.0),
-                );
+                let pose = nalgebra::IsometryMatrix3::translation(0.5 + 0.1 * a.cos(), 0.5 + 0.1 * a.sin(), 0.15);
                 let f = size as f64 * 0.8;
                 let k = Intrinsics {
                     fx: f,

@@ -11,7 +11,9 @@
 //! Every threshold comes from the scan: a plane's band is three robust
 //! standard deviations of its own points' residuals (for rendered depth,
 //! half a finest grid cell: see `Labeler::plane_band`), and a plane counts
-//! only when a fifth of the surface around the box lies on it.
+//! only when a fifth of the surface around the box lies on it (of the
+//! surface not on larger planes examined before it and not excluded: on a
+//! shelf, the side and back panels around a box outnumber the board).
 //!
 //! A plane counts only when it continues on at least three of the four sides
 //! of the box (a table around an object, a wall beside and above it): the
@@ -32,12 +34,16 @@ use glam::DVec3;
 /// The shell around a box that shows whether a plane continues outside it:
 /// the box grown by this fraction of its size on every side.
 const SHELL_GROWTH: f64 = 0.5;
-/// A plane counts when at least this share of the shell's points lie on it.
+/// A plane counts when at least this share of the shell's points lie on it
+/// (of those not on larger planes examined before it and not excluded).
 const MIN_SHELL_SHARE: f64 = 0.2;
 /// Fewer shell points than this say nothing about the surroundings.
 const MIN_SHELL_POINTS: usize = 50;
-/// Planes tried per box (a support, then a wall behind the object).
+/// Planes excluded per box at most (a support, and a wall behind the object).
 const MAX_PLANES: usize = 2;
+/// Planes examined per box, largest first: a box on a shelf board sees the
+/// back and a side panel too, which can be larger in its shell than the board.
+const MAX_CANDIDATES: usize = 4;
 /// RANSAC hypotheses per plane.
 const RANSAC_TRIALS: usize = 300;
 /// A side of the box counts as surrounded by a plane holding 1/this of the plane's shell points.
@@ -98,10 +104,13 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
     }
     let mut rng = Rng::new(seed, 0x5u64);
     let mut planes = Vec::new();
-    let needed = ((shell.len() as f64 * MIN_SHELL_SHARE) as usize).max(MIN_SHELL_POINTS);
     let reach = half.x.max(half.y).max(half.z);
-    for _ in 0..MAX_PLANES {
-        if shell.len() < needed {
+    // Shell points a plane's share is counted of: all but those of planes
+    // examined and not excluded (a shelf's panels around a box on its board).
+    let mut counted = shell.len();
+    for _ in 0..MAX_CANDIDATES {
+        let needed = ((counted as f64 * MIN_SHELL_SHARE) as usize).max(MIN_SHELL_POINTS);
+        if shell.len() < needed || planes.len() == MAX_PLANES {
             break;
         }
         // Hypotheses from three shell points; scored with a threshold a
@@ -123,6 +132,7 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
             break;
         }
         shell.retain(|p| (normal.dot(*p) + offset).abs() > band);
+        counted -= on_plane.len();
         if !surrounds(b, normal, &on_plane) {
             continue;
         }
@@ -147,6 +157,7 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
             continue;
         }
         let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
+        counted += on_plane.len();
         planes.push(ExcludedPlane {
             normal: normal * sign,
             offset: offset * sign,
@@ -332,6 +343,45 @@ mod tests {
                 "the cube's centre is on the kept side"
             );
         }
+    }
+
+    /// Found on an unseen room scene: a ball on a shelf's middle board, seen
+    /// at a grazing angle, has the shelf's side and back panels around its
+    /// box too, each holding more of the shell's points than the board.
+    #[test]
+    fn a_box_on_a_shelf_board_excludes_the_board_that_the_panels_outnumber() {
+        let mut rng = Rng::new(7, 0);
+        let noise = |rng: &mut Rng| (rng.f64() - 0.5) * 0.004;
+        let mut points = Vec::new();
+        for _ in 0..3_000 {
+            // The board (z = 0), sparse, beside the 10 cm cube.
+            let (x, y) = (rng.f64() * 0.49 - 0.14, rng.f64() * 0.28 - 0.14);
+            if !(x.abs() < 0.05 && y.abs() < 0.05) {
+                points.push(DVec3::new(x, y, noise(&mut rng)));
+            }
+        }
+        for _ in 0..20_000 {
+            // The side panel (x = -0.14) and the back panel (y = 0.14), dense.
+            let (u, z) = (rng.f64() * 0.28 - 0.14, rng.f64() - 0.5);
+            points.push(DVec3::new(-0.14 + noise(&mut rng), u, z));
+            points.push(DVec3::new(rng.f64() * 0.7 - 0.35, 0.14 + noise(&mut rng), z));
+        }
+        for _ in 0..5_000 {
+            let (u, v) = (rng.f64() * 0.1 - 0.05, rng.f64() * 0.1);
+            points.push(DVec3::new(u, -0.05, v));
+            points.push(DVec3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
+        }
+        let loose = box3(DVec3::new(0.0, 0.0, 0.045), DVec3::new(0.16, 0.16, 0.17));
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
+        assert_eq!(planes.len(), 1, "{planes:?}");
+        assert!(planes[0].normal.z > 0.99, "the board, object side up: {:?}", planes[0]);
+        let board_in_box = points.iter().filter(|p| loose.contains(**p) && p.z.abs() < 0.003);
+        assert!(board_in_box.clone().count() > 50);
+        assert!(board_in_box.clone().all(|p| planes[0].excludes(*p)));
+        assert!(
+            !planes[0].excludes(DVec3::new(0.0, -0.05, 0.02)),
+            "the cube's foot is kept"
+        );
     }
 
     #[test]

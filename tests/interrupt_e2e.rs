@@ -565,7 +565,12 @@ fn sigkill_during_synth_leaves_the_previous_or_a_complete_new_parquet() {
         );
         assert!(was_killed || now == n, "run {i} finished but left the old file");
         rows = now;
-        assert_only_documented_leftovers(&out, &["views.parquet"], &killed, &[".views.parquet.tmpPID"]);
+        assert_only_documented_leftovers(
+            &out,
+            &["views.parquet", ".views.parquet.lock"],
+            &killed,
+            &[".views.parquet.tmpPID"],
+        );
     }
     assert!(killed.len() >= 3, "most runs must be killed: {killed:?}");
     run_ok(&mut synth(8));

@@ -99,6 +99,20 @@ impl FrameSurface {
             .filter(|(_, &z)| z > 0.0)
             .map(|(j, &z)| (j.x, j.y, z))
     }
+
+    /// Camera z of every pixel of the `w` x `h` frame (0 = no surface): what
+    /// [`surface_normal`] reads.
+    pub fn z_image(&self, w: u32, h: u32) -> Vec<f64> {
+        z_image(&self.jobs, &self.depths, w, h)
+    }
+}
+
+fn z_image(jobs: &[Job], depths: &[f64], w: u32, h: u32) -> Vec<f64> {
+    let mut z_image = vec![0.0f64; w as usize * h as usize];
+    for (j, &z) in jobs.iter().zip(depths) {
+        z_image[j.y as usize * w as usize + j.x as usize] = z;
+    }
+    z_image
 }
 
 /// Labels frames of one scan with one box set and depth source.
@@ -206,6 +220,11 @@ impl<'a> Labeler<'a> {
     /// The planes excluded from each box (indexed like the box set).
     pub fn excluded_planes(&self) -> &[Vec<ExcludedPlane>] {
         &self.excluded
+    }
+
+    /// Whether any box has a plane excluded from it.
+    pub fn excludes_any_plane(&self) -> bool {
+        self.excluded.iter().any(|planes| !planes.is_empty())
     }
 
     /// Whether the planes excluded from box `index` (of the box set) take
@@ -353,15 +372,9 @@ impl<'a> Labeler<'a> {
         // Camera z of every job's surface (0 = none), for the surface normals
         // the excluded planes need and for contested overlaps; built only
         // when one of them reads it.
-        let z_image_of_jobs = || {
-            let mut z_image = vec![0.0f64; w as usize * h as usize];
-            for (j, &z) in jobs.iter().zip(&depths) {
-                z_image[j.y as usize * w as usize + j.x as usize] = z;
-            }
-            z_image
-        };
+        let z_image_of_jobs = || z_image(&jobs, &depths, w, h);
         let mut z_image = Vec::new();
-        if self.excluded.iter().any(|planes| !planes.is_empty()) {
+        if self.excludes_any_plane() {
             z_image = z_image_of_jobs();
         }
         let mut contested = Contested::default();

@@ -114,20 +114,21 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
                 .transpose()?;
             // A mask object's surface first; the boxes label the rest. Each
             // loses the support and wall planes `label` excludes from it.
-            let classify = |p: Point3<f64>, normal: Option<Vector3<f64>>| -> u32 {
-                let (p, normal) = (p.to_glam(), normal.map(|n| n.to_glam()));
+            let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| -> u32 {
+                let p = p.to_glam();
+                let normal = || normal().map(|n| n.to_glam());
                 let id = from_masks.classify(p);
                 if id > 0 {
                     let on_support = region_of
                         .get(&id)
-                        .is_some_and(|&r| object_supports.excluded_at(r, p, || normal));
+                        .is_some_and(|&r| object_supports.excluded_at(r, p, normal));
                     return if on_support { 0 } else { id as u32 };
                 }
                 let b = from_boxes.as_ref().map_or(0, |c| c.classify(p));
                 let on_support = b > 0
                     && box_supports
                         .as_ref()
-                        .is_some_and(|s| s.excluded_at(b as usize - 1, p, || normal));
+                        .is_some_and(|s| s.excluded_at(b as usize - 1, p, normal));
                 if b == 0 || on_support {
                     0
                 } else {

@@ -488,11 +488,12 @@ impl FrameLabelling for MaskLabeler<'_> {
             Some(m) => (*m).clone(),
             None => {
                 let mut mask = vec![0u16; w as usize * h as usize];
-                // Camera z of every surface pixel, for the normals the excluded planes need.
-                let mut z_image = vec![0.0f64; w as usize * h as usize];
-                for (x, y, z) in surface.points() {
-                    z_image[y as usize * w as usize + x as usize] = z;
-                }
+                // For the normals the excluded planes need, when there are any.
+                let z_image = if self.surface.excludes_any_plane() {
+                    surface.z_image(w, h)
+                } else {
+                    Vec::new()
+                };
                 let point_at = |x: u32, y: u32, z: f64| world_point(frame, x, y, z);
                 for (x, y, z) in surface.points() {
                     let p = world_point(frame, x, y, z);

@@ -197,11 +197,11 @@ pub fn synthesize(
     };
     let classifier = BoxClassifier::new(set);
     let supports = support_planes(set, model, scan, options.exact_boxes)?;
-    let classify = |p: Point3<f64>, normal: Option<Vector3<f64>>| {
+    let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| {
         let p = p.to_glam();
         match classifier.classify(p) {
             0 => 0,
-            id if supports.excluded_at(id as usize - 1, p, || normal.map(|n| n.to_glam())) => 0,
+            id if supports.excluded_at(id as usize - 1, p, || normal().map(|n| n.to_glam())) => 0,
             id => id,
         }
     };

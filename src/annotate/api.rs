@@ -71,7 +71,14 @@ pub fn box_json(label: &str, center: DVec3, size: DVec3, rotation: DMat3) -> Val
 /// A box set as a boxes.json document.
 pub fn boxes_document(set: &BoxSet) -> Value {
     let boxes: Vec<Value> = (set.boxes.iter())
-        .map(|b| box_json(&b.label, b.center, b.size, b.rotation))
+        .map(|b| {
+            box_json(
+                &b.label,
+                b.center.to_glam(),
+                b.size.to_glam(),
+                b.rotation.matrix().to_glam(),
+            )
+        })
         .collect();
     json!({ "boxes": boxes })
 }

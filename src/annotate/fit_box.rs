@@ -12,6 +12,7 @@
 
 use super::ground::Ground;
 use crate::boxes::Box3;
+use crate::glam_bridge::ToGlam;
 use glam::{DMat3, DVec2, DVec3};
 use std::collections::{HashMap, HashSet, VecDeque};
 
@@ -181,10 +182,10 @@ impl FitPoints {
                 (near.clone(), near, None, Some(s))
             }
             Region::Shrink(b) => {
-                let axis = g.to_ground_dir(b.rotation.x_axis);
+                let axis = g.to_ground_dir(b.rotation.matrix().column(0).into_owned().to_glam());
                 let yaw = axis.y.atan2(axis.x);
-                let c = g.to_ground(b.center);
-                let half = b.size * 0.5;
+                let c = g.to_ground(b.center.to_glam());
+                let half = b.size.to_glam() * 0.5;
                 let (mut inside, mut ring) = (Vec::new(), Vec::new());
                 for &p in &self.points {
                     let q = rotate(p.truncate() - c.truncate(), -yaw);
@@ -573,9 +574,11 @@ mod tests {
         let loose = Box3 {
             label: "x".into(),
             instance_id: 1,
-            center: seeded.center,
-            size: seeded.size + DVec3::splat(0.1),
-            rotation: seeded.rotation,
+            center: crate::glam_bridge::ToNalgebra::to_na(&seeded.center),
+            size: crate::glam_bridge::vector(seeded.size + DVec3::splat(0.1)),
+            rotation: nalgebra::Rotation3::from_matrix_unchecked(crate::glam_bridge::ToNalgebra::to_na(
+                &seeded.rotation,
+            )),
         };
         let shrunk = fit.fit(&Region::Shrink(loose)).unwrap();
         assert!(

@@ -2,6 +2,7 @@
 //! the current boxes would produce, drawn over it as a PNG.
 
 use crate::boxes::{BoxSet, DepthSource, LabelError, LabelOptions, Labeler};
+use crate::glam_bridge::ToNalgebra;
 use crate::nerf::model_file::Model;
 use crate::scan::Frame;
 use glam::DVec3;
@@ -54,7 +55,7 @@ pub fn render_preview(
         ..LabelOptions::default()
     };
     let mut labeler = Labeler::new(boxes, model, options)?;
-    labeler.exclude_supports_among(support_points);
+    labeler.exclude_supports_among(&support_points.iter().map(|p| p.to_na()).collect::<Vec<_>>());
     let label = labeler.label_frame(frame);
     if (label.width, label.height) != img.dimensions() {
         return Ok(img);

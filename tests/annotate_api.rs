@@ -6,7 +6,6 @@ mod common;
 
 use common::annotate::{call, gesture};
 
-use glam::DVec3;
 use nalgebra::{distance, Matrix3, Point3, Rotation3, Vector3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
@@ -244,7 +243,7 @@ fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
     let dir = tempfile::tempdir().unwrap();
     let session = Session::open(scan, root.clone(), dir.path().join("boxes.json"), None).unwrap();
     assert!(
-        session.fit.ground.up.distance(DVec3::Z) < 1e-9,
+        (session.fit.ground.up - Vector3::z()).norm() < 1e-9,
         "the floor sets up: {}",
         session.fit.ground.up
     );

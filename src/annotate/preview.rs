@@ -2,10 +2,9 @@
 //! the current boxes would produce, drawn over it as a PNG.
 
 use crate::boxes::{BoxSet, DepthSource, LabelError, LabelOptions, Labeler};
-use crate::glam_bridge::ToNalgebra;
 use crate::nerf::model_file::Model;
 use crate::scan::Frame;
-use glam::DVec3;
+use nalgebra::Point3;
 
 /// Share of the mask colour in a masked pixel.
 const TINT: f32 = 0.5;
@@ -38,7 +37,7 @@ pub fn render_preview(
     frame: &Frame,
     boxes: &BoxSet,
     model: Option<&Model>,
-    support_points: &[DVec3],
+    support_points: &[Point3<f64>],
 ) -> Result<image::RgbImage, LabelError> {
     let mut img = frame.rgb.clone();
     if boxes.boxes.is_empty() {
@@ -55,7 +54,7 @@ pub fn render_preview(
         ..LabelOptions::default()
     };
     let mut labeler = Labeler::new(boxes, model, options)?;
-    labeler.exclude_supports_among(&support_points.iter().map(|p| p.to_na()).collect::<Vec<_>>());
+    labeler.exclude_supports_among(support_points);
     let label = labeler.label_frame(frame);
     if (label.width, label.height) != img.dimensions() {
         return Ok(img);

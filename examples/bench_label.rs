@@ -22,11 +22,10 @@
 //! `--dump DIR` (error images of every 10th frame: green = right, red =
 //! labelled but not in the reference, blue = missed, yellow = wrong id).
 
-use glam::DMat3;
+use nalgebra::{Point3, Vector3};
 use nerflabel::boxes::{read_boxes, BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
 use nerflabel::evaluate::{evaluate_labels, fixture_truth, read_gray16};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitEvent, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
@@ -168,13 +167,13 @@ fn model_for(scan: &mut Scan, path: &Path, seconds: f64, refine_poses: bool) -> 
 fn silhouette(frame: &Frame, boxes: &BoxSet) -> Vec<u16> {
     let classifier = BoxClassifier::new(boxes);
     let (w, h) = frame.size();
-    let origin = frame.camera_to_world.to_glam().w_axis.truncate();
-    let rot = DMat3::from_mat4(frame.camera_to_world.to_glam());
+    let origin = Point3::from(frame.camera_to_world.translation.vector);
+    let rot = frame.camera_to_world.rotation;
     let mut mask = vec![0u16; (w * h) as usize];
     for y in 0..h {
         for x in 0..w {
-            let dir = rot * frame.intrinsics.unproject(x as f64, y as f64).to_glam();
-            if classifier.ray_interval(origin, dir).is_some() {
+            let dir = rot * frame.intrinsics.unproject(x as f64, y as f64);
+            if classifier.ray_interval(&origin, &dir).is_some() {
                 mask[(y * w + x) as usize] = 1;
             }
         }
@@ -322,7 +321,7 @@ fn main() -> Result<(), Error> {
                     let bottom = b.center.z - b.size.z / 2.0;
                     let height = b.size.z + margin + 0.02;
                     let mut loose = b.clone();
-                    loose.size = glam::DVec3::new(b.size.x + 2.0 * margin, b.size.y + 2.0 * margin, height);
+                    loose.size = Vector3::new(b.size.x + 2.0 * margin, b.size.y + 2.0 * margin, height);
                     loose.center.z = bottom - 0.02 + height / 2.0;
                     loose
                 })

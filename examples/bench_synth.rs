@@ -346,7 +346,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let t_prune = t.elapsed().as_secs_f64();
     let classifier = BoxClassifier::new(&boxes);
     let instances = Instances {
-        classify: &|p, _| classifier.classify(p.to_glam()),
+        classify: &|p, _| classifier.classify(&p),
         labels: boxes.boxes.iter().map(|b| b.label.clone()).collect(),
     };
     let (mut t_render, mut t_mask, mut t_png, mut rays, mut opaque, mut samples) =

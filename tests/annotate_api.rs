@@ -6,7 +6,7 @@ mod common;
 
 use common::annotate::{call, gesture};
 
-use glam::{DMat3, DVec3};
+use nalgebra::{distance, Matrix3, Point3, Rotation3, Vector3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
 use nerflabel::evaluate::{evaluate_labels, fixture_truth};
@@ -25,13 +25,13 @@ fn tabletop(dir: &Path, frames: usize) -> Session {
     Session::open(scan, dir.to_path_buf(), dir.join("annotated.json"), None).unwrap()
 }
 
-fn parse_box(v: &Value) -> (DVec3, DVec3, DMat3) {
-    let vec3 = |k: &str| DVec3::from_array(serde_json::from_value::<[f64; 3]>(v[k].clone()).unwrap());
+fn parse_box(v: &Value) -> (Point3<f64>, Vector3<f64>, Matrix3<f64>) {
+    let vec3 = |k: &str| Vector3::from(serde_json::from_value::<[f64; 3]>(v[k].clone()).unwrap());
     let rows: [[f64; 3]; 3] = serde_json::from_value(v["rotation"].clone()).unwrap();
     (
-        vec3("center"),
+        Point3::from(vec3("center")),
         vec3("size"),
-        DMat3::from_cols_array_2d(&rows).transpose(),
+        Matrix3::from_fn(|r, c| rows[r][c]),
     )
 }
 
@@ -54,7 +54,7 @@ fn put_saves_valid_boxes_and_refuses_an_invalid_one_naming_box_and_field() {
     let saved = read_boxes(&file).unwrap();
     assert_eq!(saved.boxes.len(), 2);
     assert_eq!(saved.boxes[1].label, "book");
-    assert_eq!(saved.boxes[1].rotation, DMat3::IDENTITY);
+    assert_eq!(saved.boxes[1].rotation, Rotation3::identity());
     let (_, got) = call(&session, "GET", "/api/boxes", &Value::Null);
     assert_eq!(got["boxes"][0]["size"], json!([0.1, 0.1, 0.12]));
     let before = std::fs::read(&file).unwrap();
@@ -146,18 +146,21 @@ fn fit_from_a_top_view_rectangle_recovers_the_true_box() {
     assert_eq!(status, 200, "{body}");
     let (center, size, rotation) = parse_box(&body["box"]);
     assert_eq!(body["box"]["label"], "box");
-    let centre_err = center.distance(cuboid.center);
+    let centre_err = distance(&center, &cuboid.center);
     // Box axes are defined up to a half turn (and x is the longer edge): compare the long axes.
     let (long_fit, long_true) = (
-        rotation.x_axis,
-        cuboid.rotation.col(if cuboid.size.x >= cuboid.size.y { 0 } else { 1 }),
+        rotation.column(0),
+        cuboid
+            .rotation
+            .matrix()
+            .column(if cuboid.size.x >= cuboid.size.y { 0 } else { 1 }),
     );
-    let angle = long_fit.dot(long_true).abs().min(1.0).acos().to_degrees();
+    let angle = long_fit.dot(&long_true).abs().min(1.0).acos().to_degrees();
     let mut true_size = cuboid.size;
     if true_size.y > true_size.x {
-        true_size = DVec3::new(true_size.y, true_size.x, true_size.z);
+        true_size = Vector3::new(true_size.y, true_size.x, true_size.z);
     }
-    let size_err = (size - true_size).abs().max_element();
+    let size_err = (size - true_size).abs().max();
     eprintln!(
         "fit: centre {:.1} mm, size {:.1} mm, yaw {angle:.2}°",
         centre_err * 1e3,
@@ -168,10 +171,10 @@ fn fit_from_a_top_view_rectangle_recovers_the_true_box() {
     assert!(angle < 3.0, "yaw off by {angle}°");
 
     // A seed click on the top face finds the same object.
-    let top = cuboid.center + DVec3::Z * cuboid.size.z * 0.5;
-    let (status, body) = call(&session, "POST", "/api/fit", &json!({"seed": top.to_array()}));
+    let top = cuboid.center + Vector3::z() * cuboid.size.z * 0.5;
+    let (status, body) = call(&session, "POST", "/api/fit", &json!({"seed": [top.x, top.y, top.z]}));
     assert_eq!(status, 200, "{body}");
-    assert!(parse_box(&body["box"]).0.distance(cuboid.center) < 0.02);
+    assert!(distance(&parse_box(&body["box"]).0, &cuboid.center) < 0.02);
 
     // A region of bare table holds no object.
     let far = json!({"polygon": [[5.0, 5.0, 0.0], [5.1, 5.0, 0.0], [5.1, 5.1, 0.0]]});
@@ -240,7 +243,7 @@ fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
     let dir = tempfile::tempdir().unwrap();
     let session = Session::open(scan, root.clone(), dir.path().join("boxes.json"), None).unwrap();
     assert!(
-        session.fit.ground.up.distance(DVec3::Z) < 1e-9,
+        (session.fit.ground.up - Vector3::z()).norm() < 1e-9,
         "the floor sets up: {}",
         session.fit.ground.up
     );
@@ -250,8 +253,8 @@ fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
     assert_eq!(status, 200, "{body}");
     let (center, size, rotation) = parse_box(&body["box"]);
     let angle = rotation
-        .x_axis
-        .dot(cabinet.rotation.x_axis)
+        .column(0)
+        .dot(&cabinet.rotation.matrix().column(0))
         .abs()
         .min(1.0)
         .acos()
@@ -259,15 +262,15 @@ fn a_real_cabinet_is_fitted_from_a_rectangle_around_it() {
     let grown = size - cabinet.size;
     eprintln!(
         "cabinet: centre {:.1} cm, yaw {angle:.2}°, edges {:.1} {:.1} {:.1} cm longer",
-        center.distance(cabinet.center) * 100.0,
+        distance(&center, &cabinet.center) * 100.0,
         grown.x * 100.0,
         grown.y * 100.0,
         grown.z * 100.0
     );
-    assert!(center.distance(cabinet.center) < 0.025);
+    assert!(distance(&center, &cabinet.center) < 0.025);
     assert!(angle < 2.0, "yaw off by {angle}°");
     assert!(
-        grown.min_element() > -0.01 && grown.max_element() < 0.06,
+        grown.min() > -0.01 && grown.max() < 0.06,
         "size {size} vs {}",
         cabinet.size
     );

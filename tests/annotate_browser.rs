@@ -6,7 +6,7 @@
 
 mod common;
 
-use glam::DVec3;
+use nalgebra::{distance, Vector3};
 use nerflabel::boxes::{read_boxes, BoxSet, DepthSource, LabelOptions};
 use nerflabel::evaluate::{evaluate_labels, fixture_truth};
 use nerflabel::fixture::{generate, FixtureOptions, SceneKind};
@@ -126,7 +126,7 @@ fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
     let truth = read_boxes(&scan.join("gt/boxes_tight.json")).unwrap();
     let cuboid = truth.boxes.iter().find(|b| b.label == "box").unwrap();
     // The true box's top-view footprint: its corners at the top face.
-    let corners: Vec<[f64; 3]> = cuboid.corners().iter().map(|c| c.to_array()).collect();
+    let corners: Vec<[f64; 3]> = cuboid.corners().iter().map(|c| c.coords.into()).collect();
 
     let file = dir.path().join("placed.json");
     let (_server, url) = start(&scan, &file);
@@ -160,16 +160,16 @@ fn a_box_dragged_in_the_top_view_is_fitted_and_saved() {
     assert_eq!(b.label, "box");
     let mut true_size = cuboid.size;
     if true_size.y > true_size.x {
-        true_size = DVec3::new(true_size.y, true_size.x, true_size.z);
+        true_size = Vector3::new(true_size.y, true_size.x, true_size.z);
     }
     assert!(
-        b.center.distance(cuboid.center) < 0.02,
+        distance(&b.center, &cuboid.center) < 0.02,
         "centre {} vs {}",
         b.center,
         cuboid.center
     );
     assert!(
-        (b.size - true_size).abs().max_element() < 0.02,
+        (b.size - true_size).abs().max() < 0.02,
         "size {} vs {true_size}",
         b.size
     );

@@ -8,7 +8,7 @@ mod common;
 use common::annotate::{call, gesture};
 
 use common::small_scan_fitted;
-use glam::{DMat3, DVec3};
+use nalgebra::{distance, Point3, Vector3};
 use nerflabel::annotate::{route, Session};
 use nerflabel::boxes::Box3;
 use nerflabel::fixture::read_meta;
@@ -18,9 +18,9 @@ use serde_json::{json, Value};
 use std::path::Path;
 
 /// Centre and edge lengths of a fitted box.
-fn centre_and_size(v: &Value) -> (DVec3, DVec3) {
-    let vec3 = |k: &str| DVec3::from_array(serde_json::from_value::<[f64; 3]>(v[k].clone()).unwrap());
-    (vec3("center"), vec3("size"))
+fn centre_and_size(v: &Value) -> (Point3<f64>, Vector3<f64>) {
+    let vec3 = |k: &str| Vector3::from(serde_json::from_value::<[f64; 3]>(v[k].clone()).unwrap());
+    (Point3::from(vec3("center")), vec3("size"))
 }
 
 /// Errors of a fit against the true box: centre distance and largest edge
@@ -29,9 +29,9 @@ fn errors(fitted: &Value, truth: &Box3) -> (f64, f64) {
     let (center, size) = centre_and_size(fitted);
     let mut t = truth.size;
     if t.y > t.x {
-        t = DVec3::new(t.y, t.x, t.z);
+        t = Vector3::new(t.y, t.x, t.z);
     }
-    (center.distance(truth.center), (size - t).abs().max_element())
+    (distance(&center, &truth.center), (size - t).abs().max())
 }
 
 /// Points of the page's cloud (`NLCLOUD1`: 32-byte header, then 15-byte
@@ -43,11 +43,11 @@ fn cloud_points_in(session: &Session, b: &Box3) -> usize {
         .chunks_exact(15)
         .map(|r| {
             let f = |i: usize| f64::from(f32::from_le_bytes(r[4 * i..4 * i + 4].try_into().unwrap()));
-            DVec3::new(f(0), f(1), f(2))
+            Point3::new(f(0), f(1), f(2))
         })
-        .filter(|&p| {
+        .filter(|p| {
             let local = b.rotation.transpose() * (p - b.center);
-            (local.abs() - b.size * 0.5).max_element() <= 0.01
+            (local.abs() - b.size * 0.5).max() <= 0.01
         })
         .count()
 }
@@ -75,13 +75,15 @@ fn an_object_without_sensor_depth_is_fitted_from_the_model_surface() {
     let as_box = |o: &nerflabel::fixture::scene::SceneObject| Box3 {
         label: o.label.clone(),
         instance_id: u32::from(o.instance_id),
-        center: o.center(),
-        size: o.size,
-        rotation: o.rotation(),
+        center: Point3::from(o.center().to_array()),
+        size: Vector3::from(o.size.to_array()),
+        rotation: nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_column_slice(
+            &o.rotation().to_cols_array(),
+        )),
     };
     let can = as_box(can);
     let cuboid = as_box(truth.labelled().find(|o| o.instance_id == 1).unwrap());
-    assert_eq!(cuboid.rotation.z_axis, DMat3::IDENTITY.z_axis);
+    assert_eq!(cuboid.rotation * Vector3::z(), Vector3::z());
 
     let sensor = open(&scan, None);
     let (status, body) = call(&sensor, "POST", "/api/fit", &gesture(&can, 0.05));
@@ -100,10 +102,10 @@ fn an_object_without_sensor_depth_is_fitted_from_the_model_surface() {
     assert_eq!(status, 200, "{body}");
     let (centre_err, size_err) = errors(&body["box"], &can);
     // A click on the can's top finds it too.
-    let top = can.center + DVec3::Z * can.size.z * 0.5;
-    let (status, seeded) = call(&completed, "POST", "/api/fit", &json!({"seed": top.to_array()}));
+    let top = can.center + Vector3::z() * can.size.z * 0.5;
+    let (status, seeded) = call(&completed, "POST", "/api/fit", &json!({"seed": [top.x, top.y, top.z]}));
     assert_eq!(status, 200, "{seeded}");
-    let seeded_err = centre_and_size(&seeded["box"]).0.distance(can.center);
+    let seeded_err = distance(&centre_and_size(&seeded["box"]).0, &can.center);
     eprintln!("a click on the can's top: centre {:.1} mm", seeded_err * 1e3);
     assert!(seeded_err < 0.02, "{seeded}");
     let (_, model_cuboid) = call(&completed, "POST", "/api/fit", &gesture(&cuboid, 0.05));

@@ -9,11 +9,10 @@
 //! label is exactly the classification of its surface point; one case also
 //! runs the rendered (nerf) path.
 
-use glam::{DMat3, DVec3};
+use nalgebra::{Point3, Rotation3, Vector3};
 use nerflabel::boxes::{
     read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions,
 };
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::train::settings::Preset;
@@ -148,20 +147,20 @@ fn zero_volume_box_is_accepted_with_a_warning_and_stays_empty() {
 /// A box around the whole scene and every camera.
 fn enclosing() -> Box3 {
     let s = scan();
-    let mut lo = DVec3::splat(f64::INFINITY);
-    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    let mut lo = Vector3::repeat(f64::INFINITY);
+    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
     for f in &s.frames {
-        let c = f.camera_to_world.to_glam().w_axis.truncate();
-        (lo, hi) = (lo.min(c), hi.max(c));
+        let c = f.camera_to_world.translation.vector;
+        (lo, hi) = (lo.inf(&c), hi.sup(&c));
     }
-    let centre = (lo + hi) * 0.5;
-    let size = (hi - lo) + DVec3::splat(10.0);
+    let centre = Point3::from((lo + hi) * 0.5);
+    let size = (hi - lo) + Vector3::repeat(10.0);
     Box3 {
         label: "room".into(),
         instance_id: 0,
         center: centre,
         size,
-        rotation: DMat3::IDENTITY,
+        rotation: Rotation3::identity(),
     }
 }
 
@@ -205,8 +204,8 @@ fn nested_box_takes_its_part_and_the_outer_box_keeps_the_rest() {
     // The upper half of the "box" object, inside its box.
     let inner = Box3 {
         label: "lid".into(),
-        center: outer.center + outer.rotation * DVec3::new(0.0, 0.0, outer.size.z * 0.25),
-        size: outer.size * DVec3::new(1.0, 1.0, 0.5),
+        center: outer.center + outer.rotation * Vector3::new(0.0, 0.0, outer.size.z * 0.25),
+        size: outer.size.component_mul(&Vector3::new(1.0, 1.0, 0.5)),
         ..outer.clone()
     };
     let others = fixture_boxes()[1..].to_vec();
@@ -248,8 +247,8 @@ fn overlapping_boxes_give_the_overlap_to_the_smaller_whatever_their_order() {
     // part of a with local x in [0.1, 0.5] of its width, and is the smaller.
     let b = Box3 {
         label: "shifted".into(),
-        center: a.center + a.rotation * DVec3::new(0.5 * a.size.x, 0.0, 0.0),
-        size: a.size * DVec3::new(0.8, 1.0, 1.0),
+        center: a.center + a.rotation * Vector3::new(0.5 * a.size.x, 0.0, 0.0),
+        size: a.size.component_mul(&Vector3::new(0.8, 1.0, 1.0)),
         ..a.clone()
     };
     let others = fixture_boxes()[1..].to_vec();
@@ -285,20 +284,20 @@ fn behind_every_camera() -> Box3 {
     let top = s
         .frames
         .iter()
-        .map(|f| f.camera_to_world.to_glam().w_axis.z)
+        .map(|f| f.camera_to_world.translation.vector.z)
         .fold(f64::NEG_INFINITY, f64::max);
     let b = Box3 {
         label: "sky".into(),
         instance_id: 0,
-        center: DVec3::new(0.0, 0.0, top + 20.0),
-        size: DVec3::splat(0.5),
-        rotation: DMat3::IDENTITY,
+        center: Point3::new(0.0, 0.0, top + 20.0),
+        size: Vector3::repeat(0.5),
+        rotation: Rotation3::identity(),
     };
     for f in &s.frames {
-        let w2c = f.camera_to_world.to_glam().inverse();
+        let w2c = f.camera_to_world.inverse();
         for c in b.corners() {
             assert!(
-                w2c.transform_point3(c).z < 0.0,
+                (w2c * c).z < 0.0,
                 "{}: test set-up: the box must be behind the camera",
                 f.name
             );

@@ -7,7 +7,7 @@
 mod common;
 
 use common::{run, s, small_scan, stderr};
-use glam::{DMat3, DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Matrix3, Rotation3, Translation3, Vector3};
 use nerflabel::boxes::{read_boxes, Box3, BoxSet};
 use std::path::Path;
 
@@ -47,10 +47,10 @@ fn assert_same_boxes(a: &BoxSet, b: &BoxSet, tolerance: f64) {
     assert_eq!(a.boxes.len(), b.boxes.len());
     for (x, y) in a.boxes.iter().zip(&b.boxes) {
         assert_eq!((&x.label, x.instance_id), (&y.label, y.instance_id));
-        assert!((x.center - y.center).abs().max_element() <= tolerance, "{x:?}\n{y:?}");
-        assert!((x.size - y.size).abs().max_element() <= tolerance, "{x:?}\n{y:?}");
+        assert!((x.center - y.center).abs().max() <= tolerance, "{x:?}\n{y:?}");
+        assert!((x.size - y.size).abs().max() <= tolerance, "{x:?}\n{y:?}");
         assert!(
-            (x.rotation - y.rotation).abs_diff_eq(DMat3::ZERO, tolerance),
+            (x.rotation.matrix() - y.rotation.matrix()).amax() <= tolerance,
             "{x:?}\n{y:?}"
         );
     }
@@ -60,11 +60,7 @@ fn assert_same_boxes(a: &BoxSet, b: &BoxSet, tolerance: f64) {
 fn assert_same_solids(a: &Box3, b: &Box3, tolerance: f64) {
     assert_eq!(a.label, b.label);
     for p in a.corners() {
-        let nearest = b
-            .corners()
-            .iter()
-            .map(|q| (p - *q).length())
-            .fold(f64::INFINITY, f64::min);
+        let nearest = b.corners().iter().map(|q| (p - q).norm()).fold(f64::INFINITY, f64::min);
         assert!(nearest <= tolerance, "corner {p:?} of {a:?} is {nearest} from {b:?}");
     }
 }
@@ -114,28 +110,32 @@ fn kitti_file_of_the_fixture_boxes_labels_as_the_fixture_boxes_do() {
     let original = read_boxes(&scan.join("boxes.json")).unwrap();
     // A KITTI camera looking along world +y from (0.1, -1.2, 0.4), its y axis
     // down (world -z): x right = world x, z forward = world y.
-    let rotation = DMat3::from_cols(DVec3::X, DVec3::NEG_Z, DVec3::Y);
-    let camera_to_world = DMat4::from_cols(
-        rotation.x_axis.extend(0.0),
-        rotation.y_axis.extend(0.0),
-        rotation.z_axis.extend(0.0),
-        DVec3::new(0.1, -1.2, 0.4).extend(1.0),
-    );
+    let rotation = Matrix3::from_columns(&[Vector3::x(), -Vector3::z(), Vector3::y()]);
+    let camera_to_world = IsometryMatrix3::from_parts(
+        Translation3::new(0.1, -1.2, 0.4),
+        Rotation3::from_matrix_unchecked(rotation),
+    )
+    .to_homogeneous();
     let calib = dir.path().join("calib.txt");
     let rows: Vec<String> = (0..4)
         .map(|r| {
             let row = camera_to_world.row(r);
-            format!("{:?} {:?} {:?} {:?}", row.x, row.y, row.z, row.w)
+            format!("{:?} {:?} {:?} {:?}", row[0], row[1], row[2], row[3])
         })
         .collect();
     std::fs::write(&calib, rows.join("\n") + "\n").unwrap();
     // Each box as a KITTI line: height along camera y (world z), length along
     // the box's own x, width along its y; rotation_y = -yaw (camera y points down).
-    let world_to_camera = camera_to_world.inverse();
+    let world_to_camera = IsometryMatrix3::from_parts(
+        Translation3::new(0.1, -1.2, 0.4),
+        Rotation3::from_matrix_unchecked(rotation),
+    )
+    .inverse();
     let mut lines = String::new();
     for b in &original.boxes {
-        let yaw = b.rotation.x_axis.y.atan2(b.rotation.x_axis.x);
-        let bottom = world_to_camera.transform_point3(b.center - DVec3::new(0.0, 0.0, b.size.z / 2.0));
+        let x_axis = b.rotation * Vector3::x();
+        let yaw = x_axis.y.atan2(x_axis.x);
+        let bottom = world_to_camera * (b.center - Vector3::new(0.0, 0.0, b.size.z / 2.0));
         lines.push_str(&format!(
             "{} 0.00 0 {:?} 10.00 20.00 60.00 80.00 {:?} {:?} {:?} {:?} {:?} {:?} {:?}\n",
             b.label, -yaw, b.size.z, b.size.y, b.size.x, bottom.x, bottom.y, bottom.z, -yaw
@@ -162,7 +162,7 @@ fn kitti_file_of_the_fixture_boxes_labels_as_the_fixture_boxes_do() {
     assert_eq!(imported.boxes.len(), original.boxes.len());
     for (a, b) in imported.boxes.iter().zip(&original.boxes) {
         assert_same_solids(a, b, 1e-9);
-        assert!((a.center - b.center).length() < 1e-9 && (a.volume() - b.volume()).abs() < 1e-12);
+        assert!((a.center - b.center).norm() < 1e-9 && (a.volume() - b.volume()).abs() < 1e-12);
     }
     let want = masks(&scan, &scan.join("boxes.json"), &dir.path().join("labels_original"));
     let got = masks(&scan, &out, &dir.path().join("labels_kitti"));

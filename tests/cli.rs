@@ -1,7 +1,7 @@
 //! The real binary: help text, bad input, `info` on the shared real scan,
 //! and the committed fixture staying reproducible.
 
-use nerflabel::glam_bridge::{ToGlam, ToNalgebra};
+use nalgebra::Point3;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -211,7 +211,7 @@ fn committed_fixture_matches_its_regeneration_and_reprojects_within_millimetres(
     let scan = nerflabel::scan::load(&committed, &Default::default()).unwrap();
     let (a, b) = (&scan.frames[3], &scan.frames[5]);
     let (da, db) = (a.depth.as_ref().unwrap(), b.depth.as_ref().unwrap());
-    let world_to_b = b.camera_to_world.to_glam().inverse();
+    let world_to_b = b.camera_to_world.inverse();
     let mut errors = Vec::new();
     let (w, h) = a.size();
     for v in (4..h - 4).step_by(3) {
@@ -220,12 +220,9 @@ fn committed_fixture_matches_its_regeneration_and_reprojects_within_millimetres(
             if z <= 0.0 {
                 continue;
             }
-            let p_world = a
-                .camera_to_world
-                .to_glam()
-                .transform_point3(a.intrinsics.unproject(u as f64, v as f64).to_glam() * z);
-            let p_b = world_to_b.transform_point3(p_world);
-            let Some((ub, vb)) = b.intrinsics.project(&(p_b).to_na()) else {
+            let p_world = a.camera_to_world * Point3::from(a.intrinsics.unproject(u as f64, v as f64) * z);
+            let p_b = world_to_b * p_world;
+            let Some((ub, vb)) = b.intrinsics.project(&p_b) else {
                 continue;
             };
             let (ui, vi) = (ub.round(), vb.round());

@@ -474,9 +474,19 @@ fn realistic_scans_have_jpeg_colour_pose_error_and_drawn_boxes() {
     assert_eq!((tight.len(), snug.len(), loose.len()), (6, 6, 6));
     for ((t, s), l) in tight.iter().zip(&snug).zip(&loose) {
         let bottom = |b: &nerflabel::boxes::Box3| b.center.z - b.size.z / 2.0;
-        assert!((s.size - t.size - DVec3::new(0.02, 0.02, 0.009)).abs().max_element() < 1e-9);
+        assert!(
+            (s.size - t.size - nalgebra::Vector3::new(0.02, 0.02, 0.009))
+                .abs()
+                .max()
+                < 1e-9
+        );
         assert!((bottom(s) - bottom(t) - 0.001).abs() < 1e-9);
-        assert!((l.size - t.size - DVec3::new(0.05, 0.05, 0.045)).abs().max_element() < 1e-9);
+        assert!(
+            (l.size - t.size - nalgebra::Vector3::new(0.05, 0.05, 0.045))
+                .abs()
+                .max()
+                < 1e-9
+        );
         assert!((bottom(t) - bottom(l) - 0.02).abs() < 1e-9);
     }
 }

@@ -11,7 +11,6 @@
 //! them.
 
 use arrow_array::RecordBatch;
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::checkpoint::Checkpoint;
 use nerflabel::rng::Rng;
@@ -513,7 +512,8 @@ fn sigkill_during_synth_leaves_the_previous_or_a_complete_new_parquet() {
         let views: Vec<serde_json::Value> = scan.frames[..n]
             .iter()
             .map(|f| {
-                let m = f.camera_to_world.to_glam().transpose().to_cols_array_2d();
+                let h = f.camera_to_world.to_homogeneous();
+                let m: [[f64; 4]; 4] = std::array::from_fn(|r| std::array::from_fn(|c| h[(r, c)]));
                 let k = f.intrinsics.scaled((160, 120), (80, 60));
                 serde_json::json!({"camera_to_world": m, "intrinsics": [k.fx, k.fy, k.cx, k.cy], "width": 80, "height": 60})
             })

@@ -452,12 +452,12 @@ fn tiny_and_huge_scene_scales_give_the_same_label_masks() {
     let (b0, b1) = (&runs[0].0.boxes, &runs[1].0.boxes);
     for (a, b) in b0.iter().zip(b1) {
         assert!(
-            (b.center - a.center * 1e4).length() <= 1e-9 * b.center.length().max(1.0),
+            (b.center - a.center * 1e4).norm() <= 1e-9 * b.center.coords.norm().max(1.0),
             "box {} centre not scaled",
             a.instance_id
         );
         assert!(
-            (b.size - a.size * 1e4).length() <= 1e-9 * b.size.length(),
+            (b.size - a.size * 1e4).norm() <= 1e-9 * b.size.norm(),
             "box {} size not scaled",
             a.instance_id
         );

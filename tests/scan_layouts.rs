@@ -5,9 +5,8 @@
 //! between frames. Real scans from the shared data folder are checked too
 //! when present.
 
-use glam::{DMat3, DMat4, DVec3};
 use image::{ImageBuffer, Luma, RgbImage};
-use nerflabel::glam_bridge::{ToGlam, ToNalgebra};
+use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Point3, Rotation3, Translation3, Vector3, Vector4};
 use nerflabel::scan::{load, summarize, DepthMap, Frame, Intrinsics, Layout, LoadOptions, Scan};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -25,29 +24,28 @@ const K: Intrinsics = Intrinsics {
 const PLANE_N: [f64; 3] = [0.1, -0.05, 1.0];
 const PLANE_D: f64 = 2.0;
 
-/// Rotation from an axis and angle by Rodrigues' formula (independent of glam's quaternions).
-fn rodrigues(axis: DVec3, angle: f64) -> DMat3 {
+/// Rotation from an axis and angle by Rodrigues' formula (independent of nalgebra's quaternions).
+fn rodrigues(axis: Vector3<f64>, angle: f64) -> Matrix3<f64> {
     let a = axis.normalize();
-    let k = DMat3::from_cols(
-        DVec3::new(0.0, a.z, -a.y),
-        DVec3::new(-a.z, 0.0, a.x),
-        DVec3::new(a.y, -a.x, 0.0),
-    );
-    DMat3::IDENTITY + k * angle.sin() + k * k * (1.0 - angle.cos())
+    let k = Matrix3::from_columns(&[
+        Vector3::new(0.0, a.z, -a.y),
+        Vector3::new(-a.z, 0.0, a.x),
+        Vector3::new(a.y, -a.x, 0.0),
+    ]);
+    Matrix3::identity() + k * angle.sin() + k * k * (1.0 - angle.cos())
 }
 
 /// Ground-truth camera: axis, angle, centre; camera-to-world in OpenCV axes.
 struct Cam {
-    axis: DVec3,
+    axis: Vector3<f64>,
     angle: f64,
-    centre: DVec3,
+    centre: Vector3<f64>,
 }
 
 impl Cam {
-    fn c2w(&self) -> DMat4 {
-        let mut m = DMat4::from_mat3(rodrigues(self.axis, self.angle));
-        m.w_axis = self.centre.extend(1.0);
-        m
+    fn c2w(&self) -> IsometryMatrix3<f64> {
+        let r = Rotation3::from_matrix_unchecked(rodrigues(self.axis, self.angle));
+        IsometryMatrix3::from_parts(Translation3::from(self.centre), r)
     }
 
     /// Scalar-last quaternion `qx qy qz qw`.
@@ -60,33 +58,33 @@ impl Cam {
 fn cams() -> Vec<Cam> {
     vec![
         Cam {
-            axis: DVec3::Y,
+            axis: Vector3::y(),
             angle: 0.0,
-            centre: DVec3::ZERO,
+            centre: Vector3::zeros(),
         },
         Cam {
-            axis: DVec3::Y,
+            axis: Vector3::y(),
             angle: 0.1,
-            centre: DVec3::new(0.2, 0.0, 0.05),
+            centre: Vector3::new(0.2, 0.0, 0.05),
         },
         Cam {
-            axis: DVec3::new(1.0, 0.5, 0.2),
+            axis: Vector3::new(1.0, 0.5, 0.2),
             angle: -0.12,
-            centre: DVec3::new(-0.1, 0.1, 0.1),
+            centre: Vector3::new(-0.1, 0.1, 0.1),
         },
     ]
 }
 
 /// Exact depth (camera z) of the plane through pixel (u, v) of a camera.
-fn plane_depth(c2w: &DMat4, k: &Intrinsics, u: f64, v: f64) -> f64 {
-    let n = DVec3::from_array(PLANE_N).normalize();
-    let dir = c2w.transform_vector3(k.unproject(u, v).to_glam());
-    let origin = c2w.w_axis.truncate();
-    (PLANE_D - n.dot(origin)) / n.dot(dir)
+fn plane_depth(c2w: &IsometryMatrix3<f64>, k: &Intrinsics, u: f64, v: f64) -> f64 {
+    let n = Vector3::from(PLANE_N).normalize();
+    let dir = c2w * k.unproject(u, v);
+    let origin = c2w.translation.vector;
+    (PLANE_D - n.dot(&origin)) / n.dot(&dir)
 }
 
 /// Depth image of the plane at `w` x `h` in `units_per_metre`.
-fn write_depth(path: &Path, c2w: &DMat4, (w, h): (u32, u32), units_per_metre: f64) {
+fn write_depth(path: &Path, c2w: &IsometryMatrix3<f64>, (w, h): (u32, u32), units_per_metre: f64) {
     let k = K.scaled((W, H), (w, h));
     let img = ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(w, h, |u, v| {
         let z = plane_depth(c2w, &k, u as f64, v as f64);
@@ -109,11 +107,10 @@ fn write(path: &Path, text: &str) {
     std::fs::write(path, text).unwrap();
 }
 
-fn matrix_text(m: &DMat4) -> String {
+fn matrix_text(m: &Matrix4<f64>) -> String {
     let mut s = String::new();
     for r in 0..4 {
-        let row = m.row(r);
-        writeln!(s, "{} {} {} {}", row.x, row.y, row.z, row.w).unwrap();
+        writeln!(s, "{} {} {} {}", m[(r, 0)], m[(r, 1)], m[(r, 2)], m[(r, 3)]).unwrap();
     }
     s
 }
@@ -151,7 +148,7 @@ fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64>
     let (Some(da), Some(db)) = (&a.depth, &b.depth) else {
         return Vec::new();
     };
-    let w2c_b = b.camera_to_world.to_glam().inverse();
+    let w2c_b = b.camera_to_world.inverse();
     let m = margin as f64;
     let mut out = Vec::new();
     for v in (margin..da.height - margin).step_by(step as usize) {
@@ -160,12 +157,9 @@ fn reprojection_errors(a: &Frame, b: &Frame, step: u32, margin: u32) -> Vec<f64>
             if z <= 0.0 {
                 continue;
             }
-            let world = a
-                .camera_to_world
-                .to_glam()
-                .transform_point3(a.intrinsics.unproject(u as f64, v as f64).to_glam() * z);
-            let in_b = w2c_b.transform_point3(world);
-            let Some((ub, vb)) = b.intrinsics.project(&(in_b).to_na()) else {
+            let world = a.camera_to_world * Point3::from(a.intrinsics.unproject(u as f64, v as f64) * z);
+            let in_b = w2c_b * world;
+            let Some((ub, vb)) = b.intrinsics.project(&in_b) else {
                 continue;
             };
             if ub < m || vb < m || ub > (db.width - 1) as f64 - m || vb > (db.height - 1) as f64 - m {
@@ -190,10 +184,10 @@ fn check_frame(frame: &Frame, cam: &Cam, k: &Intrinsics, depth_tolerance: f64) {
     assert_eq!(frame.size(), (W, H), "frame {}", frame.name);
     let truth = cam.c2w();
     assert!(
-        frame.camera_to_world.to_glam().abs_diff_eq(truth, 1e-9),
+        (frame.camera_to_world.to_homogeneous() - truth.to_homogeneous()).amax() <= 1e-9,
         "frame {} pose\n{:?}\nvs truth\n{:?}",
         frame.name,
-        frame.camera_to_world.to_glam(),
+        frame.camera_to_world,
         truth
     );
     for (got, want) in [
@@ -256,7 +250,7 @@ fn write_native(root: &Path) {
         write_rgb(&root.join(format!("rgb/{i}.png")), i as u8);
         write(
             &root.join(format!("pose/{i:06}.txt")),
-            &matrix_text(&cam.c2w().inverse()),
+            &matrix_text(&cam.c2w().inverse().to_homogeneous()),
         );
         if i < 2 {
             write_depth(&root.join(format!("depth/{i:06}.png")), &cam.c2w(), (32, 24), 1000.0);
@@ -298,7 +292,7 @@ fn native_layout_loads_world_to_camera_and_low_res_depth() {
         range.min > 1.7 && range.max < 2.4 && range.median > range.min,
         "{range:?}"
     );
-    let moved = (cams()[1].centre - cams()[0].centre).length() + (cams()[2].centre - cams()[1].centre).length();
+    let moved = (cams()[1].centre - cams()[0].centre).norm() + (cams()[2].centre - cams()[1].centre).norm();
     assert!((summary.trajectory_length - moved).abs() < 1e-9);
     assert!(summary.to_string().contains("32x24 (2 frames) on disk") || summary.to_string().contains("32x24 on disk"));
 }
@@ -381,16 +375,16 @@ fn tum_quaternion_is_scalar_last_camera_to_world() {
     let scan = load(root, &LoadOptions::default()).unwrap();
     let f = &scan.frames[0];
     assert_eq!(f.intrinsics, K);
-    assert!((f.camera_to_world.to_glam().transform_vector3(DVec3::Z) - DVec3::X).length() < 1e-12);
-    assert!((f.camera_center().to_glam() - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-12);
+    assert!((f.camera_to_world * Vector3::z() - Vector3::x()).norm() < 1e-12);
+    assert!((f.camera_center() - Point3::new(1.0, 2.0, 3.0)).norm() < 1e-12);
     // Depth 1/5000 m units: 5000 -> 1 m.
     assert!((f.depth.as_ref().unwrap().get(10, 10) - 1.0).abs() < 1e-6);
 }
 
 /// OpenGL camera-to-world as nerfstudio stores it: flip camera y and z.
-fn gl_rows(c2w_cv: &DMat4) -> Vec<Vec<f64>> {
-    let gl = *c2w_cv * DMat4::from_scale(DVec3::new(1.0, -1.0, -1.0));
-    (0..4).map(|r| gl.row(r).to_array().to_vec()).collect()
+fn gl_rows(c2w_cv: &IsometryMatrix3<f64>) -> Vec<Vec<f64>> {
+    let gl = c2w_cv.to_homogeneous() * Matrix4::from_diagonal(&Vector4::new(1.0, -1.0, -1.0, 1.0));
+    (0..4).map(|r| (0..4).map(|c| gl[(r, c)]).collect()).collect()
 }
 
 #[test]
@@ -496,7 +490,10 @@ fn scannet_layout_skips_lost_poses_and_upsamples_quarter_depth() {
     write(&root.join("intrinsic/intrinsic_color.txt"), &k4);
     for (i, cam) in cams().iter().enumerate() {
         write_rgb(&root.join(format!("color/{i}.jpg")), i as u8);
-        write(&root.join(format!("pose/{i}.txt")), &matrix_text(&cam.c2w()));
+        write(
+            &root.join(format!("pose/{i}.txt")),
+            &matrix_text(&cam.c2w().to_homogeneous()),
+        );
         write_depth(&root.join(format!("depth/{i}.png")), &cam.c2w(), (W / 4, H / 4), 1000.0);
     }
     write_rgb(&root.join("color/3.jpg"), 3);
@@ -563,8 +560,8 @@ fn stray_layout_scales_video_intrinsics() {
 fn fix_poses_reorthonormalises_with_a_warning() {
     let dir = tempfile::tempdir().unwrap();
     write_native(dir.path());
-    let mut bad = cams()[1].c2w().inverse();
-    bad.x_axis.x += 0.004;
+    let mut bad = cams()[1].c2w().inverse().to_homogeneous();
+    bad[(0, 0)] += 0.004;
     write(&dir.path().join("pose/000001.txt"), &matrix_text(&bad));
     assert!(load(dir.path(), &LoadOptions::default()).is_err());
     let scan = load(
@@ -579,10 +576,7 @@ fn fix_poses_reorthonormalises_with_a_warning() {
         .warnings
         .iter()
         .any(|w| w.contains("000001.txt") && w.contains("re-orthonormalised")));
-    assert!(scan.frames[1]
-        .camera_to_world
-        .to_glam()
-        .abs_diff_eq(cams()[1].c2w(), 5e-3));
+    assert!((scan.frames[1].camera_to_world.to_homogeneous() - cams()[1].c2w().to_homogeneous()).amax() <= 5e-3);
 }
 
 fn shared_data() -> PathBuf {
@@ -685,7 +679,7 @@ fn load_500_frames_timing() {
         }
         write(
             &root.join(format!("pose/{i:06}.txt")),
-            &matrix_text(&DMat4::from_translation(DVec3::new(i as f64 * 0.01, 0.0, 0.0))),
+            &matrix_text(&Matrix4::new_translation(&Vector3::new(i as f64 * 0.01, 0.0, 0.0))),
         );
     }
     let start = std::time::Instant::now();

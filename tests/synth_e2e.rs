@@ -331,7 +331,10 @@ fn poses_file_on_a_training_frame_reproduces_it() {
     let frame = &f.scan.frames[7];
     let (w, h) = frame.size();
     let rows: Vec<[f64; 4]> = (0..4)
-        .map(|r| frame.camera_to_world.to_glam().row(r).to_array())
+        .map(|r| {
+            let m = frame.camera_to_world.to_homogeneous();
+            [m[(r, 0)], m[(r, 1)], m[(r, 2)], m[(r, 3)]]
+        })
         .collect();
     let k = frame.intrinsics;
     let json = serde_json::json!({ "views": [{

@@ -17,8 +17,7 @@ use super::fit_box::{FitError, Region, MAX_POLYGON_VERTICES};
 use super::preview::render_preview;
 use super::session::Session;
 use crate::boxes::{parse_boxes, Box3, BoxError, BoxSet};
-use crate::glam_bridge::ToGlam;
-use glam::{DMat3, DVec3};
+use nalgebra::{Point3, Rotation3, Vector3};
 use serde_json::{json, Value};
 
 /// Largest request body accepted, bytes (a boxes file's own cap).
@@ -58,20 +57,21 @@ impl Reply {
 }
 
 /// A box as a boxes.json entry (FORMATS.md section 2).
-pub fn box_json(label: &str, center: DVec3, size: DVec3, rotation: DMat3) -> Value {
-    let r = rotation.transpose().to_cols_array_2d();
+pub fn box_json(label: &str, center: &Point3<f64>, size: &Vector3<f64>, rotation: &Rotation3<f64>) -> Value {
+    let m = rotation.matrix();
+    let rows: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]));
     json!({
         "label": label,
-        "center": center.to_array(),
-        "size": size.to_array(),
-        "rotation": r,
+        "center": <[f64; 3]>::from(center.coords),
+        "size": <[f64; 3]>::from(*size),
+        "rotation": rows,
     })
 }
 
 /// A box set as a boxes.json document.
 pub fn boxes_document(set: &BoxSet) -> Value {
     let boxes: Vec<Value> = (set.boxes.iter())
-        .map(|b| box_json(&b.label, b.center, b.size, b.rotation))
+        .map(|b| box_json(&b.label, &b.center, &b.size, &b.rotation))
         .collect();
     json!({ "boxes": boxes })
 }
@@ -82,7 +82,7 @@ pub fn info(session: &Session) -> Reply {
         "scan": session.scan_dir.display().to_string(),
         "boxes_file": session.boxes_path.display().to_string(),
         "source": session.source_name(),
-        "up": session.fit.ground.up.to_array(),
+        "up": <[f64; 3]>::from(session.fit.ground.up),
         "frames": session.scan.frames.len(),
         "surface_points": session.fit.len(),
         "model_surface_points": session.fit.unseen(),
@@ -144,14 +144,14 @@ pub fn put_boxes(session: &Session, body: &[u8]) -> Reply {
     }
 }
 
-fn point(v: &Value, what: &str) -> Result<DVec3, String> {
+fn point(v: &Value, what: &str) -> Result<Point3<f64>, String> {
     let a = v
         .as_array()
         .filter(|a| a.len() == 3)
         .ok_or(format!("{what}: expected [x, y, z]"))?;
     let c: Vec<f64> = a.iter().filter_map(Value::as_f64).collect();
     match c[..] {
-        [x, y, z] if c.iter().all(|x| x.is_finite()) => Ok(DVec3::new(x, y, z)),
+        [x, y, z] if c.iter().all(|x| x.is_finite()) => Ok(Point3::new(x, y, z)),
         _ => Err(format!("{what}: expected three finite numbers")),
     }
 }
@@ -199,7 +199,7 @@ pub fn fit(session: &Session, body: &[u8]) -> Reply {
     };
     match session.fit.fit(&region) {
         Ok(b) => Reply::json(&json!({
-            "box": box_json(&label, b.center, b.size, b.rotation),
+            "box": box_json(&label, &b.center, &b.size, &b.rotation),
             "points": b.points,
             "support_height": b.support_height,
         })),
@@ -212,14 +212,14 @@ pub fn fit(session: &Session, body: &[u8]) -> Reply {
 pub fn frames(session: &Session) -> Reply {
     let frames: Vec<Value> = (session.scan.frames.iter())
         .map(|f| {
-            let m = f.camera_to_world.to_glam();
+            let m = &f.camera_to_world;
             json!({
                 "stem": f.name,
                 "id": f.id,
                 "width": f.rgb.width(),
                 "height": f.rgb.height(),
-                "position": m.w_axis.truncate().to_array(),
-                "forward": m.z_axis.truncate().to_array(),
+                "position": <[f64; 3]>::from(m.translation.vector),
+                "forward": <[f64; 3]>::from(m.rotation.matrix().column(2).into_owned()),
             })
         })
         .collect();

@@ -15,7 +15,7 @@
 //! can view them in place.
 
 use crate::poses::PointCloud;
-use glam::DVec3;
+use nalgebra::Vector3;
 
 /// First bytes of the format.
 pub const MAGIC: &[u8; 8] = b"NLCLOUD1";
@@ -23,14 +23,14 @@ pub const MAGIC: &[u8; 8] = b"NLCLOUD1";
 pub const HEADER_BYTES: usize = 32;
 
 /// Encode at most `max_points` points of `cloud` (an even subsample when it has more).
-pub fn encode(cloud: &PointCloud, up: DVec3, max_points: usize) -> Vec<u8> {
+pub fn encode(cloud: &PointCloud, up: &Vector3<f64>, max_points: usize) -> Vec<u8> {
     let stride = cloud.len().div_ceil(max_points.max(1)).max(1);
     let kept: Vec<usize> = (0..cloud.len()).step_by(stride).collect();
     let mut out = Vec::with_capacity(HEADER_BYTES + kept.len() * 15);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&(kept.len() as u32).to_le_bytes());
     out.extend_from_slice(&((cloud.voxel_size * stride as f64) as f32).to_le_bytes());
-    for c in up.to_array() {
+    for &c in up.iter() {
         out.extend_from_slice(&(c as f32).to_le_bytes());
     }
     out.extend_from_slice(&0u32.to_le_bytes());
@@ -57,7 +57,7 @@ mod tests {
             voxel_size: 0.01,
             ..PointCloud::default()
         };
-        let bytes = encode(&cloud, DVec3::Z, 2);
+        let bytes = encode(&cloud, &Vector3::z(), 2);
         assert_eq!(&bytes[..8], MAGIC);
         assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 2);
         assert_eq!(f32::from_le_bytes(bytes[12..16].try_into().unwrap()), 0.02);

@@ -12,7 +12,7 @@
 
 use super::ground::Ground;
 use crate::boxes::Box3;
-use glam::{DMat3, DVec2, DVec3};
+use nalgebra::{distance, Matrix3, Point2, Point3, Rotation3, Vector2, Vector3};
 use std::collections::{HashMap, HashSet, VecDeque};
 
 /// Most polygon vertices accepted.
@@ -47,9 +47,9 @@ const MIN_UNSEEN_NEIGHBOURS: usize = 4;
 #[derive(Clone, Debug, PartialEq)]
 pub enum Region {
     /// Vertices in world coordinates; they are projected along the up axis.
-    Polygon(Vec<DVec3>),
+    Polygon(Vec<Point3<f64>>),
     /// A point on or above the object (a click).
-    Seed(DVec3),
+    Seed(Point3<f64>),
     /// An existing box: shrink it to the points inside (its yaw is kept).
     Shrink(Box3),
 }
@@ -68,11 +68,11 @@ pub enum FitError {
 /// A fitted box and what it was fitted to.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FittedBox {
-    pub center: DVec3,
+    pub center: Point3<f64>,
     /// Edge lengths along the box axes (x the longer horizontal one).
-    pub size: DVec3,
+    pub size: Vector3<f64>,
     /// Box-to-world rotation; its z column is the up axis.
-    pub rotation: DMat3,
+    pub rotation: Rotation3<f64>,
     /// Object points the box was fitted to.
     pub points: usize,
     /// Height of the support plane in the ground frame, when one was found.
@@ -83,7 +83,7 @@ pub struct FittedBox {
 pub struct FitPoints {
     pub ground: Ground,
     /// Ground-frame points (x, y horizontal, z up), metres.
-    points: Vec<DVec3>,
+    points: Vec<Point3<f64>>,
     /// How many of them came from the model's surface (see [`FitPoints::with_unseen`]).
     unseen: usize,
 }
@@ -94,12 +94,8 @@ impl FitPoints {
     /// pixels' footprint), a real surface gathers points from every frame
     /// that sees it, while the mixed depth at silhouettes (between the
     /// object and what lies behind it) scatters differently in each frame.
-    pub fn new(ground: Ground, world: &[DVec3], cell: f64) -> FitPoints {
-        let points: Vec<DVec3> = world
-            .iter()
-            .map(|&p| ground.to_ground(p))
-            .filter(|p| p.is_finite())
-            .collect();
+    pub fn new(ground: Ground, world: &[Point3<f64>], cell: f64) -> FitPoints {
+        let points: Vec<Point3<f64>> = world.iter().map(|p| ground.to_ground(p)).filter(is_finite).collect();
         let points = if cell > 0.0 { consistent(points, cell) } else { points };
         FitPoints {
             ground,
@@ -114,22 +110,28 @@ impl FitPoints {
     /// Where the sensor saw, its points alone are fitted to, as without a
     /// model. Rendered points come averaged over the views, so instead of
     /// the views' agreement, isolated ones (floaters) are dropped.
-    pub fn with_unseen(ground: Ground, sensor: &[DVec3], cell: f64, rendered: &[DVec3], near: f64) -> FitPoints {
+    pub fn with_unseen(
+        ground: Ground,
+        sensor: &[Point3<f64>],
+        cell: f64,
+        rendered: &[Point3<f64>],
+        near: f64,
+    ) -> FitPoints {
         let mut fit = FitPoints::new(ground, sensor, cell);
         if !(near > 0.0) {
             return fit;
         }
-        let in_ground = |p: &DVec3| Some(ground.to_ground(*p)).filter(|q| q.is_finite());
-        let seen: HashSet<Cell> = sensor.iter().filter_map(in_ground).map(|q| cell_at(q, near)).collect();
-        let unseen: Vec<DVec3> = (rendered.iter().filter_map(in_ground))
-            .filter(|&q| around(cell_at(q, near)).all(|c| !seen.contains(&c)))
+        let in_ground = |p: &Point3<f64>| Some(ground.to_ground(p)).filter(is_finite);
+        let seen: HashSet<Cell> = sensor.iter().filter_map(in_ground).map(|q| cell_at(&q, near)).collect();
+        let unseen: Vec<Point3<f64>> = (rendered.iter().filter_map(in_ground))
+            .filter(|q| around(cell_at(q, near)).all(|c| !seen.contains(&c)))
             .collect();
         let mut counts: HashMap<Cell, usize> = HashMap::new();
-        for &q in &unseen {
+        for q in &unseen {
             *counts.entry(cell_at(q, near)).or_default() += 1;
         }
         let before = fit.points.len();
-        fit.points.extend(unseen.into_iter().filter(|&q| {
+        fit.points.extend(unseen.into_iter().filter(|q| {
             let n: usize = around(cell_at(q, near)).filter_map(|c| counts.get(&c)).sum();
             n >= MIN_UNSEEN_NEIGHBOURS
         }));
@@ -161,33 +163,33 @@ impl FitPoints {
                 let ring_poly = scaled(&poly, RING_SCALE);
                 let (mut inside, mut ring) = (Vec::new(), Vec::new());
                 for &p in &self.points {
-                    let q = p.truncate();
-                    if contains(&poly, q) {
+                    let q = p.xy();
+                    if contains(&poly, &q) {
                         inside.push(p);
-                    } else if contains(&ring_poly, q) {
+                    } else if contains(&ring_poly, &q) {
                         ring.push(p);
                     }
                 }
                 (inside, ring, None, None)
             }
             Region::Seed(seed) => {
-                if !seed.is_finite() {
+                if !is_finite(seed) {
                     return Err(FitError::BadRegion("the seed point is not finite".into()));
                 }
-                let s = g.to_ground(*seed);
-                let near: Vec<DVec3> = (self.points.iter().copied())
-                    .filter(|p| p.truncate().distance(s.truncate()) <= SEED_RADIUS)
+                let s = g.to_ground(seed);
+                let near: Vec<Point3<f64>> = (self.points.iter().copied())
+                    .filter(|p| distance(&p.xy(), &s.xy()) <= SEED_RADIUS)
                     .collect();
                 (near.clone(), near, None, Some(s))
             }
             Region::Shrink(b) => {
-                let axis = g.to_ground_dir(b.rotation.x_axis);
+                let axis = g.to_ground_dir(&b.rotation.matrix().column(0).into_owned());
                 let yaw = axis.y.atan2(axis.x);
-                let c = g.to_ground(b.center);
+                let c = g.to_ground(&b.center);
                 let half = b.size * 0.5;
                 let (mut inside, mut ring) = (Vec::new(), Vec::new());
                 for &p in &self.points {
-                    let q = rotate(p.truncate() - c.truncate(), -yaw);
+                    let q = rotate(p.xy() - c.xy(), -yaw);
                     let h = p.z - c.z;
                     let (ax, ay) = (q.x.abs(), q.y.abs());
                     if ax <= half.x && ay <= half.y && h.abs() <= half.z + 0.02 {
@@ -203,44 +205,45 @@ impl FitPoints {
             return Err(FitError::Empty);
         }
         let support = support_plane(&ring, &inside);
-        let above: Vec<DVec3> = match support {
+        let above: Vec<Point3<f64>> = match support {
             Some((h, band)) => inside.iter().copied().filter(|p| p.z > h + band).collect(),
             None => inside,
         };
         let object = match seed {
-            Some(s) => cluster_near(&above, s),
+            Some(s) => cluster_near(&above, &s),
             None => largest_cluster(&above),
         };
         if object.len() < MIN_OBJECT_POINTS {
             return Err(FitError::NoObject { found: object.len() });
         }
-        let flat: Vec<DVec2> = object.iter().map(|p| p.truncate()).collect();
+        let flat: Vec<Point2<f64>> = object.iter().map(|p| p.xy()).collect();
         let yaw = fixed_yaw.unwrap_or_else(|| best_yaw(&flat));
         // Half the support's noise, so the faces' own points stay inside.
         let margin = support.map_or(MIN_BAND, |(_, band)| band / BAND_SIGMAS).max(MIN_BAND) * 0.5;
-        let (mut u, mut v): (Vec<f64>, Vec<f64>) = flat.iter().map(|&q| rotate(q, -yaw)).map(|q| (q.x, q.y)).unzip();
+        let (mut u, mut v): (Vec<f64>, Vec<f64>) =
+            flat.iter().map(|q| rotate(q.coords, -yaw)).map(|q| (q.x, q.y)).unzip();
         let mut heights: Vec<f64> = object.iter().map(|p| p.z).collect();
         let (u0, u1) = trimmed(&mut u);
         let (v0, v1) = trimmed(&mut v);
         let (h0, h1) = trimmed(&mut heights);
         let bottom = support.map_or(h0 - margin, |(h, _)| h.min(h0));
         let (lo, hi) = (
-            DVec3::new(u0 - margin, v0 - margin, bottom),
-            DVec3::new(u1 + margin, v1 + margin, h1 + margin),
+            Vector3::new(u0 - margin, v0 - margin, bottom),
+            Vector3::new(u1 + margin, v1 + margin, h1 + margin),
         );
         let (mut size, mid) = (hi - lo, (hi + lo) * 0.5);
         let mut yaw_out = yaw;
         if fixed_yaw.is_none() && size.y > size.x {
             // x along the longer horizontal edge.
-            size = DVec3::new(size.y, size.x, size.z);
+            size = Vector3::new(size.y, size.x, size.z);
             yaw_out = yaw + std::f64::consts::FRAC_PI_2;
         }
         let yaw_out = wrap_half_turn(yaw_out);
-        let centre_2d = rotate(mid.truncate(), yaw);
-        let center = g.to_world(DVec3::new(centre_2d.x, centre_2d.y, mid.z));
-        let x = g.to_world_dir(DVec3::new(yaw_out.cos(), yaw_out.sin(), 0.0));
+        let centre_2d = rotate(mid.xy(), yaw);
+        let center = g.to_world(&Point3::new(centre_2d.x, centre_2d.y, mid.z));
+        let x = g.to_world_dir(&Vector3::new(yaw_out.cos(), yaw_out.sin(), 0.0));
         let z = g.up;
-        let rotation = DMat3::from_cols(x, z.cross(x), z);
+        let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, z.cross(&x), z]));
         Ok(FittedBox {
             center,
             size,
@@ -253,9 +256,9 @@ impl FitPoints {
 
 /// The points whose cell holds at least [`CONSISTENT_SHARE`] of the typical
 /// point's cell count (and more than one point).
-fn consistent(points: Vec<DVec3>, cell: f64) -> Vec<DVec3> {
-    let key = |p: &DVec3| {
-        let c = (*p / cell).floor();
+fn consistent(points: Vec<Point3<f64>>, cell: f64) -> Vec<Point3<f64>> {
+    let key = |p: &Point3<f64>| {
+        let c = (p.coords / cell).map(f64::floor);
         (c.x as i64, c.y as i64, c.z as i64)
     };
     let mut counts: HashMap<(i64, i64, i64), u32> = HashMap::new();
@@ -285,19 +288,19 @@ fn wrap_half_turn(yaw: f64) -> f64 {
 }
 
 /// The polygon's vertices in ground-frame 2D, checked.
-fn polygon_2d(g: &Ground, vertices: &[DVec3]) -> Result<Vec<DVec2>, FitError> {
+fn polygon_2d(g: &Ground, vertices: &[Point3<f64>]) -> Result<Vec<Point2<f64>>, FitError> {
     if vertices.len() < 3 || vertices.len() > MAX_POLYGON_VERTICES {
         return Err(FitError::BadRegion(format!(
             "a polygon needs 3 to {MAX_POLYGON_VERTICES} vertices, found {}",
             vertices.len()
         )));
     }
-    if vertices.iter().any(|v| !v.is_finite()) {
+    if !vertices.iter().all(is_finite) {
         return Err(FitError::BadRegion("a polygon vertex is not finite".into()));
     }
-    let poly: Vec<DVec2> = vertices.iter().map(|&v| g.to_ground(v).truncate()).collect();
+    let poly: Vec<Point2<f64>> = vertices.iter().map(|v| g.to_ground(v).xy()).collect();
     let area = (0..poly.len())
-        .map(|i| poly[i].perp_dot(poly[(i + 1) % poly.len()]))
+        .map(|i| poly[i].coords.perp(&poly[(i + 1) % poly.len()].coords))
         .sum::<f64>()
         .abs()
         * 0.5;
@@ -310,7 +313,7 @@ fn polygon_2d(g: &Ground, vertices: &[DVec3]) -> Result<Vec<DVec2>, FitError> {
 }
 
 /// Even-odd point-in-polygon test.
-fn contains(poly: &[DVec2], q: DVec2) -> bool {
+fn contains(poly: &[Point2<f64>], q: &Point2<f64>) -> bool {
     let mut inside = false;
     let mut j = poly.len() - 1;
     for i in 0..poly.len() {
@@ -324,14 +327,19 @@ fn contains(poly: &[DVec2], q: DVec2) -> bool {
 }
 
 /// The polygon scaled about its vertex centroid.
-fn scaled(poly: &[DVec2], factor: f64) -> Vec<DVec2> {
-    let c = poly.iter().copied().sum::<DVec2>() / poly.len() as f64;
+fn scaled(poly: &[Point2<f64>], factor: f64) -> Vec<Point2<f64>> {
+    let c = Point2::from(poly.iter().map(|p| p.coords).sum::<Vector2<f64>>() / poly.len() as f64);
     poly.iter().map(|&p| c + (p - c) * factor).collect()
 }
 
-fn rotate(q: DVec2, angle: f64) -> DVec2 {
+fn rotate(q: Vector2<f64>, angle: f64) -> Vector2<f64> {
     let (s, c) = angle.sin_cos();
-    DVec2::new(c * q.x - s * q.y, s * q.x + c * q.y)
+    Vector2::new(c * q.x - s * q.y, s * q.x + c * q.y)
+}
+
+/// Whether every coordinate is a finite number.
+fn is_finite(p: &Point3<f64>) -> bool {
+    p.iter().all(|c| c.is_finite())
 }
 
 /// Value at quantile `t` of `values` (reordered in place); NaN when empty.
@@ -351,7 +359,7 @@ fn trimmed(values: &mut [f64]) -> (f64, f64) {
 /// The support below the region's object: the fullest height bin of the
 /// context points that lies below the middle of the region's points.
 /// Returns its height and band (ground frame, metres).
-fn support_plane(context: &[DVec3], inside: &[DVec3]) -> Option<(f64, f64)> {
+fn support_plane(context: &[Point3<f64>], inside: &[Point3<f64>]) -> Option<(f64, f64)> {
     if context.len() < MIN_OBJECT_POINTS {
         return None;
     }
@@ -383,12 +391,12 @@ fn support_plane(context: &[DVec3], inside: &[DVec3]) -> Option<(f64, f64)> {
 
 type Cell = (i64, i64, i64);
 
-fn cell_of(p: DVec3) -> Cell {
+fn cell_of(p: &Point3<f64>) -> Cell {
     cell_at(p, CLUSTER_CELL)
 }
 
-fn cell_at(p: DVec3, edge: f64) -> Cell {
-    let c = (p / edge).floor();
+fn cell_at(p: &Point3<f64>, edge: f64) -> Cell {
+    let c = (p.coords / edge).map(f64::floor);
     (c.x as i64, c.y as i64, c.z as i64)
 }
 
@@ -399,9 +407,9 @@ fn around(c: Cell) -> impl Iterator<Item = Cell> {
 
 /// Connected components of the occupied cells (26-neighbourhood), each as
 /// the indices of its points; sorted by size, largest first.
-fn clusters(points: &[DVec3]) -> Vec<Vec<usize>> {
+fn clusters(points: &[Point3<f64>]) -> Vec<Vec<usize>> {
     let mut cells: HashMap<Cell, Vec<usize>> = HashMap::new();
-    for (i, &p) in points.iter().enumerate() {
+    for (i, p) in points.iter().enumerate() {
         cells.entry(cell_of(p)).or_default().push(i);
     }
     let mut keys: Vec<Cell> = cells.keys().copied().collect();
@@ -435,39 +443,43 @@ fn clusters(points: &[DVec3]) -> Vec<Vec<usize>> {
     out
 }
 
-fn largest_cluster(points: &[DVec3]) -> Vec<DVec3> {
+fn largest_cluster(points: &[Point3<f64>]) -> Vec<Point3<f64>> {
     (clusters(points).into_iter().next())
         .map(|c| c.into_iter().map(|i| points[i]).collect())
         .unwrap_or_default()
 }
 
 /// The cluster whose top-view footprint comes nearest the seed.
-fn cluster_near(points: &[DVec3], seed: DVec3) -> Vec<DVec3> {
-    let s = seed.truncate();
-    let distance = |c: &Vec<usize>| {
+fn cluster_near(points: &[Point3<f64>], seed: &Point3<f64>) -> Vec<Point3<f64>> {
+    let s = seed.xy();
+    let gap = |c: &Vec<usize>| {
         c.iter()
-            .map(|&i| points[i].truncate().distance(s))
+            .map(|&i| distance(&points[i].xy(), &s))
             .fold(f64::INFINITY, f64::min)
     };
     (clusters(points).into_iter().filter(|c| c.len() >= MIN_OBJECT_POINTS))
-        .min_by(|a, b| distance(a).total_cmp(&distance(b)))
+        .min_by(|a, b| gap(a).total_cmp(&gap(b)))
         .map(|c| c.into_iter().map(|i| points[i]).collect())
         .unwrap_or_default()
 }
 
 /// Yaw of the footprint: the 2D principal axes' angle, refined to the
 /// smallest trimmed footprint area within 45° of it.
-fn best_yaw(points: &[DVec2]) -> f64 {
+fn best_yaw(points: &[Point2<f64>]) -> f64 {
     let n = points.len() as f64;
-    let mean = points.iter().copied().sum::<DVec2>() / n;
+    let mean = points.iter().map(|p| p.coords).sum::<Vector2<f64>>() / n;
     let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
     for p in points {
-        let d = *p - mean;
+        let d = p.coords - mean;
         (sxx, sxy, syy) = (sxx + d.x * d.x, sxy + d.x * d.y, syy + d.y * d.y);
     }
     let principal = 0.5 * (2.0 * sxy).atan2(sxx - syy);
     let area = |yaw: f64| {
-        let (mut u, mut v): (Vec<f64>, Vec<f64>) = points.iter().map(|&q| rotate(q, -yaw)).map(|q| (q.x, q.y)).unzip();
+        let (mut u, mut v): (Vec<f64>, Vec<f64>) = points
+            .iter()
+            .map(|q| rotate(q.coords, -yaw))
+            .map(|q| (q.x, q.y))
+            .unzip();
         let (u0, u1) = trimmed(&mut u);
         let (v0, v1) = trimmed(&mut v);
         (u1 - u0) * (v1 - v0)
@@ -496,33 +508,33 @@ mod tests {
     use super::*;
 
     /// Points on the visible faces of a box standing on a floor plane, plus the floor.
-    fn scene(yaw: f64, size: DVec3, centre: DVec2) -> Vec<DVec3> {
+    fn scene(yaw: f64, size: Vector3<f64>, centre: Vector2<f64>) -> Vec<Point3<f64>> {
         let mut pts = Vec::new();
         let step = 0.004;
         let mut x = -1.0;
         while x < 1.0 {
             let mut y = -1.0;
             while y < 1.0 {
-                pts.push(DVec3::new(x, y, 0.0));
+                pts.push(Point3::new(x, y, 0.0));
                 y += step;
             }
             x += step;
         }
-        let r = |q: DVec2| rotate(q, yaw) + centre;
+        let r = |q: Vector2<f64>| rotate(q, yaw) + centre;
         let h = size * 0.5;
         let mut a = -h.x;
         while a <= h.x {
             let mut b = -h.y;
             while b <= h.y {
-                let q = r(DVec2::new(a, b));
-                pts.push(DVec3::new(q.x, q.y, size.z));
+                let q = r(Vector2::new(a, b));
+                pts.push(Point3::new(q.x, q.y, size.z));
                 b += step;
             }
             let mut z = 0.0;
             while z <= size.z {
                 for side in [-h.y, h.y] {
-                    let q = r(DVec2::new(a, side));
-                    pts.push(DVec3::new(q.x, q.y, z));
+                    let q = r(Vector2::new(a, side));
+                    pts.push(Point3::new(q.x, q.y, z));
                 }
                 z += step;
             }
@@ -533,8 +545,8 @@ mod tests {
             let mut z = 0.0;
             while z <= size.z {
                 for side in [-h.x, h.x] {
-                    let q = r(DVec2::new(side, b));
-                    pts.push(DVec3::new(q.x, q.y, z));
+                    let q = r(Vector2::new(side, b));
+                    pts.push(Point3::new(q.x, q.y, z));
                 }
                 z += step;
             }
@@ -543,79 +555,87 @@ mod tests {
         pts
     }
 
-    fn rect(c: DVec2, half: f64) -> Region {
+    fn rect(c: Vector2<f64>, half: f64) -> Region {
         Region::Polygon(
             [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-                .map(|(x, y)| DVec3::new(c.x + x * half, c.y + y * half, 0.5))
+                .map(|(x, y)| Point3::new(c.x + x * half, c.y + y * half, 0.5))
                 .to_vec(),
         )
     }
 
     #[test]
     fn a_box_on_a_floor_is_recovered_from_a_rectangle_around_it() {
-        let (yaw, size, c) = (0.5, DVec3::new(0.3, 0.2, 0.15), DVec2::new(0.1, -0.2));
+        let (yaw, size, c) = (0.5, Vector3::new(0.3, 0.2, 0.15), Vector2::new(0.1, -0.2));
         let fit = FitPoints::new(Ground::z_up(), &scene(yaw, size, c), 0.0);
         let b = fit.fit(&rect(c, 0.3)).unwrap();
-        assert!((b.size - size).abs().max_element() < 0.006, "{:?}", b.size);
-        assert!(b.center.distance(DVec3::new(c.x, c.y, 0.075)) < 0.004, "{:?}", b.center);
-        let got = b.rotation.x_axis.y.atan2(b.rotation.x_axis.x);
+        assert!((b.size - size).abs().max() < 0.006, "{:?}", b.size);
+        assert!(
+            distance(&b.center, &Point3::new(c.x, c.y, 0.075)) < 0.004,
+            "{:?}",
+            b.center
+        );
+        let x_axis = b.rotation.matrix().column(0);
+        let got = x_axis.y.atan2(x_axis.x);
         assert!((got - yaw).abs() < 0.5f64.to_radians(), "yaw {got}");
-        assert!((b.rotation.z_axis - DVec3::Z).length() < 1e-9);
+        assert!((b.rotation.matrix().column(2) - Vector3::z()).norm() < 1e-9);
         assert!(b.support_height.is_some_and(|h| h.abs() < 1e-3));
     }
 
     #[test]
     fn a_seed_click_and_a_shrink_give_the_same_box() {
-        let (yaw, size, c) = (-0.3, DVec3::new(0.25, 0.1, 0.2), DVec2::new(-0.3, 0.3));
+        let (yaw, size, c) = (-0.3, Vector3::new(0.25, 0.1, 0.2), Vector2::new(-0.3, 0.3));
         let fit = FitPoints::new(Ground::z_up(), &scene(yaw, size, c), 0.0);
-        let seeded = fit.fit(&Region::Seed(DVec3::new(c.x, c.y, 0.2))).unwrap();
-        assert!((seeded.size - size).abs().max_element() < 0.006, "{:?}", seeded.size);
+        let seeded = fit.fit(&Region::Seed(Point3::new(c.x, c.y, 0.2))).unwrap();
+        assert!((seeded.size - size).abs().max() < 0.006, "{:?}", seeded.size);
         let loose = Box3 {
             label: "x".into(),
             instance_id: 1,
             center: seeded.center,
-            size: seeded.size + DVec3::splat(0.1),
+            size: seeded.size + Vector3::repeat(0.1),
             rotation: seeded.rotation,
         };
         let shrunk = fit.fit(&Region::Shrink(loose)).unwrap();
-        assert!(
-            (shrunk.size - seeded.size).abs().max_element() < 0.003,
-            "{:?}",
-            shrunk.size
-        );
-        assert!(shrunk.center.distance(seeded.center) < 0.003);
+        assert!((shrunk.size - seeded.size).abs().max() < 0.003, "{:?}", shrunk.size);
+        assert!(distance(&shrunk.center, &seeded.center) < 0.003);
     }
 
     #[test]
     fn a_box_only_the_rendered_surface_has_is_fitted_and_a_floater_is_not() {
-        let (yaw, size, c) = (0.2, DVec3::new(0.12, 0.08, 0.1), DVec2::new(0.2, 0.1));
+        let (yaw, size, c) = (0.2, Vector3::new(0.12, 0.08, 0.1), Vector2::new(0.2, 0.1));
         let all = scene(yaw, size, c);
-        let floor: Vec<DVec3> = all.iter().copied().filter(|p| p.z == 0.0).collect();
-        let mut rendered: Vec<DVec3> = all.iter().copied().step_by(2).collect();
-        rendered.push(DVec3::new(-0.6, -0.6, 0.2));
+        let floor: Vec<Point3<f64>> = all.iter().copied().filter(|p| p.z == 0.0).collect();
+        let mut rendered: Vec<Point3<f64>> = all.iter().copied().step_by(2).collect();
+        rendered.push(Point3::new(-0.6, -0.6, 0.2));
         let sensor_only = FitPoints::new(Ground::z_up(), &floor, 0.0);
         assert!(sensor_only.fit(&rect(c, 0.15)).is_err());
         let fit = FitPoints::with_unseen(Ground::z_up(), &floor, 0.0, &rendered, 0.008);
         assert!(fit.unseen() > 500, "{} rendered points kept", fit.unseen());
         let b = fit.fit(&rect(c, 0.15)).unwrap();
-        assert!((b.size - size).abs().max_element() < 0.02, "{:?}", b.size);
-        assert!(b.center.truncate().distance(c) < 0.005, "{:?}", b.center);
+        assert!((b.size - size).abs().max() < 0.02, "{:?}", b.size);
+        assert!((b.center.coords.xy() - c).norm() < 0.005, "{:?}", b.center);
         assert_eq!(
-            fit.fit(&rect(DVec2::new(-0.6, -0.6), 0.1)).unwrap_err(),
+            fit.fit(&rect(Vector2::new(-0.6, -0.6), 0.1)).unwrap_err(),
             FitError::NoObject { found: 0 }
         );
     }
 
     #[test]
     fn regions_without_an_object_are_refused() {
-        let fit = FitPoints::new(Ground::z_up(), &scene(0.0, DVec3::new(0.2, 0.2, 0.2), DVec2::ZERO), 0.0);
+        let fit = FitPoints::new(
+            Ground::z_up(),
+            &scene(0.0, Vector3::new(0.2, 0.2, 0.2), Vector2::zeros()),
+            0.0,
+        );
         assert_eq!(
-            fit.fit(&rect(DVec2::new(0.7, 0.7), 0.1)).unwrap_err(),
+            fit.fit(&rect(Vector2::new(0.7, 0.7), 0.1)).unwrap_err(),
             FitError::NoObject { found: 0 }
         );
-        assert_eq!(fit.fit(&rect(DVec2::new(5.0, 5.0), 0.1)).unwrap_err(), FitError::Empty);
+        assert_eq!(
+            fit.fit(&rect(Vector2::new(5.0, 5.0), 0.1)).unwrap_err(),
+            FitError::Empty
+        );
         assert!(matches!(
-            fit.fit(&Region::Polygon(vec![DVec3::ZERO, DVec3::X])),
+            fit.fit(&Region::Polygon(vec![Point3::origin(), Point3::new(1.0, 0.0, 0.0)])),
             Err(FitError::BadRegion(_))
         ));
     }

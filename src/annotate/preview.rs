@@ -4,7 +4,7 @@
 use crate::boxes::{BoxSet, DepthSource, LabelError, LabelOptions, Labeler};
 use crate::nerf::model_file::Model;
 use crate::scan::Frame;
-use glam::DVec3;
+use nalgebra::Point3;
 
 /// Share of the mask colour in a masked pixel.
 const TINT: f32 = 0.5;
@@ -37,7 +37,7 @@ pub fn render_preview(
     frame: &Frame,
     boxes: &BoxSet,
     model: Option<&Model>,
-    support_points: &[DVec3],
+    support_points: &[Point3<f64>],
 ) -> Result<image::RgbImage, LabelError> {
     let mut img = frame.rgb.clone();
     if boxes.boxes.is_empty() {

@@ -12,7 +12,7 @@ use crate::boxes::{read_boxes, BoxError, BoxSet};
 use crate::nerf::model_file::Model;
 use crate::poses::{fuse_cloud, sample_depth_points, CloudOptions, DepthSamples, GeometryError};
 use crate::scan::Scan;
-use glam::DVec3;
+use nalgebra::Point3;
 use std::path::PathBuf;
 use std::sync::Mutex;
 
@@ -46,7 +46,7 @@ pub struct Session {
     pub model: Option<Model>,
     pub fit: FitPoints,
     /// Surface points (world metres) for the previews' support planes.
-    pub surface: Vec<DVec3>,
+    pub surface: Vec<Point3<f64>>,
     /// `GET /api/cloud.bin`.
     pub cloud_bin: Vec<u8>,
     /// Serialises writes of the boxes file.
@@ -82,7 +82,7 @@ impl Session {
         if samples.points.is_empty() {
             return Err(SessionError::NoDepth(scan_dir.display().to_string()));
         }
-        let points = crate::glam_bridge::points_to_glam(&samples.points);
+        let points = samples.points.clone();
         let ground = Ground::estimate(&scan, &points);
         let options = CloudOptions {
             voxels_per_extent: CLOUD_VOXELS,
@@ -92,8 +92,8 @@ impl Session {
         let (fit, cloud) = match &model {
             Some(model) => {
                 let cloud = completed_cloud(&scan, model, &options, progress)?;
-                let rendered: Vec<DVec3> = (cloud.positions.iter())
-                    .map(|p| DVec3::from_array(p.map(f64::from)))
+                let rendered: Vec<Point3<f64>> = (cloud.positions.iter())
+                    .map(|p| Point3::from(p.map(f64::from)))
                     .collect();
                 // Two voxels: the averaged point of a voxel the sensor saw
                 // lies within one of the sensor's own samples.
@@ -103,7 +103,7 @@ impl Session {
             }
             None => (FitPoints::new(ground, &points, cell), fuse_cloud(&scan, &options)?),
         };
-        let cloud_bin = cloud_bin::encode(&cloud, ground.up, CLOUD_POINTS);
+        let cloud_bin = cloud_bin::encode(&cloud, &ground.up, CLOUD_POINTS);
         Ok(Session {
             scan,
             scan_dir,

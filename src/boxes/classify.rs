@@ -4,47 +4,46 @@
 //! [`Overlap::Deepest`], to the box it lies deepest inside.
 
 use super::parse::BoxSet;
-use crate::glam_bridge::ToNalgebra;
 use crate::poses::DAabb;
-use glam::{DMat3, DVec3};
+use nalgebra::{Point3, Rotation3, Vector3};
 
 /// One box prepared for fast tests.
 #[derive(Clone, Copy, Debug)]
 struct Prepared {
     /// World-to-box rotation (transpose of box-to-world).
-    world_to_box: DMat3,
-    center: DVec3,
-    half: DVec3,
+    world_to_box: Rotation3<f64>,
+    center: Point3<f64>,
+    half: Vector3<f64>,
     /// World-axis bounds of the box, for a cheap first rejection.
-    lo: DVec3,
-    hi: DVec3,
+    lo: Point3<f64>,
+    hi: Point3<f64>,
     instance_id: u32,
 }
 
 impl Prepared {
     #[inline]
-    fn contains(&self, p: DVec3) -> bool {
+    fn contains(&self, p: &Point3<f64>) -> bool {
         self.depth_of(p).is_some()
     }
 
     /// Distance from `p` to the nearest face when `p` is inside (0 on a face).
     #[inline]
-    fn depth_of(&self, p: DVec3) -> Option<f64> {
-        if p.cmplt(self.lo).any() || p.cmpgt(self.hi).any() {
+    fn depth_of(&self, p: &Point3<f64>) -> Option<f64> {
+        if (0..3).any(|a| p[a] < self.lo[a] || p[a] > self.hi[a]) {
             return None;
         }
         let room = self.half - (self.world_to_box * (p - self.center)).abs();
-        let depth = room.min_element();
+        let depth = room.min();
         (depth >= 0.0).then_some(depth)
     }
 
     /// Parameter interval [t0, t1] of `origin + t * dir` inside the box (t unbounded).
     #[inline]
-    fn ray(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
-        let o = self.world_to_box * (origin - self.center);
+    fn ray(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<(f64, f64)> {
+        let o = Point3::from(self.world_to_box * (origin - self.center));
         let d = self.world_to_box * dir;
-        DAabb::new((-self.half).to_na(), self.half.to_na())
-            .line_crossing(&o.to_na(), &crate::glam_bridge::vector(d))
+        DAabb::new(Point3::from(-self.half), Point3::from(self.half))
+            .line_crossing(&o, &d)
             .map(|c| (c.t_near, c.t_far))
     }
 }
@@ -102,7 +101,7 @@ impl BoxClassifier {
                 let r = b.rotation;
                 let extent = b.world_half_extent();
                 // A hair of slack so the coarse test never rejects a face point.
-                let slack = DVec3::splat(1e-12 * (1.0 + b.center.abs().max_element() + extent.max_element()));
+                let slack = Vector3::repeat(1e-12 * (1.0 + b.center.coords.abs().max() + extent.max()));
                 Prepared {
                     world_to_box: r.transpose(),
                     center: b.center,
@@ -128,7 +127,7 @@ impl BoxClassifier {
 
     /// Instance id of the box holding `p` (by the overlap rule), 0 = none.
     #[inline]
-    pub fn classify(&self, p: DVec3) -> u32 {
+    pub fn classify(&self, p: &Point3<f64>) -> u32 {
         match self.overlap {
             Overlap::Smallest => self.boxes.iter().find(|b| b.contains(p)).map_or(0, |b| b.instance_id),
             Overlap::Deepest => {
@@ -146,16 +145,16 @@ impl BoxClassifier {
     }
 
     /// Instance ids of every box holding `p`, smallest box first.
-    pub fn containing(&self, p: DVec3) -> impl Iterator<Item = u32> + '_ {
-        self.boxes.iter().filter(move |b| b.contains(p)).map(|b| b.instance_id)
+    pub fn containing(&self, p: Point3<f64>) -> impl Iterator<Item = u32> + '_ {
+        self.boxes.iter().filter(move |b| b.contains(&p)).map(|b| b.instance_id)
     }
 
     /// Instance id for the surface point at `t` along the unit ray: the
     /// box holding it, else the smallest box the ray enters within
     /// `tolerance` behind it (a surface resolved only to about that much,
     /// met just in front of a box, belongs to what is in the box); 0 = none.
-    pub fn classify_on_ray(&self, origin: DVec3, dir: DVec3, t: f64, tolerance: f64) -> u32 {
-        let id = self.classify(origin + dir * t);
+    pub fn classify_on_ray(&self, origin: &Point3<f64>, dir: &Vector3<f64>, t: f64, tolerance: f64) -> u32 {
+        let id = self.classify(&(origin + dir * t));
         if id != 0 || tolerance.is_nan() || tolerance <= 0.0 {
             return id;
         }
@@ -167,7 +166,7 @@ impl BoxClassifier {
 
     /// Hull [t0, t1] (t0 >= 0) of the intervals of `origin + t * dir` through
     /// all boxes; `None` when the ray meets no box in front of the origin.
-    pub fn ray_interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
+    pub fn ray_interval(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<(f64, f64)> {
         let mut hull: Option<(f64, f64)> = None;
         for b in &self.boxes {
             if let Some((t0, t1)) = b.ray(origin, dir) {
@@ -190,11 +189,11 @@ mod tests {
     use super::super::parse::Box3;
     use super::*;
     use crate::rng::Rng;
-    use glam::DQuat;
+    use nalgebra::{Quaternion, UnitQuaternion};
 
-    fn random_rotation(rng: &mut Rng) -> DMat3 {
-        let q = DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize();
-        DMat3::from_quat(q)
+    fn random_rotation(rng: &mut Rng) -> Rotation3<f64> {
+        let (x, y, z, w) = (rng.normal(), rng.normal(), rng.normal(), rng.normal());
+        UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)).to_rotation_matrix()
     }
 
     /// Random oriented boxes with nested and overlapping pairs.
@@ -208,7 +207,8 @@ mod tests {
                 Box3 {
                     label: format!("n{i}"),
                     instance_id: id,
-                    center: prev.center + DVec3::new(rng.range(-0.1, 0.1), rng.range(-0.1, 0.1), rng.range(-0.1, 0.1)),
+                    center: prev.center
+                        + Vector3::new(rng.range(-0.1, 0.1), rng.range(-0.1, 0.1), rng.range(-0.1, 0.1)),
                     size: prev.size * rng.range(0.3, 0.9),
                     rotation: random_rotation(rng),
                 }
@@ -216,8 +216,8 @@ mod tests {
                 Box3 {
                     label: format!("b{}", i % 4),
                     instance_id: id,
-                    center: DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)),
-                    size: DVec3::new(rng.range(0.1, 1.0), rng.range(0.1, 1.0), rng.range(0.1, 1.0)),
+                    center: Point3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)),
+                    size: Vector3::new(rng.range(0.1, 1.0), rng.range(0.1, 1.0), rng.range(0.1, 1.0)),
                     rotation: random_rotation(rng),
                 }
             };
@@ -231,7 +231,7 @@ mod tests {
     }
 
     /// The definition: among boxes containing p, the smallest, then lowest id.
-    fn brute_force(set: &BoxSet, p: DVec3) -> u32 {
+    fn brute_force(set: &BoxSet, p: &Point3<f64>) -> u32 {
         set.boxes
             .iter()
             .filter(|b| b.contains(p))
@@ -253,7 +253,7 @@ mod tests {
             let classifier = BoxClassifier::new(&set);
             assert_eq!(classifier.len(), set.boxes.len());
             for _ in 0..5000 {
-                let p = DVec3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
+                let p = &Point3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
                 let want = brute_force(&set, p);
                 assert_eq!(classifier.classify(p), want, "round {round} point {p}");
                 hits += (want != 0) as usize;
@@ -262,10 +262,9 @@ mod tests {
             // Points near every box's centre exercise the nested cases densely.
             for b in &set.boxes {
                 for _ in 0..200 {
-                    let p = b.center
-                        + b.rotation
-                            * (b.size * DVec3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.6, 0.6)));
-                    assert_eq!(classifier.classify(p), brute_force(&set, p));
+                    let at = Vector3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.6, 0.6));
+                    let p = b.center + b.rotation * b.size.component_mul(&at);
+                    assert_eq!(classifier.classify(&p), brute_force(&set, &p));
                 }
             }
         }
@@ -275,8 +274,8 @@ mod tests {
 
     /// The deepest rule: among boxes containing p, the one whose nearest face
     /// is farthest, then the smallest, then the lowest id.
-    fn brute_force_deepest(set: &BoxSet, p: DVec3) -> u32 {
-        let depth = |b: &Box3| (b.size * 0.5 - b.to_local(p).abs()).min_element();
+    fn brute_force_deepest(set: &BoxSet, p: &Point3<f64>) -> u32 {
+        let depth = |b: &Box3| (b.size * 0.5 - b.to_local(p).abs()).min();
         set.boxes
             .iter()
             .filter(|b| b.contains(p))
@@ -297,7 +296,7 @@ mod tests {
             let set = random_set(&mut rng, 9 + round % 4);
             let deepest = BoxClassifier::with_overlap(&set, Overlap::Deepest);
             for _ in 0..5000 {
-                let p = DVec3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
+                let p = &Point3::new(rng.range(-1.3, 1.3), rng.range(-1.3, 1.3), rng.range(-1.3, 1.3));
                 let want = brute_force_deepest(&set, p);
                 assert_eq!(deepest.classify(p), want, "round {round} point {p}");
                 differs += (want != brute_force(&set, p)) as usize;
@@ -314,25 +313,25 @@ mod tests {
         let box_around = |id: u32, lo: f64, hi: f64| Box3 {
             label: format!("o{id}"),
             instance_id: id,
-            center: DVec3::new(0.5 * (lo + hi), 0.0, 0.0),
-            size: DVec3::new(hi - lo + 0.02, 0.2, 0.2),
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(0.5 * (lo + hi), 0.0, 0.0),
+            size: Vector3::new(hi - lo + 0.02, 0.2, 0.2),
+            rotation: Rotation3::identity(),
         };
         // Small object x in [0, 0.1], big one x in [0.102, 0.302].
         let set = BoxSet::from_boxes(vec![box_around(1, 0.0, 0.1), box_around(2, 0.102, 0.302)]);
-        let small_face = DVec3::new(0.1, 0.0, 0.0);
-        let big_face = DVec3::new(0.102, 0.0, 0.0);
+        let small_face = &Point3::new(0.1, 0.0, 0.0);
+        let big_face = &Point3::new(0.102, 0.0, 0.0);
         let smallest = BoxClassifier::new(&set);
         assert_eq!((smallest.classify(small_face), smallest.classify(big_face)), (1, 1));
         let deepest = BoxClassifier::with_overlap(&set, Overlap::Deepest);
         assert_eq!((deepest.classify(small_face), deepest.classify(big_face)), (1, 2));
         // Outside both, and deep inside each: the rules agree.
         for (p, id) in [
-            (DVec3::new(-0.02, 0.0, 0.0), 0),
-            (DVec3::new(0.05, 0.0, 0.0), 1),
-            (DVec3::new(0.2, 0.0, 0.0), 2),
+            (Point3::new(-0.02, 0.0, 0.0), 0),
+            (Point3::new(0.05, 0.0, 0.0), 1),
+            (Point3::new(0.2, 0.0, 0.0), 2),
         ] {
-            assert_eq!((smallest.classify(p), deepest.classify(p)), (id, id), "{p}");
+            assert_eq!((smallest.classify(&p), deepest.classify(&p)), (id, id), "{p}");
         }
         use clap::ValueEnum;
         assert_eq!(Overlap::from_str("deepest", false), Ok(Overlap::Deepest));
@@ -351,9 +350,9 @@ mod tests {
             let set = random_set(&mut rng, 6);
             let c = BoxClassifier::new(&set);
             for _ in 0..300 {
-                let origin = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
-                let dir =
-                    (DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)) - origin).normalize();
+                let origin = Point3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
+                let dir = (Point3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)) - origin)
+                    .normalize();
                 let (t, tolerance) = (rng.range(0.0, 5.0), rng.range(0.0, 0.5));
                 // Reference by sampling: the point's own box, else the smallest
                 // box holding a sample within the tolerance behind it.
@@ -365,7 +364,7 @@ mod tests {
                         c.boxes
                             .iter()
                             .find(|p| p.instance_id == b.instance_id)?
-                            .ray(origin, dir)
+                            .ray(&origin, &dir)
                     })
                     .map(|(t0, _)| t0)
                     .collect();
@@ -375,7 +374,7 @@ mod tests {
                 {
                     continue;
                 }
-                let own = brute_force(&set, origin + dir * t);
+                let own = brute_force(&set, &(origin + dir * t));
                 let want = if own != 0 {
                     inside += 1;
                     own
@@ -384,7 +383,8 @@ mod tests {
                         .boxes
                         .iter()
                         .filter(|b| {
-                            (1..=(tolerance / step) as usize).any(|k| b.contains(origin + dir * (t + k as f64 * step)))
+                            (1..=(tolerance / step) as usize)
+                                .any(|k| b.contains(&(origin + dir * (t + k as f64 * step))))
                         })
                         .collect();
                     let best = ahead.iter().min_by(|a, b| {
@@ -404,11 +404,11 @@ mod tests {
                     )
                 };
                 assert_eq!(
-                    c.classify_on_ray(origin, dir, t, tolerance),
+                    c.classify_on_ray(&origin, &dir, t, tolerance),
                     want,
                     "t {t} tolerance {tolerance}"
                 );
-                assert_eq!(c.classify_on_ray(origin, dir, t, 0.0), own);
+                assert_eq!(c.classify_on_ray(&origin, &dir, t, 0.0), own);
             }
         }
         assert!(
@@ -424,9 +424,9 @@ mod tests {
         let dup = set.boxes.last().unwrap();
         let c = BoxClassifier::new(&set);
         // The duplicate's centre lies in box 1 and the duplicate (and maybe smaller ones).
-        let id = c.classify(dup.center);
+        let id = c.classify(&dup.center);
         assert_ne!(id, dup.instance_id);
-        assert_eq!(id, brute_force(&set, dup.center));
+        assert_eq!(id, brute_force(&set, &dup.center));
     }
 
     #[test]
@@ -437,16 +437,16 @@ mod tests {
             let set = random_set(&mut rng, 6);
             let c = BoxClassifier::new(&set);
             for _ in 0..200 {
-                let origin = DVec3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
-                let target = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+                let origin = Point3::new(rng.range(-3.0, 3.0), rng.range(-3.0, 3.0), rng.range(-3.0, 3.0));
+                let target = Point3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
                 // Unnormalised direction: t is in units of dir.
                 let dir = (target - origin) * rng.range(0.5, 2.0);
                 let step = 1e-3;
                 let inside: Vec<f64> = (0..6000)
                     .map(|k| k as f64 * step)
-                    .filter(|&t| set.boxes.iter().any(|b| b.contains(origin + dir * t)))
+                    .filter(|&t| set.boxes.iter().any(|b| b.contains(&(origin + dir * t))))
                     .collect();
-                match c.ray_interval(origin, dir) {
+                match c.ray_interval(&origin, &dir) {
                     None => assert!(inside.is_empty(), "missed samples at {:?}", inside.first()),
                     // A grazing hit shorter than the sampling step may have no sample inside.
                     Some((t0, t1)) if inside.is_empty() => assert!(t1 - t0 <= step, "[{t0}, {t1}] without samples"),
@@ -465,16 +465,16 @@ mod tests {
         let set = BoxSet::from_boxes(vec![Box3 {
             label: "a".into(),
             instance_id: 1,
-            center: DVec3::ZERO,
-            size: DVec3::ONE,
-            rotation: DMat3::IDENTITY,
+            center: Point3::origin(),
+            size: Vector3::repeat(1.0),
+            rotation: Rotation3::identity(),
         }]);
         let c = BoxClassifier::new(&set);
-        assert_eq!(c.ray_interval(DVec3::ZERO, DVec3::X), Some((0.0, 0.5)));
-        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.0, 0.0), DVec3::X), None);
-        assert_eq!(c.ray_interval(DVec3::new(2.0, 0.7, 0.0), -DVec3::X), None);
+        assert_eq!(c.ray_interval(&Point3::origin(), &Vector3::x()), Some((0.0, 0.5)));
+        assert_eq!(c.ray_interval(&Point3::new(2.0, 0.0, 0.0), &Vector3::x()), None);
+        assert_eq!(c.ray_interval(&Point3::new(2.0, 0.7, 0.0), &-Vector3::x()), None);
         assert_eq!(
-            c.ray_interval(DVec3::new(2.0, 0.0, 0.0), -DVec3::X * 2.0),
+            c.ray_interval(&Point3::new(2.0, 0.0, 0.0), &(-Vector3::x() * 2.0)),
             Some((0.75, 1.25))
         );
     }

@@ -5,7 +5,7 @@
 use super::label::FrameLabel;
 use super::parse::BoxSet;
 use super::rle::encode_instances;
-use glam::DMat4;
+use nalgebra::IsometryMatrix3;
 use serde::Serialize;
 
 /// Provenance recorded in `info`.
@@ -100,9 +100,10 @@ pub struct FrameRecord {
     pub yolo: String,
 }
 
-/// Rows of a 4x4 matrix.
-pub fn rows4(m: &DMat4) -> [[f64; 4]; 4] {
-    std::array::from_fn(|r| m.row(r).to_array())
+/// Rows of a rigid transform's 4x4 matrix.
+pub fn rows4(m: &IsometryMatrix3<f64>) -> [[f64; 4]; 4] {
+    let m = m.to_homogeneous();
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
 }
 
 /// COCO entries and YOLO lines of one labelled frame (ids filled in later by [`assemble`]).
@@ -201,15 +202,15 @@ mod tests {
     use super::*;
     use crate::boxes::label::instances_of;
     use crate::boxes::parse::Box3;
-    use glam::{DMat3, DVec3};
+    use nalgebra::{Point3, Rotation3, Translation3, Vector3};
 
     fn set() -> BoxSet {
         let b = |label: &str, id: u32| Box3 {
             label: label.into(),
             instance_id: id,
-            center: DVec3::new(id as f64, 0.0, 2.0),
-            size: DVec3::ONE,
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(id as f64, 0.0, 2.0),
+            size: Vector3::repeat(1.0),
+            rotation: Rotation3::identity(),
         };
         BoxSet::from_boxes(vec![b("mug", 1), b("book", 2), b("mug", 3)])
     }
@@ -226,7 +227,7 @@ mod tests {
             }
         }
         mask[7] = 2;
-        let w2c = DMat4::from_translation(DVec3::new(0.0, 0.0, 1.0));
+        let w2c = IsometryMatrix3::from_parts(Translation3::new(0.0, 0.0, 1.0), Rotation3::identity());
         let instances = instances_of(&mask, w, h, &boxes, &w2c);
         let label = FrameLabel {
             frame_id: 12,

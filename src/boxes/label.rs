@@ -17,7 +17,6 @@ use super::reach::{self, Contested};
 use super::support::{excluded_planes, ExcludedPlane};
 use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use super::tsdf::BoxTsdf;
-use crate::glam_bridge::ToGlam;
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::model_file::Model;
 use crate::nerf::render::march::ray_interval;
@@ -26,7 +25,7 @@ use crate::nerf::render::view::ViewRenderer;
 use crate::poses::sample_depth_points;
 use crate::scan::Frame;
 use crate::scan::Scan;
-use glam::{DMat3, DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3, Vector3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -44,7 +43,7 @@ pub struct InstanceLabel {
     /// Mask pixels.
     pub area: u64,
     /// Rigid box pose in the camera frame (OpenCV axes): world-to-camera x object-to-world.
-    pub object_to_camera: DMat4,
+    pub object_to_camera: IsometryMatrix3<f64>,
 }
 
 /// Labels of one frame.
@@ -191,13 +190,13 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        Ok(self.exclude_supports_among(&crate::glam_bridge::points_to_glam(&samples.points)))
+        Ok(self.exclude_supports_among(&samples.points))
     }
 
     /// [`Self::exclude_supports`] with the scan's surface points (world
     /// metres) sampled once by the caller (the annotation server labels
     /// one frame per edit).
-    pub fn exclude_supports_among(&mut self, points: &[DVec3]) -> usize {
+    pub fn exclude_supports_among(&mut self, points: &[Point3<f64>]) -> usize {
         if self.options.exact_boxes {
             return 0;
         }
@@ -231,13 +230,13 @@ impl<'a> Labeler<'a> {
     /// the surface point `point`: on a plane's band it is the plane itself,
     /// unless the surface there is steep to it (`normal`: an object's side
     /// meeting its support); behind the band it is always the plane's side.
-    pub fn excluded_at(&self, index: usize, point: DVec3, normal: impl Fn() -> Option<DVec3>) -> bool {
+    pub fn excluded_at(&self, index: usize, point: &Point3<f64>, normal: impl Fn() -> Option<Vector3<f64>>) -> bool {
         let Some(planes) = self.excluded.get(index) else {
             return false;
         };
         planes.iter().any(|plane| {
             let (distance, band) = (plane.distance(point), self.plane_band(plane));
-            distance < 0.0 || (distance <= band && !normal().is_some_and(|n| n.dot(plane.normal).abs() < STEEP_COSINE))
+            distance < 0.0 || (distance <= band && !normal().is_some_and(|n| n.dot(&plane.normal).abs() < STEEP_COSINE))
         })
     }
 
@@ -286,10 +285,10 @@ impl<'a> Labeler<'a> {
     /// [`Self::surface`] of the pixels (x, y) that `keep` accepts.
     pub fn surface_where(&self, frame: &Frame, keep: &dyn Fn(u32, u32) -> bool) -> FrameSurface {
         let (w, h) = frame.size();
-        let c2w = frame.camera_to_world.to_glam();
+        let c2w = &frame.camera_to_world;
         let k = frame.intrinsics;
-        let origin = c2w.w_axis.truncate();
-        let rot = DMat3::from_mat4(c2w);
+        let origin = Point3::from(c2w.translation.vector);
+        let rot = c2w.rotation;
         let full = self.options.full_depth;
 
         // Pixels whose ray can meet a box: inside a projected rectangle and
@@ -297,7 +296,7 @@ impl<'a> Labeler<'a> {
         let mut in_view = Vec::new();
         let mut candidate = vec![false; if full { 0 } else { w as usize * h as usize }];
         for b in &self.boxes.boxes {
-            if let Some(r) = project_box(b, &c2w, &k, (w, h)) {
+            if let Some(r) = project_box(b, c2w, &k, (w, h)) {
                 in_view.push(b.instance_id);
                 if !full {
                     for y in r.y0..r.y1 {
@@ -314,8 +313,10 @@ impl<'a> Labeler<'a> {
                 if (!full && !candidate[y as usize * w as usize + x as usize]) || !keep(x, y) {
                     continue;
                 }
-                let dir = (rot * k.unproject(x as f64, y as f64).to_glam()).normalize();
-                let box_far = self.classifier.ray_interval(origin, dir).map(|(_, t1)| t1);
+                let ray = rot * k.unproject(x as f64, y as f64);
+                // Times the reciprocal length, as before the move to nalgebra (same bits).
+                let dir = ray * (1.0 / ray.norm());
+                let box_far = self.classifier.ray_interval(&origin, &dir).map(|(_, t1)| t1);
                 box_pixels += box_far.is_some() as usize;
                 if full || box_far.is_some() {
                     jobs.push(Job { x, y, box_far });
@@ -329,9 +330,9 @@ impl<'a> Labeler<'a> {
         };
         let sensor = |j: &Job| match &self.sensor_fusion {
             Some(tsdf) => {
-                let ray = rot * k.unproject(j.x as f64, j.y as f64).to_glam();
-                let len = ray.length();
-                tsdf.depth_along(origin, ray / len, 1.0 / len)
+                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let len = ray.norm();
+                tsdf.depth_along(&origin, &(ray / len), 1.0 / len)
             }
             None => frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64),
         };
@@ -356,10 +357,10 @@ impl<'a> Labeler<'a> {
     /// Label one frame (its rays are rendered in parallel packets).
     pub fn label_frame(&self, frame: &Frame) -> FrameLabel {
         let (w, h) = frame.size();
-        let c2w = frame.camera_to_world.to_glam();
+        let c2w = &frame.camera_to_world;
         let k = frame.intrinsics;
-        let origin = c2w.w_axis.truncate();
-        let rot = DMat3::from_mat4(c2w);
+        let origin = Point3::from(c2w.translation.vector);
+        let rot = c2w.rotation;
         let FrameSurface {
             jobs,
             depths,
@@ -378,23 +379,23 @@ impl<'a> Labeler<'a> {
             z_image = z_image_of_jobs();
         }
         let mut contested = Contested::default();
-        let point_at = |x: u32, y: u32, z: f64| c2w.transform_point3(k.unproject(x as f64, y as f64).to_glam() * z);
+        let point_at = |x: u32, y: u32, z: f64| c2w * Point3::from(k.unproject(x as f64, y as f64) * z);
         for (j, &z) in jobs.iter().zip(&depths) {
             let index = j.y as usize * w as usize + j.x as usize;
             if let Some(d) = depth_m.as_mut() {
                 d[index] = z as f32;
             }
             if z > 0.0 && j.box_far.is_some() {
-                let ray = rot * k.unproject(j.x as f64, j.y as f64).to_glam();
-                let len = ray.length();
+                let ray = rot * k.unproject(j.x as f64, j.y as f64);
+                let len = ray.norm();
                 // Ids fit in 16 bits: parsing caps the box count at 65535.
                 let dir = ray / len;
                 let id = self
                     .classifier
-                    .classify_on_ray(origin, dir, z * len, self.box_tolerance_m);
+                    .classify_on_ray(&origin, &dir, z * len, self.box_tolerance_m);
                 let point = origin + dir * (z * len);
                 let excluded_from = |id: u32| {
-                    self.excluded_at(id as usize - 1, point, || {
+                    self.excluded_at(id as usize - 1, &point, || {
                         surface_normal(&z_image, w, h, j.x, j.y, &point_at)
                     })
                 };
@@ -522,13 +523,13 @@ pub(crate) fn surface_normal(
     h: u32,
     x: u32,
     y: u32,
-    point_at: &dyn Fn(u32, u32, f64) -> glam::DVec3,
-) -> Option<glam::DVec3> {
+    point_at: &dyn Fn(u32, u32, f64) -> Point3<f64>,
+) -> Option<Vector3<f64>> {
     let at = |x: u32, y: u32| z[y as usize * w as usize + x as usize];
     let centre_z = at(x, y);
     let centre = point_at(x, y, centre_z);
     // The neighbour along one axis nearer in depth, as a vector from the centre.
-    let tangent = |a: Option<(u32, u32)>, b: Option<(u32, u32)>| -> Option<glam::DVec3> {
+    let tangent = |a: Option<(u32, u32)>, b: Option<(u32, u32)>| -> Option<Vector3<f64>> {
         let near = |p: Option<(u32, u32)>| p.map(|(px, py)| (px, py, at(px, py))).filter(|&(_, _, pz)| pz > 0.0);
         match (near(a), near(b)) {
             (Some(p), Some(q)) if (p.2 - centre_z).abs() <= (q.2 - centre_z).abs() => {
@@ -541,8 +542,8 @@ pub(crate) fn surface_normal(
     };
     let horizontal = tangent(x.checked_sub(1).map(|l| (l, y)), (x + 1 < w).then_some((x + 1, y)))?;
     let vertical = tangent(y.checked_sub(1).map(|u| (x, u)), (y + 1 < h).then_some((x, y + 1)))?;
-    let n = horizontal.cross(vertical);
-    let length = n.length();
+    let n = horizontal.cross(&vertical);
+    let length = n.norm();
     (length > 0.0 && length.is_finite()).then(|| n / length)
 }
 
@@ -565,7 +566,7 @@ pub fn instances_of(
     width: u32,
     height: u32,
     boxes: &BoxSet,
-    world_to_camera: &DMat4,
+    world_to_camera: &IsometryMatrix3<f64>,
 ) -> Vec<InstanceLabel> {
     let mut found: std::collections::BTreeMap<u16, (PixelRect, u64)> = std::collections::BTreeMap::new();
     for y in 0..height {
@@ -601,7 +602,7 @@ pub fn instances_of(
                 instance_id: id as u32,
                 bbox,
                 area,
-                object_to_camera: *world_to_camera * b.object_to_world(),
+                object_to_camera: world_to_camera * b.object_to_world(),
             })
         })
         .collect()
@@ -613,7 +614,7 @@ mod tests {
     use crate::boxes::classify::Overlap;
     use crate::boxes::parse::Box3;
     use crate::scan::{DepthMap, Intrinsics};
-    use glam::DVec3;
+    use nalgebra::Rotation3;
 
     /// Sensor source on a hand-made frame: a wall 2 m ahead, a 0.5 m cube
     /// centred on it and a second box out of view.
@@ -642,14 +643,14 @@ mod tests {
         let cube = Box3 {
             label: "cube".into(),
             instance_id: 1,
-            center: DVec3::new(0.0, 0.0, 2.0),
-            size: DVec3::splat(0.5),
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(0.0, 0.0, 2.0),
+            size: Vector3::repeat(0.5),
+            rotation: Rotation3::identity(),
         };
         let away = Box3 {
             label: "away".into(),
             instance_id: 2,
-            center: DVec3::new(0.0, 0.0, -3.0),
+            center: Point3::new(0.0, 0.0, -3.0),
             ..cube.clone()
         };
         let boxes = BoxSet::from_boxes(vec![cube, away]);
@@ -682,7 +683,7 @@ mod tests {
                 y1: 29
             }
         );
-        assert_eq!(inst.object_to_camera.w_axis.truncate(), DVec3::new(0.0, 0.0, 2.0));
+        assert_eq!(inst.object_to_camera.translation.vector, Vector3::new(0.0, 0.0, 2.0));
         // Rays through the cube: its front face spans |u - cx| <= 40 * 0.25 / 1.75.
         assert!(
             label.box_pixels > 100 && label.box_pixels < 14 * 14,
@@ -736,9 +737,9 @@ mod tests {
         let b = Box3 {
             label: "face".into(),
             instance_id: 1,
-            center: DVec3::new(0.0, 0.055, 2.0),
-            size: DVec3::new(0.52, 0.51, 0.2),
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(0.0, 0.055, 2.0),
+            size: Vector3::new(0.52, 0.51, 0.2),
+            rotation: Rotation3::identity(),
         };
         let boxes = BoxSet::from_boxes(vec![b.clone()]);
         let opts = LabelOptions {
@@ -747,7 +748,7 @@ mod tests {
         };
         let mut labeler = Labeler::new(&boxes, None, opts).unwrap();
         labeler.excluded = vec![vec![ExcludedPlane {
-            normal: DVec3::new(0.0, -1.0, 0.0),
+            normal: Vector3::new(0.0, -1.0, 0.0),
             offset: 0.3,
             band: 0.01,
         }]];
@@ -756,7 +757,7 @@ mod tests {
         for v in 0..h {
             for u in 0..w {
                 let (z, on_face) = surface(u, v);
-                let p = DVec3::new((u as f64 - k.cx) / k.fx * z, (v as f64 - k.cy) / k.fy * z, z);
+                let p = Point3::new((u as f64 - k.cx) / k.fx * z, (v as f64 - k.cy) / k.fy * z, z);
                 let labelled = label.mask[(v * w + u) as usize] == 1;
                 if on_face && p.y > 0.29 && u > 2 && u < w - 3 {
                     foot += 1;
@@ -766,7 +767,7 @@ mod tests {
                         0.3 - p.y
                     );
                 }
-                if !on_face && z > 0.0 && b.contains(p) {
+                if !on_face && z > 0.0 && b.contains(&p) {
                     floor_in_box += 1;
                     assert!(!labelled, "floor point ({u}, {v}) inside the box is excluded");
                 }
@@ -805,15 +806,15 @@ mod tests {
         let left = Box3 {
             label: "a".into(),
             instance_id: 1,
-            center: DVec3::new(-0.225, 0.0, 0.5 * (z0 + z1)),
-            size: DVec3::new(0.55, 0.5, z1 - z0),
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(-0.225, 0.0, 0.5 * (z0 + z1)),
+            size: Vector3::new(0.55, 0.5, z1 - z0),
+            rotation: Rotation3::identity(),
         };
         let right = Box3 {
             label: "b".into(),
             instance_id: 2,
-            center: DVec3::new(0.25, 0.0, 0.5 * (z0 + z1)),
-            size: DVec3::new(0.6, 0.5, z1 - z0),
+            center: Point3::new(0.25, 0.0, 0.5 * (z0 + z1)),
+            size: Vector3::new(0.6, 0.5, z1 - z0),
             ..left.clone()
         };
         (frame, BoxSet::from_boxes(vec![left, right]))

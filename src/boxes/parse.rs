@@ -2,7 +2,7 @@
 //! in the scan's world frame, each with a label; its 1-based position in the
 //! list is its instance id.
 
-use glam::{DMat3, DMat4, DQuat, DVec3};
+use nalgebra::{IsometryMatrix3, Matrix3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde_json::{Map, Value};
 use std::path::{Path, PathBuf};
 
@@ -24,23 +24,17 @@ pub struct Box3 {
     pub label: String,
     /// 1-based index in the file.
     pub instance_id: u32,
-    pub center: DVec3,
+    pub center: Point3<f64>,
     /// Full edge lengths along the box's own x, y, z axes.
-    pub size: DVec3,
+    pub size: Vector3<f64>,
     /// Box-to-world rotation (columns are the box axes in world coordinates).
-    pub rotation: DMat3,
+    pub rotation: Rotation3<f64>,
 }
 
 impl Box3 {
     /// Rigid object pose: box frame (origin at the centre) to world.
-    pub fn object_to_world(&self) -> DMat4 {
-        let r = self.rotation;
-        DMat4::from_cols(
-            r.x_axis.extend(0.0),
-            r.y_axis.extend(0.0),
-            r.z_axis.extend(0.0),
-            self.center.extend(1.0),
-        )
+    pub fn object_to_world(&self) -> IsometryMatrix3<f64> {
+        IsometryMatrix3::from_parts(Translation3::from(self.center.coords), self.rotation)
     }
 
     /// Volume in cubic metres.
@@ -50,23 +44,29 @@ impl Box3 {
 
     /// World point to box coordinates (centre at the origin, box axes).
     #[inline]
-    pub fn to_local(&self, p: DVec3) -> DVec3 {
+    pub fn to_local(&self, p: &Point3<f64>) -> Vector3<f64> {
         self.rotation.transpose() * (p - self.center)
     }
 
     /// Half the box's extent along the unit world direction `axis`.
-    pub fn reach(&self, axis: DVec3) -> f64 {
+    pub fn reach(&self, axis: &Vector3<f64>) -> f64 {
         let half = self.size * 0.5;
-        (0..3).map(|a| half[a] * axis.dot(self.rotation.col(a)).abs()).sum()
+        (0..3)
+            .map(|a| half[a] * axis.dot(&self.rotation.matrix().column(a)).abs())
+            .sum()
     }
 
     /// Half extents of the box's world-aligned bounding box.
-    pub fn world_half_extent(&self) -> DVec3 {
-        DVec3::new(self.reach(DVec3::X), self.reach(DVec3::Y), self.reach(DVec3::Z))
+    pub fn world_half_extent(&self) -> Vector3<f64> {
+        Vector3::new(
+            self.reach(&Vector3::x()),
+            self.reach(&Vector3::y()),
+            self.reach(&Vector3::z()),
+        )
     }
 
     /// Whether the world point lies inside the box (faces included).
-    pub fn contains(&self, p: DVec3) -> bool {
+    pub fn contains(&self, p: &Point3<f64>) -> bool {
         let q = self.to_local(p).abs();
         let h = self.size * 0.5;
         q.x <= h.x && q.y <= h.y && q.z <= h.z
@@ -74,10 +74,10 @@ impl Box3 {
 
     /// The eight corners in world coordinates; bit k of the index picks the
     /// + side of axis k.
-    pub fn corners(&self) -> [DVec3; 8] {
+    pub fn corners(&self) -> [Point3<f64>; 8] {
         let h = self.size * 0.5;
         std::array::from_fn(|i| {
-            let s = DVec3::new(
+            let s = Vector3::new(
                 if i & 1 != 0 { h.x } else { -h.x },
                 if i & 2 != 0 { h.y } else { -h.y },
                 if i & 4 != 0 { h.z } else { -h.z },
@@ -142,7 +142,7 @@ impl BoxSet {
                     "box {} (`{}`) has zero volume (size {:?}): it can contain nothing",
                     b.instance_id,
                     b.label,
-                    b.size.to_array()
+                    <[f64; 3]>::from(b.size)
                 )
             })
             .collect()
@@ -307,8 +307,8 @@ pub(crate) fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
         Some(Value::String(s)) => s.clone(),
         Some(other) => return Err(field_err("label", format!("expected a string, found {}", kind(other)))),
     };
-    let center = DVec3::from_array(numbers::<3>(obj, "center")?);
-    let size = DVec3::from_array(numbers::<3>(obj, "size")?);
+    let center = Point3::from(numbers::<3>(obj, "center")?);
+    let size = Vector3::from(numbers::<3>(obj, "size")?);
     if let Some(axis) = (0..3).find(|&a| size[a] < 0.0) {
         return Err(field_err(
             "size",
@@ -320,14 +320,14 @@ pub(crate) fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
         ));
     }
     // Volume and corners must be finite numbers (a size of 1e307 overflows both).
-    let corner = center.abs() + size * 0.5;
-    if !(size.x * size.y * size.z).is_finite() || !corner.is_finite() {
+    let corner = center.coords.abs() + size * 0.5;
+    if !(size.x * size.y * size.z).is_finite() || !corner.iter().all(|x| x.is_finite()) {
         return Err(field_err(
             "size",
             format!(
                 "{:?} with centre {:?} is too large: its volume or corners are not finite numbers",
-                size.to_array(),
-                center.to_array()
+                <[f64; 3]>::from(size),
+                <[f64; 3]>::from(center.coords)
             ),
         ));
     }
@@ -340,7 +340,7 @@ pub(crate) fn parse_box(v: &Value, id: usize) -> Result<Box3, FieldError> {
         }
         (Some(r), None) => rotation_matrix(r)?,
         (None, Some(q)) => rotation_quaternion(q)?,
-        (None, None) => DMat3::IDENTITY,
+        (None, None) => Rotation3::identity(),
     };
     Ok(Box3 {
         label,
@@ -383,7 +383,7 @@ fn numbers<const N: usize>(obj: &Map<String, Value>, field: &str) -> Result<[f64
 
 /// Row-major 3x3 rotation, checked orthonormal with determinant +1, then
 /// re-orthonormalised so containment tests are exact.
-fn rotation_matrix(v: &Value) -> Result<DMat3, FieldError> {
+fn rotation_matrix(v: &Value) -> Result<Rotation3<f64>, FieldError> {
     let rows = v
         .as_array()
         .ok_or_else(|| field_err("rotation", format!("expected 3 rows of 3 numbers, found {}", kind(v))))?;
@@ -408,13 +408,9 @@ fn rotation_matrix(v: &Value) -> Result<DMat3, FieldError> {
             m[r][c] = number(x, "rotation", &format!("row {r} column {c}"))?;
         }
     }
-    // glam takes columns: column c = (m[0][c], m[1][c], m[2][c]).
-    let mat = DMat3::from_cols_array_2d(&m).transpose();
+    let mat = Matrix3::from_fn(|r, c| m[r][c]);
     let gram = mat.transpose() * mat;
-    let off = (gram - DMat3::IDENTITY)
-        .to_cols_array()
-        .iter()
-        .fold(0.0f64, |a, x| a.max(x.abs()));
+    let off = (gram - Matrix3::identity()).iter().fold(0.0f64, |a, x| a.max(x.abs()));
     if off > ROTATION_TOLERANCE {
         return Err(field_err(
             "rotation",
@@ -428,21 +424,30 @@ fn rotation_matrix(v: &Value) -> Result<DMat3, FieldError> {
             format!("determinant is {det:.4}, expected +1 (a reflection is not a rotation)"),
         ));
     }
-    Ok(DMat3::from_quat(DQuat::from_mat3(&mat).normalize()))
+    Ok(orthonormalised(&mat))
+}
+
+/// The rotation a nearly orthonormal matrix (checked by the caller) stands
+/// for, made exactly orthonormal through a unit quaternion (closed form:
+/// nalgebra's iterative `Rotation3::from_matrix` can give the identity for
+/// a half turn, or never return).
+pub(crate) fn orthonormalised(m: &Matrix3<f64>) -> Rotation3<f64> {
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*m));
+    UnitQuaternion::new_normalize(q.into_inner()).to_rotation_matrix()
 }
 
 /// `[x, y, z, w]` quaternion, normalised; zero length is an error.
-fn rotation_quaternion(v: &Value) -> Result<DMat3, FieldError> {
+fn rotation_quaternion(v: &Value) -> Result<Rotation3<f64>, FieldError> {
     let [x, y, z, w] = number_array::<4>(v, "quaternion")?;
-    let q = DQuat::from_xyzw(x, y, z, w);
-    let len = q.length();
+    let q = Quaternion::new(w, x, y, z);
+    let len = q.norm();
     if !(len > 1e-9 && len.is_finite()) {
         return Err(field_err(
             "quaternion",
             format!("length is {len}; a rotation quaternion must not be zero"),
         ));
     }
-    Ok(DMat3::from_quat(q / len))
+    Ok(UnitQuaternion::from_quaternion(q).to_rotation_matrix())
 }
 
 #[cfg(test)]
@@ -475,23 +480,24 @@ mod tests {
             set.boxes.iter().map(|b| b.instance_id).collect::<Vec<_>>(),
             vec![1, 2, 3]
         );
-        let yaw45 = DMat3::from_rotation_z(std::f64::consts::FRAC_PI_4);
-        assert!((set.boxes[0].rotation - yaw45).abs_diff_eq(DMat3::ZERO, 1e-12));
-        assert!((set.boxes[1].rotation - yaw45).abs_diff_eq(DMat3::ZERO, 1e-9));
-        assert_eq!(set.boxes[2].rotation, DMat3::IDENTITY);
+        let yaw45 = Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_4);
+        assert!((set.boxes[0].rotation.matrix() - yaw45.matrix()).amax() < 1e-12);
+        assert!((set.boxes[1].rotation.matrix() - yaw45.matrix()).amax() < 1e-9);
+        assert_eq!(set.boxes[2].rotation, Rotation3::identity());
         let b = &set.boxes[0];
         assert!((b.volume() - 0.10 * 0.12 * 0.11).abs() < 1e-15);
         // The box's x axis is world (1, 1, 0)/sqrt 2.
         // Along world (1, -1) the box is 0.12 wide, along (1, 1) only 0.10.
-        assert!(b.contains(b.center + DVec3::new(0.04, -0.04, 0.0)));
-        assert!(!b.contains(b.center + DVec3::new(0.04, 0.04, 0.0)));
-        assert!(b.contains(b.center + DVec3::new(0.03, 0.03, 0.054)));
-        assert!(!b.contains(b.center + DVec3::new(0.03, 0.03, 0.056)));
+        assert!(b.contains(&(b.center + Vector3::new(0.04, -0.04, 0.0))));
+        assert!(!b.contains(&(b.center + Vector3::new(0.04, 0.04, 0.0))));
+        assert!(b.contains(&(b.center + Vector3::new(0.03, 0.03, 0.054))));
+        assert!(!b.contains(&(b.center + Vector3::new(0.03, 0.03, 0.056))));
         let m = b.object_to_world();
-        assert!((m.transform_point3(DVec3::X) - (b.center + b.rotation.x_axis)).length() < 1e-12);
+        let x_axis = b.rotation.matrix().column(0).into_owned();
+        assert!((m * Point3::new(1.0, 0.0, 0.0) - (b.center + x_axis)).norm() < 1e-12);
         for corner in b.corners() {
-            let local = b.to_local(corner).abs();
-            assert!((local - b.size * 0.5).length() < 1e-12);
+            let local = b.to_local(&corner).abs();
+            assert!((local - b.size * 0.5).norm() < 1e-12);
         }
         assert!(set.warnings().is_empty());
         assert_eq!(set.by_instance(2).map(|b| b.label.as_str()), Some("book"));
@@ -687,8 +693,18 @@ mod tests {
     fn nearly_orthonormal_rotation_is_cleaned_up() {
         let text = r#"{"boxes": [{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[1, 0.0004, 0], [-0.0004, 1, 0], [0, 0, 1.0002]]}]}"#;
         let r = parse(text).unwrap().boxes[0].rotation;
-        assert!((r.transpose() * r - DMat3::IDENTITY).abs_diff_eq(DMat3::ZERO, 1e-12));
+        let r = r.matrix();
+        assert!((r.transpose() * r - Matrix3::identity()).amax() < 1e-12);
         assert!((r.determinant() - 1.0).abs() < 1e-12);
+    }
+
+    /// nalgebra's iterative `Rotation3::from_matrix` gives the identity for a half turn.
+    #[test]
+    fn a_half_turn_stays_a_half_turn() {
+        let text = r#"{"boxes": [{"label": "a", "center": [0, 0, 0], "size": [1, 1, 1], "rotation": [[-1, 0, 0], [0, -1, 0], [0, 0, 1]]}]}"#;
+        let r = parse(text).unwrap().boxes[0].rotation;
+        let half_turn = Matrix3::from_diagonal(&Vector3::new(-1.0, -1.0, 1.0));
+        assert!((r.matrix() - half_turn).amax() < 1e-15, "{r:?}");
     }
 
     #[test]

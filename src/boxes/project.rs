@@ -4,7 +4,7 @@
 
 use super::parse::Box3;
 use crate::scan::Intrinsics;
-use glam::{DMat4, DVec3};
+use nalgebra::{IsometryMatrix3, Point3, Vector4};
 
 /// A pixel rectangle `[x0, x1) x [y0, y1)` (integers are pixel centres).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -49,9 +49,9 @@ const FACES: [[usize; 4]; 6] = [
 ];
 
 /// Keep the part of a convex polygon where `plane . (p, 1) >= 0` (Sutherland-Hodgman).
-fn clip(poly: &[DVec3], plane: glam::DVec4, out: &mut Vec<DVec3>) {
+fn clip(poly: &[Point3<f64>], plane: Vector4<f64>, out: &mut Vec<Point3<f64>>) {
     out.clear();
-    let side = |p: DVec3| plane.truncate().dot(p) + plane.w;
+    let side = |p: Point3<f64>| plane.xyz().dot(&p.coords) + plane.w;
     for (i, &a) in poly.iter().enumerate() {
         let b = poly[(i + 1) % poly.len()];
         let (da, db) = (side(a), side(b));
@@ -71,26 +71,31 @@ fn clip(poly: &[DVec3], plane: glam::DVec4, out: &mut Vec<DVec3>) {
 /// through the outermost pixel centres), so the rectangle bounds the part of
 /// the box the image can see, not the unbounded projection of a box that
 /// crosses the camera plane.
-pub fn project_box(b: &Box3, camera_to_world: &DMat4, k: &Intrinsics, size: (u32, u32)) -> Option<PixelRect> {
+pub fn project_box(
+    b: &Box3,
+    camera_to_world: &IsometryMatrix3<f64>,
+    k: &Intrinsics,
+    size: (u32, u32),
+) -> Option<PixelRect> {
     let (w, h) = size;
     if w == 0 || h == 0 {
         return None;
     }
     let world_to_camera = camera_to_world.inverse();
-    let corners = b.corners().map(|c| world_to_camera.transform_point3(c));
+    let corners = b.corners().map(|c| world_to_camera * c);
     // Near plane far below any geometric scale of this box and camera, so
     // only points practically on the camera plane are cut.
-    let reach = corners.iter().fold(0.0f64, |a, c| a.max(c.abs().max_element()));
+    let reach = corners.iter().fold(0.0f64, |a, c| a.max(c.coords.abs().max()));
     let near = 1e-9 * reach.max(f64::MIN_POSITIVE);
     // Planes a hair beyond the outermost pixel centres (rounding keeps them).
     const MARGIN: f64 = 1e-3;
     let (u0, u1, v0, v1) = (-MARGIN, w as f64 - 1.0 + MARGIN, -MARGIN, h as f64 - 1.0 + MARGIN);
     let planes = [
-        glam::DVec4::new(0.0, 0.0, 1.0, -near),
-        glam::DVec4::new(k.fx, 0.0, k.cx - u0, 0.0),
-        glam::DVec4::new(-k.fx, 0.0, u1 - k.cx, 0.0),
-        glam::DVec4::new(0.0, k.fy, k.cy - v0, 0.0),
-        glam::DVec4::new(0.0, -k.fy, v1 - k.cy, 0.0),
+        Vector4::new(0.0, 0.0, 1.0, -near),
+        Vector4::new(k.fx, 0.0, k.cx - u0, 0.0),
+        Vector4::new(-k.fx, 0.0, u1 - k.cx, 0.0),
+        Vector4::new(0.0, k.fy, k.cy - v0, 0.0),
+        Vector4::new(0.0, -k.fy, v1 - k.cy, 0.0),
     ];
     let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
     let (mut poly, mut next) = (Vec::with_capacity(12), Vec::with_capacity(12));
@@ -132,23 +137,18 @@ pub fn project_box(b: &Box3, camera_to_world: &DMat4, k: &Intrinsics, size: (u32
 mod tests {
     use super::*;
     use crate::boxes::{BoxClassifier, BoxSet};
-    use crate::glam_bridge::ToGlam;
     use crate::rng::Rng;
-    use glam::{DMat3, DQuat};
+    use nalgebra::{Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
 
-    fn random_rotation(rng: &mut Rng) -> DMat3 {
-        DMat3::from_quat(DQuat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize())
+    fn random_rotation(rng: &mut Rng) -> Rotation3<f64> {
+        let (x, y, z, w) = (rng.normal(), rng.normal(), rng.normal(), rng.normal());
+        UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)).to_rotation_matrix()
     }
 
-    fn camera_pose(rng: &mut Rng) -> DMat4 {
+    fn camera_pose(rng: &mut Rng) -> IsometryMatrix3<f64> {
         let r = random_rotation(rng);
-        let t = DVec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
-        DMat4::from_cols(
-            r.x_axis.extend(0.0),
-            r.y_axis.extend(0.0),
-            r.z_axis.extend(0.0),
-            t.extend(1.0),
-        )
+        let t = Translation3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+        IsometryMatrix3::from_parts(t, r)
     }
 
     /// Every pixel whose centre ray meets the box lies in the rectangle, and
@@ -166,30 +166,30 @@ mod tests {
         let (mut crossing, mut behind, mut visible) = (0, 0, 0);
         for _ in 0..400 {
             let pose = camera_pose(&mut rng);
-            let origin = pose.w_axis.truncate();
-            let forward = pose.z_axis.truncate();
+            let origin = Point3::from(pose.translation.vector);
+            let forward = pose.rotation * Vector3::z();
             // Boxes around the camera: in front, behind and across its plane.
             let center =
-                origin + forward * rng.range(-1.5, 3.0) + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.5;
+                origin + forward * rng.range(-1.5, 3.0) + Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.5;
             let b = Box3 {
                 label: "b".into(),
                 instance_id: 1,
                 center,
-                size: DVec3::new(rng.range(0.05, 1.2), rng.range(0.05, 1.2), rng.range(0.05, 1.2)),
+                size: Vector3::new(rng.range(0.05, 1.2), rng.range(0.05, 1.2), rng.range(0.05, 1.2)),
                 rotation: random_rotation(&mut rng),
             };
-            let z: Vec<f64> = b.corners().iter().map(|c| (*c - origin).dot(forward)).collect();
+            let z: Vec<f64> = b.corners().iter().map(|c| (c - origin).dot(&forward)).collect();
             let crosses = z.iter().any(|&z| z < 0.0) && z.iter().any(|&z| z > 0.0);
             crossing += crosses as usize;
             let set = BoxSet::from_boxes(vec![b.clone()]);
             let classifier = BoxClassifier::new(&set);
             let rect = project_box(&b, &pose, &k, (w, h));
             let mut hit_bounds: Option<PixelRect> = None;
-            let rot = DMat3::from_mat4(pose);
+            let rot = pose.rotation;
             for y in 0..h {
                 for x in 0..w {
-                    let dir = rot * k.unproject(x as f64, y as f64).to_glam();
-                    if classifier.ray_interval(origin, dir).is_some() {
+                    let dir = rot * k.unproject(x as f64, y as f64);
+                    if classifier.ray_interval(&origin, &dir).is_some() {
                         let r = rect.unwrap_or_else(|| panic!("pixel ({x}, {y}) hits but no rectangle"));
                         assert!(r.contains(x, y), "pixel ({x}, {y}) outside {r:?}");
                         let p = PixelRect {
@@ -234,12 +234,12 @@ mod tests {
         let b = Box3 {
             label: "room".into(),
             instance_id: 1,
-            center: DVec3::ZERO,
-            size: DVec3::splat(4.0),
-            rotation: DMat3::IDENTITY,
+            center: Point3::origin(),
+            size: Vector3::repeat(4.0),
+            rotation: Rotation3::identity(),
         };
         assert_eq!(
-            project_box(&b, &DMat4::IDENTITY, &k, (100, 80)),
+            project_box(&b, &IsometryMatrix3::identity(), &k, (100, 80)),
             Some(PixelRect {
                 x0: 0,
                 y0: 0,
@@ -248,19 +248,19 @@ mod tests {
             })
         );
         let behind = Box3 {
-            center: DVec3::new(0.0, 0.0, -3.0),
-            size: DVec3::ONE,
+            center: Point3::new(0.0, 0.0, -3.0),
+            size: Vector3::repeat(1.0),
             ..b.clone()
         };
-        assert_eq!(project_box(&behind, &DMat4::IDENTITY, &k, (100, 80)), None);
+        assert_eq!(project_box(&behind, &IsometryMatrix3::identity(), &k, (100, 80)), None);
         // 1 m box at 5 m straight ahead: 20 px wide around the principal point.
         let ahead = Box3 {
-            center: DVec3::new(0.0, 0.0, 5.5),
-            size: DVec3::ONE,
+            center: Point3::new(0.0, 0.0, 5.5),
+            size: Vector3::repeat(1.0),
             ..b
         };
         assert_eq!(
-            project_box(&ahead, &DMat4::IDENTITY, &k, (100, 80)),
+            project_box(&ahead, &IsometryMatrix3::identity(), &k, (100, 80)),
             Some(PixelRect {
                 x0: 40,
                 y0: 30,

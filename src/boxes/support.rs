@@ -29,7 +29,7 @@
 
 use super::parse::{Box3, BoxSet};
 use crate::rng::Rng;
-use glam::DVec3;
+use nalgebra::{Matrix3, Point3, SymmetricEigen, Vector3};
 
 /// The shell around a box that shows whether a plane continues outside it:
 /// the box grown by this fraction of its size on every side.
@@ -61,7 +61,7 @@ const MAX_FAR_SIDE_SHARE: f64 = 0.1;
 /// distance, positive on the object's side.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ExcludedPlane {
-    pub normal: DVec3,
+    pub normal: Vector3<f64>,
     pub offset: f64,
     /// Points closer to the plane than this (or behind it) are excluded.
     pub band: f64,
@@ -69,12 +69,12 @@ pub struct ExcludedPlane {
 
 impl ExcludedPlane {
     /// Signed distance of `p` to the plane, positive on the object's side.
-    pub fn distance(&self, p: DVec3) -> f64 {
-        self.normal.dot(p) + self.offset
+    pub fn distance(&self, p: &Point3<f64>) -> f64 {
+        self.normal.dot(&p.coords) + self.offset
     }
 
     /// Whether `p` lies on the plane (within its band) or behind it.
-    pub fn excludes(&self, p: DVec3) -> bool {
+    pub fn excludes(&self, p: &Point3<f64>) -> bool {
         self.distance(p) <= self.band
     }
 }
@@ -83,22 +83,21 @@ impl ExcludedPlane {
 /// found among `points`, surface points of the scan in world metres.
 /// `tolerance`: how far outside a box the labeller still gives surface
 /// points to it; a plane that near the box is excluded as well.
-pub fn excluded_planes(boxes: &BoxSet, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<Vec<ExcludedPlane>> {
+pub fn excluded_planes(boxes: &BoxSet, points: &[Point3<f64>], seed: u64, tolerance: f64) -> Vec<Vec<ExcludedPlane>> {
     (boxes.boxes.iter().enumerate())
         .map(|(i, b)| planes_of_box(b, points, seed.wrapping_add(i as u64), tolerance))
         .collect()
 }
 
-fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<ExcludedPlane> {
+fn planes_of_box(b: &Box3, points: &[Point3<f64>], seed: u64, tolerance: f64) -> Vec<ExcludedPlane> {
     let half = b.size * 0.5;
     let grown = half + b.size * SHELL_GROWTH;
-    let inside = |q: DVec3| q.abs().cmple(half).all();
     let (mut shell, mut inner) = (Vec::new(), Vec::new());
     for &p in points {
-        let q = b.to_local(p);
-        if inside(q) {
+        let q = b.to_local(&p);
+        if within(&q, &half) {
             inner.push(p);
-        } else if q.abs().cmple(grown).all() {
+        } else if within(&q, &grown) {
             shell.push(p);
         }
     }
@@ -123,29 +122,29 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
             break;
         };
         let band = BAND_SIGMAS * sigma;
-        let on_plane: Vec<DVec3> = shell
+        let on_plane: Vec<Point3<f64>> = shell
             .iter()
             .copied()
-            .filter(|p| (normal.dot(*p) + offset).abs() <= band)
+            .filter(|p| (normal.dot(&p.coords) + offset).abs() <= band)
             .collect();
         if on_plane.len() < needed {
             break;
         }
-        shell.retain(|p| (normal.dot(*p) + offset).abs() > band);
+        shell.retain(|p| (normal.dot(&p.coords) + offset).abs() > band);
         counted -= on_plane.len();
-        if !surrounds(b, normal, &on_plane) {
+        if !surrounds(b, &normal, &on_plane) {
             continue;
         }
         // The plane must run through the box or pass within the tolerance
         // of it, and the box must hold something off it: that side is the object's.
-        let centre = normal.dot(b.center) + offset;
-        let radius = b.reach(normal);
+        let centre = normal.dot(&b.center.coords) + offset;
+        let radius = b.reach(&normal);
         if centre.abs() > radius + band + tolerance {
             continue;
         }
         let off: Vec<f64> = inner
             .iter()
-            .map(|p| normal.dot(*p) + offset)
+            .map(|p| normal.dot(&p.coords) + offset)
             .filter(|d| d.abs() > band)
             .collect();
         if off.len() < (inner.len() / 100).max(10) {
@@ -167,17 +166,31 @@ fn planes_of_box(b: &Box3, points: &[DVec3], seed: u64, tolerance: f64) -> Vec<E
     planes
 }
 
+/// Whether `q` lies within `half` of the origin on every axis (false for NaN).
+fn within(q: &Vector3<f64>, half: &Vector3<f64>) -> bool {
+    q.x.abs() <= half.x && q.y.abs() <= half.y && q.z.abs() <= half.z
+}
+
+/// A unit vector orthogonal to the unit vector `n` (Duff et al. 2017,
+/// "Building an orthonormal basis, revisited"; glam's `any_orthonormal_vector`,
+/// kept so the sides a plane is tested on stay the same).
+fn any_orthonormal(n: &Vector3<f64>) -> Vector3<f64> {
+    let sign = n.z.signum();
+    let a = -1.0 / (sign + n.z);
+    Vector3::new(n.x * n.y * a, sign + n.y * n.y * a, -n.y)
+}
+
 /// Whether a plane's points lie around the box on at least three of the four
 /// sides within the plane, as a support or a wall does. A face of the object
 /// itself, or faces of neighbours lined up with it, continue on fewer sides.
-fn surrounds(b: &Box3, normal: DVec3, on_plane: &[DVec3]) -> bool {
-    let u = normal.any_orthonormal_vector();
-    let v = normal.cross(u);
-    let (ru, rv) = (b.reach(u), b.reach(v));
+fn surrounds(b: &Box3, normal: &Vector3<f64>, on_plane: &[Point3<f64>]) -> bool {
+    let u = any_orthonormal(normal);
+    let v = normal.cross(&u);
+    let (ru, rv) = (b.reach(&u), b.reach(&v));
     let mut sides = [0usize; 4];
     for p in on_plane {
-        let d = *p - b.center;
-        let (du, dv) = (d.dot(u), d.dot(v));
+        let d = p - b.center;
+        let (du, dv) = (d.dot(&u), d.dot(&v));
         for (side, beyond) in [du > ru, du < -ru, dv > rv, dv < -rv].into_iter().enumerate() {
             sides[side] += beyond as usize;
         }
@@ -187,25 +200,25 @@ fn surrounds(b: &Box3, normal: DVec3, on_plane: &[DVec3]) -> bool {
 }
 
 /// The plane with the most points within `threshold`, from random triples.
-fn ransac(points: &[DVec3], threshold: f64, rng: &mut Rng) -> Option<(DVec3, f64)> {
+fn ransac(points: &[Point3<f64>], threshold: f64, rng: &mut Rng) -> Option<(Vector3<f64>, f64)> {
     let n = points.len();
     // Score on a subsample: plenty to rank hypotheses, bounded cost.
     let step = (n / 2000).max(1);
-    let mut best: Option<(usize, DVec3, f64)> = None;
+    let mut best: Option<(usize, Vector3<f64>, f64)> = None;
     for _ in 0..RANSAC_TRIALS {
         let pick = |rng: &mut Rng| points[(rng.f64() * n as f64) as usize % n];
         let (a, b, c) = (pick(rng), pick(rng), pick(rng));
-        let normal = (b - a).cross(c - a);
-        let len = normal.length();
+        let normal = (b - a).cross(&(c - a));
+        let len = normal.norm();
         if !(len > 1e-12) {
             continue;
         }
         let normal = normal / len;
-        let offset = -normal.dot(a);
+        let offset = -normal.dot(&a.coords);
         let score = points
             .iter()
             .step_by(step)
-            .filter(|p| (normal.dot(**p) + offset).abs() <= threshold)
+            .filter(|p| (normal.dot(&p.coords) + offset).abs() <= threshold)
             .count();
         if best.is_none_or(|(s, _, _)| score > s) {
             best = Some((score, normal, offset));
@@ -217,20 +230,25 @@ fn ransac(points: &[DVec3], threshold: f64, rng: &mut Rng) -> Option<(DVec3, f64
 /// Least-squares plane through the points near a hypothesis, iterated with
 /// a band of three robust standard deviations; returns the plane and the
 /// robust standard deviation of its points' residuals.
-fn refine(points: &[DVec3], mut normal: DVec3, mut offset: f64, threshold: f64) -> Option<(DVec3, f64, f64)> {
+fn refine(
+    points: &[Point3<f64>],
+    mut normal: Vector3<f64>,
+    mut offset: f64,
+    threshold: f64,
+) -> Option<(Vector3<f64>, f64, f64)> {
     let mut band = threshold;
     let mut sigma = threshold / BAND_SIGMAS;
     for _ in 0..3 {
-        let near: Vec<DVec3> = points
+        let near: Vec<Point3<f64>> = points
             .iter()
             .copied()
-            .filter(|p| (normal.dot(*p) + offset).abs() <= band)
+            .filter(|p| (normal.dot(&p.coords) + offset).abs() <= band)
             .collect();
         if near.len() < 3 {
             return None;
         }
         (normal, offset) = fit_plane(&near)?;
-        let mut residuals: Vec<f64> = near.iter().map(|p| (normal.dot(*p) + offset).abs()).collect();
+        let mut residuals: Vec<f64> = near.iter().map(|p| (normal.dot(&p.coords) + offset).abs()).collect();
         residuals.sort_by(|a, b| a.total_cmp(b));
         // 1.4826 x median absolute residual: the standard deviation of Gaussian noise.
         sigma = (1.4826 * residuals[residuals.len() / 2]).max(f64::EPSILON);
@@ -240,68 +258,62 @@ fn refine(points: &[DVec3], mut normal: DVec3, mut offset: f64, threshold: f64) 
 }
 
 /// Least-squares plane: the eigenvector of the smallest eigenvalue of the
-/// points' covariance (by inverse iteration on the 3x3 matrix).
-fn fit_plane(points: &[DVec3]) -> Option<(DVec3, f64)> {
+/// points' covariance.
+fn fit_plane(points: &[Point3<f64>]) -> Option<(Vector3<f64>, f64)> {
     let n = points.len() as f64;
-    let mean = points.iter().fold(DVec3::ZERO, |s, p| s + *p) / n;
-    let mut cov = glam::DMat3::ZERO;
+    let mean = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / n;
+    let mut cov = Matrix3::zeros();
     for p in points {
-        let d = *p - mean;
-        cov += glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        let d = p.coords - mean;
+        cov += d * d.transpose();
     }
     cov *= 1.0 / n;
-    // Shift slightly so the inverse exists, then power-iterate on it.
-    let scale = cov.x_axis.x + cov.y_axis.y + cov.z_axis.z;
-    let inverse = (cov + glam::DMat3::IDENTITY * (scale * 1e-9 + 1e-300)).inverse();
-    if !inverse.is_finite() {
+    if !cov.iter().all(|x| x.is_finite()) {
         return None;
     }
-    let mut v = DVec3::new(0.577, 0.577, 0.577);
-    for _ in 0..50 {
-        let next = inverse * v;
-        let len = next.length();
-        if !(len.is_finite() && len > 0.0) {
-            return None;
-        }
-        v = next / len;
-    }
-    Some((v, -v.dot(mean)))
+    let eigen = SymmetricEigen::new(cov);
+    let smallest = eigen.eigenvalues.imin();
+    let v = eigen.eigenvectors.column(smallest).into_owned();
+    // The side the inverse iteration this replaced converged to (it started
+    // at (1, 1, 1)): the normal picks the in-plane axes `surrounds` tests.
+    let v = if v.sum() < 0.0 { -v } else { v };
+    Some((v, -v.dot(&mean)))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DMat3;
+    use nalgebra::Rotation3;
 
-    fn box3(center: DVec3, size: DVec3) -> Box3 {
+    fn box3(center: Point3<f64>, size: Vector3<f64>) -> Box3 {
         Box3 {
             label: "obj".into(),
             instance_id: 1,
             center,
             size,
-            rotation: DMat3::IDENTITY,
+            rotation: Rotation3::identity(),
         }
     }
 
     /// A table (z = 0, 2 mm noise) with a 10 cm cube on it and a wall at y = 0.1.
-    fn scene(rng: &mut Rng) -> Vec<DVec3> {
+    fn scene(rng: &mut Rng) -> Vec<Point3<f64>> {
         let mut points = Vec::new();
         let noise = |rng: &mut Rng| (rng.f64() - 0.5) * 0.004;
         for _ in 0..40_000 {
             let (x, y) = (rng.f64() - 0.5, rng.f64() * 0.8 - 0.5);
             if y < 0.1 && !(x.abs() < 0.05 && y.abs() < 0.05) {
-                points.push(DVec3::new(x, y, noise(rng)));
+                points.push(Point3::new(x, y, noise(rng)));
             }
         }
         for _ in 0..20_000 {
-            points.push(DVec3::new(rng.f64() - 0.5, 0.1 + noise(rng), rng.f64() * 0.5));
+            points.push(Point3::new(rng.f64() - 0.5, 0.1 + noise(rng), rng.f64() * 0.5));
         }
         for _ in 0..10_000 {
             // The cube's top and sides.
             let (u, v) = (rng.f64() * 0.1 - 0.05, rng.f64() * 0.1);
-            points.push(DVec3::new(u, -0.05, v));
-            points.push(DVec3::new(u, 0.05, v));
-            points.push(DVec3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
+            points.push(Point3::new(u, -0.05, v));
+            points.push(Point3::new(u, 0.05, v));
+            points.push(Point3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
         }
         points
     }
@@ -311,12 +323,12 @@ mod tests {
         let mut rng = Rng::new(3, 0);
         let points = scene(&mut rng);
         // 3 cm margins, bottom 2 cm into the table, back 1 cm into the wall.
-        let loose = box3(DVec3::new(0.0, 0.03, 0.045), DVec3::new(0.16, 0.16, 0.17));
+        let loose = box3(Point3::new(0.0, 0.03, 0.045), Vector3::new(0.16, 0.16, 0.17));
         let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
         assert_eq!(planes.len(), 2, "{planes:?}");
-        let kept: Vec<&DVec3> = points
+        let kept: Vec<&Point3<f64>> = points
             .iter()
-            .filter(|p| loose.contains(**p) && !planes.iter().any(|pl| pl.excludes(**p)))
+            .filter(|p| loose.contains(p) && !planes.iter().any(|pl| pl.excludes(p)))
             .collect();
         let table_or_wall = kept
             .iter()
@@ -324,7 +336,7 @@ mod tests {
             .count();
         let cube_in_box = points
             .iter()
-            .filter(|p| loose.contains(**p) && p.z > 0.01 && p.y < 0.09)
+            .filter(|p| loose.contains(p) && p.z > 0.01 && p.y < 0.09)
             .count();
         assert_eq!(table_or_wall, 0, "no table or wall point is kept");
         assert!(
@@ -339,7 +351,7 @@ mod tests {
                 plane.band
             );
             assert!(
-                plane.distance(DVec3::new(0.0, 0.0, 0.05)) > 0.0,
+                plane.distance(&Point3::new(0.0, 0.0, 0.05)) > 0.0,
                 "the cube's centre is on the kept side"
             );
         }
@@ -357,29 +369,29 @@ mod tests {
             // The board (z = 0), sparse, beside the 10 cm cube.
             let (x, y) = (rng.f64() * 0.49 - 0.14, rng.f64() * 0.28 - 0.14);
             if !(x.abs() < 0.05 && y.abs() < 0.05) {
-                points.push(DVec3::new(x, y, noise(&mut rng)));
+                points.push(Point3::new(x, y, noise(&mut rng)));
             }
         }
         for _ in 0..20_000 {
             // The side panel (x = -0.14) and the back panel (y = 0.14), dense.
             let (u, z) = (rng.f64() * 0.28 - 0.14, rng.f64() - 0.5);
-            points.push(DVec3::new(-0.14 + noise(&mut rng), u, z));
-            points.push(DVec3::new(rng.f64() * 0.7 - 0.35, 0.14 + noise(&mut rng), z));
+            points.push(Point3::new(-0.14 + noise(&mut rng), u, z));
+            points.push(Point3::new(rng.f64() * 0.7 - 0.35, 0.14 + noise(&mut rng), z));
         }
         for _ in 0..5_000 {
             let (u, v) = (rng.f64() * 0.1 - 0.05, rng.f64() * 0.1);
-            points.push(DVec3::new(u, -0.05, v));
-            points.push(DVec3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
+            points.push(Point3::new(u, -0.05, v));
+            points.push(Point3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
         }
-        let loose = box3(DVec3::new(0.0, 0.0, 0.045), DVec3::new(0.16, 0.16, 0.17));
+        let loose = box3(Point3::new(0.0, 0.0, 0.045), Vector3::new(0.16, 0.16, 0.17));
         let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
         assert_eq!(planes.len(), 1, "{planes:?}");
         assert!(planes[0].normal.z > 0.99, "the board, object side up: {:?}", planes[0]);
-        let board_in_box = points.iter().filter(|p| loose.contains(**p) && p.z.abs() < 0.003);
+        let board_in_box = points.iter().filter(|p| loose.contains(p) && p.z.abs() < 0.003);
         assert!(board_in_box.clone().count() > 50);
-        assert!(board_in_box.clone().all(|p| planes[0].excludes(*p)));
+        assert!(board_in_box.clone().all(|p| planes[0].excludes(p)));
         assert!(
-            !planes[0].excludes(DVec3::new(0.0, -0.05, 0.02)),
+            !planes[0].excludes(&Point3::new(0.0, -0.05, 0.02)),
             "the cube's foot is kept"
         );
     }
@@ -389,18 +401,18 @@ mod tests {
         let mut rng = Rng::new(5, 0);
         let points = scene(&mut rng);
         // 1 cm margins, bottom 1 mm above the table; the wall is 5 cm behind the cube.
-        let snug = box3(DVec3::new(0.0, 0.0, 0.0555), DVec3::new(0.12, 0.12, 0.109));
+        let snug = box3(Point3::new(0.0, 0.0, 0.0555), Vector3::new(0.12, 0.12, 0.109));
         let tolerance = 0.008;
         let planes = excluded_planes(&BoxSet::from_boxes(vec![snug.clone()]), &points, 1, tolerance).remove(0);
         assert_eq!(planes.len(), 1, "{planes:?}");
         assert!(planes[0].normal.z > 0.99, "the table, object side up: {:?}", planes[0]);
         // Table points just in front of the box, which the tolerance would give it, are excluded.
-        let beside = DVec3::new(0.065, 0.0, 0.0);
-        assert!(planes[0].excludes(beside));
-        let cube_top = DVec3::new(0.0, 0.0, 0.1);
-        assert!(!planes[0].excludes(cube_top));
+        let beside = Point3::new(0.065, 0.0, 0.0);
+        assert!(planes[0].excludes(&beside));
+        let cube_top = Point3::new(0.0, 0.0, 0.1);
+        assert!(!planes[0].excludes(&cube_top));
         // A box ending 3 cm above the table is beyond the tolerance: nothing is excluded.
-        let high = box3(DVec3::new(0.0, 0.0, 0.085), DVec3::new(0.12, 0.12, 0.11));
+        let high = box3(Point3::new(0.0, 0.0, 0.085), Vector3::new(0.12, 0.12, 0.11));
         let found = excluded_planes(&BoxSet::from_boxes(vec![high]), &points, 1, tolerance).remove(0);
         assert!(found.is_empty(), "{found:?}");
     }
@@ -413,16 +425,16 @@ mod tests {
         let mut rng = Rng::new(6, 0);
         let noise = |rng: &mut Rng| (rng.f64() - 0.5) * 0.002;
         let (hx, hy, height) = (0.06, 0.03, 0.14);
-        let pack = |p: DVec3| p.x.abs() <= hx && p.y.abs() <= hy;
+        let pack = |p: Point3<f64>| p.x.abs() <= hx && p.y.abs() <= hy;
         let mut points = Vec::new();
         for _ in 0..40_000 {
-            let p = DVec3::new(rng.f64() * 0.6 - 0.3, rng.f64() * 0.6 - 0.3, noise(&mut rng));
+            let p = Point3::new(rng.f64() * 0.6 - 0.3, rng.f64() * 0.6 - 0.3, noise(&mut rng));
             let neighbour = p.x.abs() <= hx + 0.1 && p.y.abs() <= hy + 0.1;
             if !neighbour {
                 points.push(p);
             }
             // Tops of the neighbours (a 10 cm ring around the pack, 2 mm gap).
-            let top = DVec3::new(p.x, p.y, 0.09 + noise(&mut rng));
+            let top = Point3::new(p.x, p.y, 0.09 + noise(&mut rng));
             if neighbour && !(p.x.abs() <= hx + 0.002 && p.y.abs() <= hy + 0.002) {
                 points.push(top);
             }
@@ -430,35 +442,35 @@ mod tests {
         for _ in 0..10_000 {
             // The pack's faces and top.
             let (u, z) = (rng.f64() * 2.0 - 1.0, rng.f64() * height);
-            points.push(DVec3::new(u * hx, -hy, z));
-            points.push(DVec3::new(u * hx, hy, z));
-            points.push(DVec3::new(u * hx, (rng.f64() * 2.0 - 1.0) * hy, height));
+            points.push(Point3::new(u * hx, -hy, z));
+            points.push(Point3::new(u * hx, hy, z));
+            points.push(Point3::new(u * hx, (rng.f64() * 2.0 - 1.0) * hy, height));
         }
-        let snug = box3(DVec3::new(0.0, 0.0, 0.0755), DVec3::new(0.14, 0.08, 0.149));
+        let snug = box3(Point3::new(0.0, 0.0, 0.0755), Vector3::new(0.14, 0.08, 0.149));
         let planes = excluded_planes(&BoxSet::from_boxes(vec![snug]), &points, 1, 0.008).remove(0);
         assert!(planes.len() <= 1, "{planes:?}");
         for plane in &planes {
             assert!(plane.offset.abs() < 0.003, "only the table: {plane:?}");
         }
-        let upper_face = DVec3::new(0.0, -hy, 0.12);
-        assert!(pack(upper_face) && !planes.iter().any(|p| p.excludes(upper_face)));
+        let upper_face = Point3::new(0.0, -hy, 0.12);
+        assert!(pack(upper_face) && !planes.iter().any(|p| p.excludes(&upper_face)));
     }
 
     #[test]
     fn a_box_around_a_flat_sheet_keeps_it() {
         // A sheet flat on the table has nothing off the plane: nothing is excluded.
         let mut rng = Rng::new(4, 0);
-        let points: Vec<DVec3> = (0..30_000)
-            .map(|_| DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0))
+        let points: Vec<Point3<f64>> = (0..30_000)
+            .map(|_| Point3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0))
             .collect();
-        let sheet = box3(DVec3::new(0.0, 0.0, 0.0), DVec3::new(0.2, 0.3, 0.02));
+        let sheet = box3(Point3::new(0.0, 0.0, 0.0), Vector3::new(0.2, 0.3, 0.02));
         assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1, 0.0)[0].is_empty());
     }
 
     #[test]
     fn a_box_with_no_surface_around_it_excludes_nothing() {
-        let points = vec![DVec3::new(5.0, 5.0, 5.0); 100];
-        let b = box3(DVec3::ZERO, DVec3::splat(0.1));
+        let points = vec![Point3::new(5.0, 5.0, 5.0); 100];
+        let b = box3(Point3::origin(), Vector3::repeat(0.1));
         assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, 1, 0.0)[0].is_empty());
     }
 }

@@ -6,10 +6,9 @@
 //! NeRFing-it paper.
 
 use super::parse::BoxSet;
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::DAabb;
 use crate::scan::Frame;
-use glam::{DMat3, DVec3};
+use nalgebra::{Point3, Rotation3, Vector3};
 use rayon::prelude::*;
 
 /// Truncation distance in voxels.
@@ -21,7 +20,7 @@ const MAX_BLOCK_VOXELS: f64 = 32e6;
 
 /// One axis-aligned TSDF block.
 struct Block {
-    origin: DVec3,
+    origin: Point3<f64>,
     voxel: f64,
     dims: [usize; 3],
     /// Signed distance / truncation, in [-1, 1]; weight 0 = never observed.
@@ -35,9 +34,9 @@ impl Block {
     }
 
     /// Trilinear TSDF at `p`; `None` where a corner was never observed.
-    fn sample(&self, p: DVec3) -> Option<f32> {
-        let g = (p - self.origin) / self.voxel - DVec3::splat(0.5);
-        let base = g.floor();
+    fn sample(&self, p: &Point3<f64>) -> Option<f32> {
+        let g = (p - self.origin) / self.voxel - Vector3::repeat(0.5);
+        let base = g.map(f64::floor);
         let f = g - base;
         let (i0, j0, k0) = (base.x as i64, base.y as i64, base.z as i64);
         if i0 < 0 || j0 < 0 || k0 < 0 {
@@ -63,10 +62,10 @@ impl Block {
     }
 
     /// Ray parameters where the ray is inside the block.
-    fn interval(&self, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
-        let hi = self.origin + DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
-        DAabb::new(self.origin.to_na(), hi.to_na())
-            .ray_interval(&origin.to_na(), &crate::glam_bridge::vector(dir))
+    fn interval(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<(f64, f64)> {
+        let hi = self.origin + Vector3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * self.voxel;
+        DAabb::new(self.origin, hi)
+            .ray_interval(origin, dir)
             .filter(|(t0, t1)| t0 < t1)
     }
 }
@@ -85,8 +84,8 @@ impl BoxTsdf {
             .map(|b| {
                 let extent = b.world_half_extent();
                 // Coarser voxels for a box too large to hold at this size.
-                let reach = |voxel: f64| extent + DVec3::splat(MARGIN_TRUNCATIONS * TRUNCATION_VOXELS * voxel);
-                let count = |voxel: f64| (reach(voxel) * 2.0 / voxel).element_product();
+                let reach = |voxel: f64| extent + Vector3::repeat(MARGIN_TRUNCATIONS * TRUNCATION_VOXELS * voxel);
+                let count = |voxel: f64| (reach(voxel) * 2.0 / voxel).product();
                 let mut voxel = voxel;
                 while count(voxel) > MAX_BLOCK_VOXELS {
                     voxel *= 1.25;
@@ -111,7 +110,7 @@ impl BoxTsdf {
 
     /// Depth (z, metres) of the first fused surface along the unit ray `dir`
     /// from `origin`, whose z grows by `z_per_t` per metre along it; 0 = none.
-    pub fn depth_along(&self, origin: DVec3, dir: DVec3, z_per_t: f64) -> f64 {
+    pub fn depth_along(&self, origin: &Point3<f64>, dir: &Vector3<f64>, z_per_t: f64) -> f64 {
         let mut best = f64::INFINITY;
         for block in &self.blocks {
             let Some((t0, t1)) = block.interval(origin, dir) else {
@@ -126,7 +125,7 @@ impl BoxTsdf {
             let mut previous: Option<(f64, f32)> = None;
             while t <= t1.min(best) {
                 let mut advance = step;
-                match block.sample(origin + dir * t) {
+                match block.sample(&(origin + dir * t)) {
                     Some(v) => {
                         if let Some((tp, vp)) = previous {
                             if vp > 0.0 && v <= 0.0 {
@@ -157,12 +156,12 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
     let voxel = block.voxel;
     let slab = dims[0] * dims[1];
     let origin = block.origin;
-    let views: Vec<(DMat3, DVec3, &Frame)> = frames
+    let views: Vec<(Rotation3<f64>, Point3<f64>, &Frame)> = frames
         .iter()
         .filter(|f| f.depth.is_some())
         .map(|f| {
-            let rot = DMat3::from_mat4(f.camera_to_world.to_glam()).transpose();
-            (rot, f.camera_to_world.to_glam().w_axis.truncate(), f)
+            let rot = f.camera_to_world.rotation.transpose();
+            (rot, Point3::from(f.camera_to_world.translation.vector), f)
         })
         .collect();
     block
@@ -173,10 +172,10 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
         .for_each(|(k, (tsdf, weight))| {
             for j in 0..dims[1] {
                 for i in 0..dims[0] {
-                    let p = origin + DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
+                    let p = origin + Vector3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
                     let n = j * dims[0] + i;
                     for (world_to_cam, eye, frame) in &views {
-                        let c = *world_to_cam * (p - *eye);
+                        let c = world_to_cam * (p - eye);
                         if c.z <= 1e-6 {
                             continue;
                         }
@@ -208,19 +207,14 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
 mod tests {
     use super::*;
     use crate::boxes::parse::Box3;
-    use crate::glam_bridge::ToNalgebra;
     use crate::rng::Rng;
     use crate::scan::{DepthMap, Intrinsics};
-    use glam::{DMat4, DVec4};
+    use nalgebra::{IsometryMatrix3, Matrix3, Translation3};
 
     /// A camera at `eye` looking straight down (OpenCV axes: x right, y down, z forward = -z world).
-    fn looking_down(eye: DVec3) -> DMat4 {
-        DMat4::from_cols(
-            DVec4::new(1.0, 0.0, 0.0, 0.0),
-            DVec4::new(0.0, -1.0, 0.0, 0.0),
-            DVec4::new(0.0, 0.0, -1.0, 0.0),
-            eye.extend(1.0),
-        )
+    fn looking_down(eye: Vector3<f64>) -> IsometryMatrix3<f64> {
+        let r = Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
+        IsometryMatrix3::from_parts(Translation3::from(eye), Rotation3::from_matrix_unchecked(r))
     }
 
     #[test]
@@ -235,7 +229,7 @@ mod tests {
         let sigma = 0.004;
         let frames: Vec<Frame> = (0..12)
             .map(|i| {
-                let eye = DVec3::new(0.02 * (i % 4) as f64, 0.02 * (i / 4) as f64, 1.0);
+                let eye = Vector3::new(0.02 * (i % 4) as f64, 0.02 * (i / 4) as f64, 1.0);
                 // Looking straight down at the floor z = 0: every pixel's z-depth is the height.
                 let metres = (0..80 * 60).map(|_| (1.0 + sigma * rng.normal()) as f32).collect();
                 let depth = DepthMap {
@@ -248,7 +242,7 @@ mod tests {
                     format!("{i:06}"),
                     image::RgbImage::new(80, 60),
                     Some(depth),
-                    looking_down(eye).to_na(),
+                    looking_down(eye),
                     k,
                 )
             })
@@ -256,22 +250,22 @@ mod tests {
         let boxes = BoxSet::from_boxes(vec![Box3 {
             label: "patch".into(),
             instance_id: 1,
-            center: DVec3::new(0.0, 0.0, 0.02),
-            size: DVec3::new(0.2, 0.2, 0.04),
-            rotation: DMat3::IDENTITY,
+            center: Point3::new(0.0, 0.0, 0.02),
+            size: Vector3::new(0.2, 0.2, 0.04),
+            rotation: Rotation3::identity(),
         }]);
         let tsdf = BoxTsdf::fuse(&frames, &boxes, 0.004);
         let mut errors = Vec::new();
         for x in [-0.05, 0.0, 0.05] {
             for y in [-0.05, 0.0, 0.05] {
-                let eye = DVec3::new(x, y, 1.0);
-                errors.push(tsdf.depth_along(eye, DVec3::NEG_Z, 1.0) - 1.0);
+                let eye = Point3::new(x, y, 1.0);
+                errors.push(tsdf.depth_along(&eye, &-Vector3::z(), 1.0) - 1.0);
             }
         }
         // Twelve frames of 4 mm noise average to about 1.2 mm.
         assert!(errors.iter().all(|e| e.abs() < 0.003), "{errors:?}");
         // Outside every block, and along a ray that never meets the floor, nothing.
-        assert_eq!(tsdf.depth_along(DVec3::new(2.0, 0.0, 1.0), DVec3::NEG_Z, 1.0), 0.0);
-        assert_eq!(tsdf.depth_along(DVec3::new(0.0, 0.0, 1.0), DVec3::Z, 1.0), 0.0);
+        assert_eq!(tsdf.depth_along(&Point3::new(2.0, 0.0, 1.0), &-Vector3::z(), 1.0), 0.0);
+        assert_eq!(tsdf.depth_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::z(), 1.0), 0.0);
     }
 }

@@ -158,7 +158,7 @@ pub fn data_yaml(root: &Path, boxes: &BoxSet, options: &YoloOptions, train: usiz
 mod tests {
     use super::*;
     use crate::boxes::parse::Box3;
-    use glam::{DMat3, DVec3};
+    use nalgebra::{Point3, Rotation3, Vector3};
 
     #[test]
     fn split_is_seeded_block_wise_and_near_the_fraction() {
@@ -196,9 +196,9 @@ mod tests {
         let b = |label: &str, id: u32| Box3 {
             label: label.into(),
             instance_id: id,
-            center: DVec3::ZERO,
-            size: DVec3::ONE,
-            rotation: DMat3::IDENTITY,
+            center: Point3::origin(),
+            size: Vector3::repeat(1.0),
+            rotation: Rotation3::identity(),
         };
         let boxes = BoxSet::from_boxes(vec![b("mug", 1), b("a: \"b\"", 2), b("mug", 3)]);
         let yaml = data_yaml(Path::new("/data/x y"), &boxes, &YoloOptions::default(), 8, 2).unwrap();

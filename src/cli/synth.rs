@@ -9,7 +9,6 @@ use super::SynthArgs;
 use anyhow::bail;
 use nalgebra::{Point3, Vector3};
 use nerflabel::boxes::{read_boxes, BoxClassifier, LabelOptions};
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::masks::{objects_and_boxes, PointLabels};
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
 use nerflabel::synth::{
@@ -115,8 +114,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             // A mask object's surface first; the boxes label the rest. Each
             // loses the support and wall planes `label` excludes from it.
             let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| -> u32 {
-                let p = p.to_glam();
-                let normal = || normal().map(|n| n.to_glam());
+                let p = &p;
                 let id = from_masks.classify(p);
                 if id > 0 {
                     let on_support = region_of

@@ -16,10 +16,9 @@ use super::votes::VoteVolume;
 use crate::boxes::label::{finish_mask, instances_of, surface_normal};
 use crate::boxes::output::FrameLabelling;
 use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOptions, Labeler, PixelRect};
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::poses::symmetric_eigen;
 use crate::scan::{Frame, Scan};
-use glam::{DMat3, DVec3};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use std::collections::{BTreeMap, HashMap};
 
 /// Distance (pixels) to a label change from which a given pixel votes with
@@ -81,7 +80,7 @@ pub fn lift(
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Lifted, LabelError> {
     let mut votes: Option<VoteVolume> = None;
-    let mut object_points: BTreeMap<u16, Vec<DVec3>> = given.objects.keys().map(|&id| (id, Vec::new())).collect();
+    let mut object_points: BTreeMap<u16, Vec<Point3<f64>>> = given.objects.keys().map(|&id| (id, Vec::new())).collect();
     let mut lifted_points = 0;
     for (done, (&index, mask)) in given.frames.iter().enumerate() {
         let frame = &scan.frames[index];
@@ -104,7 +103,7 @@ pub fn lift(
             } else {
                 weights[i]
             };
-            volume.add(p, mask[i], weight);
+            volume.add(&p, mask[i], weight);
             if mask[i] > 0 && weights[i] >= 1.0 {
                 if let Some(list) = object_points.get_mut(&mask[i]) {
                     list.push(p);
@@ -124,7 +123,7 @@ pub fn lift(
         // A pixel of the object whose depth missed it (a thin or far object,
         // depth through to the wall behind) lifts far away: keep the points
         // the votes confirm, then the largest connected cluster of them.
-        let confirmed: Vec<DVec3> = points.iter().copied().filter(|&p| votes.classify(p).0 == id).collect();
+        let confirmed: Vec<Point3<f64>> = points.iter().copied().filter(|p| votes.classify(p).0 == id).collect();
         let cluster = largest_cluster(&confirmed, CLUSTER_VOXELS * voxel);
         let Some(mut b) = principal_box(&cluster, voxel) else {
             warnings.push(format!(
@@ -134,9 +133,9 @@ pub fn lift(
         };
         b.label = name;
         b.instance_id = id as u32;
-        let margin = REGION_MARGIN_SHARE * b.size.max_element();
+        let margin = REGION_MARGIN_SHARE * b.size.max();
         regions.push(Box3 {
-            size: b.size + DVec3::splat(2.0 * margin),
+            size: b.size + Vector3::repeat(2.0 * margin),
             instance_id: regions.len() as u32 + 1,
             ..b.clone()
         });
@@ -201,9 +200,9 @@ const STEP_PIXELS: f64 = 4.0;
 
 /// Points of `points` in the largest 26-connected cluster of occupied
 /// cells of side `cell` (by point count).
-fn largest_cluster(points: &[DVec3], cell: f64) -> Vec<DVec3> {
-    let key = |p: DVec3| {
-        let q = (p / cell).floor();
+fn largest_cluster(points: &[Point3<f64>], cell: f64) -> Vec<Point3<f64>> {
+    let key = |p: Point3<f64>| {
+        let q = (p.coords / cell).map(f64::floor);
         [q.x as i64, q.y as i64, q.z as i64]
     };
     let mut counts: BTreeMap<[i64; 3], usize> = BTreeMap::new();
@@ -308,7 +307,7 @@ impl<'a> PointLabels<'a> {
         }
     }
 
-    pub fn classify(&self, point: DVec3) -> u16 {
+    pub fn classify(&self, point: &Point3<f64>) -> u16 {
         if self.regions.classify(point) == 0 {
             return 0;
         }
@@ -337,11 +336,8 @@ fn voxel_size(points: &[(u32, u32, f64)], frame: &Frame, labeler: &Labeler) -> f
     }
 }
 
-fn world_point(frame: &Frame, x: u32, y: u32, z: f64) -> DVec3 {
-    frame
-        .camera_to_world
-        .to_glam()
-        .transform_point3(frame.intrinsics.unproject(x as f64, y as f64).to_glam() * z)
+fn world_point(frame: &Frame, x: u32, y: u32, z: f64) -> Point3<f64> {
+    frame.camera_to_world * Point3::from(frame.intrinsics.unproject(x as f64, y as f64) * z)
 }
 
 /// Vote weight of each pixel from its distance (4-neighbour steps) to the
@@ -394,29 +390,28 @@ fn boundary_weights(mask: &[u16], w: usize, h: usize) -> Vec<f32> {
 
 /// A box on the points' principal axes spanning their robust extents,
 /// grown by `pad` metres; `None` for fewer than 4 points.
-fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
+fn principal_box(points: &[Point3<f64>], pad: f64) -> Option<Box3> {
     if points.len() < 4 {
         return None;
     }
     let stride = points.len().div_ceil(BOX_POINTS);
-    let sample: Vec<DVec3> = points.iter().step_by(stride).copied().collect();
+    let sample: Vec<Vector3<f64>> = points.iter().step_by(stride).map(|p| p.coords).collect();
     let n = sample.len() as f64;
-    let mean = sample.iter().copied().sum::<DVec3>() / n;
-    let mut cov = DMat3::ZERO;
+    let mean = sample.iter().sum::<Vector3<f64>>() / n;
+    let mut cov = Matrix3::zeros();
     for p in &sample {
-        let d = *p - mean;
-        cov += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        let d = p - mean;
+        cov += d * d.transpose();
     }
-    let (_, axes) = symmetric_eigen((cov * (1.0 / n)).to_na());
-    let mut axes = axes.to_glam();
+    let (_, mut axes) = symmetric_eigen(cov * (1.0 / n));
     if axes.determinant() < 0.0 {
-        axes.z_axis = -axes.z_axis;
+        axes.set_column(2, &-axes.column(2));
     }
-    let mut lo = DVec3::ZERO;
-    let mut hi = DVec3::ZERO;
+    let mut lo = Vector3::zeros();
+    let mut hi = Vector3::zeros();
     for a in 0..3 {
-        let axis = axes.col(a);
-        let mut along: Vec<f64> = sample.iter().map(|p| (*p - mean).dot(axis)).collect();
+        let axis = axes.column(a);
+        let mut along: Vec<f64> = sample.iter().map(|p| (p - mean).dot(&axis)).collect();
         along.sort_by(f64::total_cmp);
         let at = |q: f64| along[((q * (along.len() - 1) as f64).round() as usize).min(along.len() - 1)];
         lo[a] = at(EXTENT_QUANTILE);
@@ -426,9 +421,9 @@ fn principal_box(points: &[DVec3], pad: f64) -> Option<Box3> {
     Some(Box3 {
         label: String::new(),
         instance_id: 0,
-        center: mean + axes * centre_local,
-        size: (hi - lo) + DVec3::splat(2.0 * pad),
-        rotation: axes,
+        center: Point3::from(mean + axes * centre_local),
+        size: (hi - lo) + Vector3::repeat(2.0 * pad),
+        rotation: Rotation3::from_matrix_unchecked(axes),
     })
 }
 
@@ -497,12 +492,12 @@ impl FrameLabelling for MaskLabeler<'_> {
                 let point_at = |x: u32, y: u32, z: f64| world_point(frame, x, y, z);
                 for (x, y, z) in surface.points() {
                     let p = world_point(frame, x, y, z);
-                    let (id, _) = self.votes.classify(p);
+                    let (id, _) = self.votes.classify(&p);
                     // A mask that bleeds onto the support an object stands on
                     // lifts to the support plane: the plane is not the object.
                     let on_support = self.region_of.get(&id).is_some_and(|&region| {
                         self.surface
-                            .excluded_at(region, p, || surface_normal(&z_image, w, h, x, y, &point_at))
+                            .excluded_at(region, &p, || surface_normal(&z_image, w, h, x, y, &point_at))
                     });
                     mask[y as usize * w as usize + x as usize] = if on_support { 0 } else { id };
                 }
@@ -527,14 +522,12 @@ impl FrameLabelling for MaskLabeler<'_> {
         if given.is_none() {
             mask = finish_mask(mask, frame, &self.options);
         }
-        let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.to_glam().inverse());
+        let instances = instances_of(&mask, w, h, self.all, &frame.camera_to_world.inverse());
         let in_view = self
             .all
             .boxes
             .iter()
-            .filter(|b| {
-                crate::boxes::project_box(b, &frame.camera_to_world.to_glam(), &frame.intrinsics, (w, h)).is_some()
-            })
+            .filter(|b| crate::boxes::project_box(b, &frame.camera_to_world, &frame.intrinsics, (w, h)).is_some())
             .map(|b| b.instance_id)
             .collect();
         FrameLabel {
@@ -593,11 +586,11 @@ mod tests {
 
     #[test]
     fn the_largest_cluster_drops_points_lifted_far_behind_the_object() {
-        let mut points: Vec<DVec3> = (0..200)
-            .map(|i| DVec3::new(0.001 * (i % 20) as f64, 0.001 * (i / 20) as f64, 1.0))
+        let mut points: Vec<Point3<f64>> = (0..200)
+            .map(|i| Point3::new(0.001 * (i % 20) as f64, 0.001 * (i / 20) as f64, 1.0))
             .collect();
         // A few pixels whose depth went through to a wall 2 m behind.
-        points.extend((0..30).map(|i| DVec3::new(0.001 * i as f64, 0.0, 3.0)));
+        points.extend((0..30).map(|i| Point3::new(0.001 * i as f64, 0.0, 3.0)));
         let kept = largest_cluster(&points, 0.01);
         assert_eq!(kept.len(), 200);
         assert!(kept.iter().all(|p| p.z == 1.0));
@@ -606,26 +599,26 @@ mod tests {
     #[test]
     fn a_principal_box_spans_a_rotated_slab_of_points() {
         // Points of a 0.4 x 0.2 x 0.1 slab rotated 30 degrees about z.
-        let rot = DMat3::from_rotation_z(30f64.to_radians());
+        let rot = Rotation3::from_axis_angle(&Vector3::z_axis(), 30f64.to_radians());
         let mut points = Vec::new();
         for i in 0..=40 {
             for j in 0..=20 {
                 for k in 0..=10 {
-                    let local = DVec3::new(i as f64 * 0.01 - 0.2, j as f64 * 0.01 - 0.1, k as f64 * 0.01 - 0.05);
-                    points.push(DVec3::new(1.0, 2.0, 3.0) + rot * local);
+                    let local = Vector3::new(i as f64 * 0.01 - 0.2, j as f64 * 0.01 - 0.1, k as f64 * 0.01 - 0.05);
+                    points.push(Point3::new(1.0, 2.0, 3.0) + rot * local);
                 }
             }
         }
         let b = principal_box(&points, 0.0).unwrap();
-        assert!((b.center - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-9);
-        let mut size = b.size.to_array();
+        assert!((b.center - Point3::new(1.0, 2.0, 3.0)).norm() < 1e-9);
+        let mut size: [f64; 3] = b.size.into();
         size.sort_by(f64::total_cmp);
         assert!(
             (size[0] - 0.1).abs() < 0.002 && (size[1] - 0.2).abs() < 0.003 && (size[2] - 0.4).abs() < 0.005,
             "{size:?}"
         );
-        assert!(b.rotation.determinant() > 0.999);
+        assert!(b.rotation.matrix().determinant() > 0.999);
         // The longest axis is the rotated x axis (up to sign).
-        assert!(b.rotation.col(0).dot(rot.col(0)).abs() > 0.999);
+        assert!(b.rotation.matrix().column(0).dot(&rot.matrix().column(0)).abs() > 0.999);
     }
 }

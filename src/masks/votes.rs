@@ -3,7 +3,7 @@
 //! point is classified by the votes around it, trilinearly weighted, at the
 //! finest level that saw its neighbourhood.
 
-use glam::DVec3;
+use nalgebra::{Point3, Vector3};
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
@@ -88,27 +88,27 @@ impl VoteVolume {
     }
 
     /// One labelled surface point votes for `id` (0 = background).
-    pub fn add(&mut self, point: DVec3, id: u16, weight: f32) {
-        if !point.is_finite() || !(weight > 0.0) {
+    pub fn add(&mut self, point: &Point3<f64>, id: u16, weight: f32) {
+        if !is_finite(point) || !(weight > 0.0) {
             return;
         }
         for level in &mut self.levels {
-            let key = voxel_key(point * level.inv_voxel);
+            let key = voxel_key(&(point.coords * level.inv_voxel));
             level.cells.entry(key).or_default().add(id, weight);
         }
     }
 
     /// The object id the votes around `point` favour (0 = background or
     /// never seen), and the share of the weight it won.
-    pub fn classify(&self, point: DVec3) -> (u16, f32) {
-        if !point.is_finite() {
+    pub fn classify(&self, point: &Point3<f64>) -> (u16, f32) {
+        if !is_finite(point) {
             return (0, 0.0);
         }
         let mut score: Vec<(u16, f64)> = Vec::new();
         for level in &self.levels {
             // Trilinear weights over the 8 voxel centres around the point.
-            let p = point * level.inv_voxel - DVec3::splat(0.5);
-            let base = p.floor();
+            let p = point.coords * level.inv_voxel - Vector3::repeat(0.5);
+            let base = p.map(f64::floor);
             let frac = p - base;
             score.clear();
             let mut cover = 0.0;
@@ -163,7 +163,11 @@ impl VoteVolume {
     }
 }
 
-fn voxel_key(p: DVec3) -> [i32; 3] {
+fn is_finite(p: &Point3<f64>) -> bool {
+    p.iter().all(|x| x.is_finite())
+}
+
+fn voxel_key(p: &Vector3<f64>) -> [i32; 3] {
     let clamp = |v: f64| v.floor().clamp(i32::MIN as f64, i32::MAX as f64) as i32;
     [clamp(p.x), clamp(p.y), clamp(p.z)]
 }
@@ -176,31 +180,34 @@ mod tests {
     fn a_point_takes_the_majority_of_the_votes_around_it() {
         let mut v = VoteVolume::new(0.01);
         for i in 0..10 {
-            let p = DVec3::new(0.1 + i as f64 * 0.001, 0.2, 0.3);
-            v.add(p, 3, 1.0);
+            let p = Point3::new(0.1 + i as f64 * 0.001, 0.2, 0.3);
+            v.add(&p, 3, 1.0);
             if i < 3 {
-                v.add(p, 0, 1.0);
+                v.add(&p, 0, 1.0);
             }
         }
-        assert_eq!(v.classify(DVec3::new(0.105, 0.2, 0.3)).0, 3);
+        assert_eq!(v.classify(&Point3::new(0.105, 0.2, 0.3)).0, 3);
         // Far from every vote: background, never seen.
-        assert_eq!(v.classify(DVec3::new(5.0, 5.0, 5.0)), (0, 0.0));
+        assert_eq!(v.classify(&Point3::new(5.0, 5.0, 5.0)), (0, 0.0));
     }
 
     #[test]
     fn unseen_fine_neighbourhoods_fall_back_to_the_coarse_level() {
         let mut v = VoteVolume::new(0.01);
-        v.add(DVec3::new(0.005, 0.005, 0.005), 7, 1.0);
+        v.add(&Point3::new(0.005, 0.005, 0.005), 7, 1.0);
         // Two fine voxels away: no fine votes around it, but coarse ones.
-        assert_eq!(v.classify(DVec3::new(0.025, 0.005, 0.005)).0, 7);
+        assert_eq!(v.classify(&Point3::new(0.025, 0.005, 0.005)).0, 7);
     }
 
     #[test]
     fn non_finite_points_and_weights_are_ignored() {
         let mut v = VoteVolume::new(0.01);
-        v.add(DVec3::new(f64::NAN, 0.0, 0.0), 1, 1.0);
-        v.add(DVec3::ZERO, 1, f32::NAN);
-        assert_eq!(v.classify(DVec3::ZERO), (0, 0.0));
-        assert_eq!(v.classify(DVec3::splat(f64::INFINITY)), (0, 0.0));
+        v.add(&Point3::new(f64::NAN, 0.0, 0.0), 1, 1.0);
+        v.add(&Point3::origin(), 1, f32::NAN);
+        assert_eq!(v.classify(&Point3::origin()), (0, 0.0));
+        assert_eq!(
+            v.classify(&Point3::new(f64::INFINITY, f64::INFINITY, f64::INFINITY)),
+            (0, 0.0)
+        );
     }
 }

@@ -9,7 +9,6 @@ use super::sampling::{Cloud, PoseSampler, Target};
 use super::triplet::{render_view, Instances, PointClassifier, SynthView};
 use super::viewpoints::{ViewStream, MIN_OBSERVED};
 use crate::boxes::{BoxClassifier, BoxSet, DepthSource, LabelOptions, Labeler};
-use crate::glam_bridge::{ToGlam, ToNalgebra};
 use crate::nerf::model_file::Model;
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::{fuse_cloud, CloudOptions};
@@ -121,8 +120,8 @@ impl<'a> Objects<'a> {
                 .boxes
                 .iter()
                 .map(|b| Target {
-                    center: b.center.to_na(),
-                    rotation: Rotation3::from_matrix_unchecked(b.rotation.to_na()),
+                    center: b.center,
+                    rotation: b.rotation,
                 })
                 .collect(),
             instances: Instances { classify, labels },
@@ -197,13 +196,10 @@ pub fn synthesize(
     };
     let classifier = BoxClassifier::new(set);
     let supports = support_planes(set, model, scan, options.exact_boxes)?;
-    let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| {
-        let p = p.to_glam();
-        match classifier.classify(p) {
-            0 => 0,
-            id if supports.excluded_at(id as usize - 1, p, || normal().map(|n| n.to_glam())) => 0,
-            id => id,
-        }
+    let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| match classifier.classify(&p) {
+        0 => 0,
+        id if supports.excluded_at(id as usize - 1, &p, normal) => 0,
+        id => id,
     };
     synthesize_objects(scan, model, &Objects::of(set, &classify), options, out, progress, stop)
 }

@@ -8,7 +8,6 @@ use super::poses_file::ViewSpec;
 use crate::boxes::cleanup::clean_mask;
 use crate::boxes::label::surface_normal;
 use crate::boxes::LabelOptions;
-use crate::glam_bridge::{vector, ToGlam};
 use crate::nerf::render::view::ViewRenderer;
 use crate::png_encode::{depth_mm_saturating, encode_depth, encode_mask, encode_rgb};
 use crate::scan::Intrinsics;
@@ -104,8 +103,7 @@ pub fn instance_mask(
             }
             let (u, v) = ((i % w) as u32, (i / w) as u32);
             // Computed only where a classifier asks (a point on a support plane's band).
-            let normal =
-                || surface_normal(&z, w as u32, h as u32, u, v, &|u, v, z| point_at(u, v, z).to_glam()).map(vector);
+            let normal = || surface_normal(&z, w as u32, h as u32, u, v, &point_at);
             let id = classify(point_at(u, v, depth), &normal);
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16

@@ -143,7 +143,7 @@ pub(crate) fn read(text: &str, path: &Path) -> Result<(Vec<Candidate>, Vec<Strin
 mod tests {
     use super::super::{import_boxes, ImportFormat};
     use super::*;
-    use glam::DVec3;
+    use nalgebra::Vector3;
 
     fn import(text: &str) -> Result<super::super::Imported, InteropError> {
         let dir = tempfile::tempdir().unwrap();
@@ -186,14 +186,14 @@ mod tests {
         let set = imported.boxes;
         assert_eq!(set.categories, vec!["table".to_string(), "chair".to_string()]);
         let table = &set.boxes[0];
-        assert_eq!(table.center.to_array(), [1.5, -0.25, 0.375]);
-        assert_eq!(table.size.to_array(), [1.2, 0.8, 0.75]);
+        assert_eq!(<[f64; 3]>::from(table.center.coords), [1.5, -0.25, 0.375]);
+        assert_eq!(<[f64; 3]>::from(table.size), [1.2, 0.8, 0.75]);
         let a = std::f64::consts::FRAC_PI_6;
-        assert!((table.rotation * DVec3::X - DVec3::new(a.cos(), a.sin(), 0.0)).length() < 1e-12);
+        assert!((table.rotation * Vector3::x() - Vector3::new(a.cos(), a.sin(), 0.0)).norm() < 1e-12);
         // XYZ order: z by 90 first (x -> y), then x by 90 (y -> z): the box's x axis ends up along world z.
         let chair = &set.boxes[1];
-        assert!((chair.rotation * DVec3::X - DVec3::Z).length() < 1e-12);
-        assert!((chair.rotation * DVec3::Z - DVec3::NEG_Y).length() < 1e-12);
+        assert!((chair.rotation * Vector3::x() - Vector3::z()).norm() < 1e-12);
+        assert!((chair.rotation * Vector3::z() + Vector3::y()).norm() < 1e-12);
     }
 
     #[test]

@@ -14,8 +14,8 @@
 
 use super::rotation::{from_rows, rows};
 use super::{Candidate, InteropError};
-use crate::boxes::parse::{read_text, ROTATION_TOLERANCE};
-use glam::{DMat3, DMat4, DQuat, DVec3};
+use crate::boxes::parse::{orthonormalised, read_text, ROTATION_TOLERANCE};
+use nalgebra::{IsometryMatrix3, Matrix3, Point3, Rotation3, Translation3, Vector3};
 use std::path::Path;
 
 /// Column names of a label line, for messages.
@@ -42,7 +42,7 @@ const COLUMNS: [&str; 16] = [
 pub(crate) fn read(
     text: &str,
     path: &Path,
-    camera_to_world: Option<&DMat4>,
+    camera_to_world: Option<&IsometryMatrix3<f64>>,
 ) -> Result<(Vec<Candidate>, Vec<String>), InteropError> {
     let mut out = Vec::new();
     let mut skipped = 0usize;
@@ -80,17 +80,17 @@ pub(crate) fn read(
             };
         }
         let [h, w, l] = [values[8], values[9], values[10]];
-        let bottom = DVec3::new(values[11], values[12], values[13]);
-        let mut center = bottom - DVec3::new(0.0, h / 2.0, 0.0);
-        let mut rotation = DMat3::from_rotation_y(values[14]);
+        let bottom = Point3::new(values[11], values[12], values[13]);
+        let mut center = bottom - Vector3::new(0.0, h / 2.0, 0.0);
+        let mut rotation = Rotation3::from_axis_angle(&Vector3::y_axis(), values[14]);
         if let Some(m) = camera_to_world {
-            center = m.transform_point3(center);
-            rotation = DMat3::from_mat4(*m) * rotation;
+            center = m * center;
+            rotation = m.rotation * rotation;
         }
         out.push(Candidate {
             place,
             label: fields[0].to_string(),
-            center: center.to_array(),
+            center: center.coords.into(),
             size: [l, h, w],
             rotation: rows(&rotation),
             fields: ["type", "x y z", "h w l", "rotation_y"],
@@ -107,7 +107,7 @@ pub(crate) fn read(
 /// A rigid camera-to-world matrix: 16 numbers (4 rows of 4, the last
 /// `0 0 0 1`) or 12 (3 rows of 4), separated by white space; the rotation
 /// part must be orthonormal with determinant +1 (it is re-orthonormalised).
-pub fn read_calib(path: &Path) -> Result<DMat4, InteropError> {
+pub fn read_calib(path: &Path) -> Result<IsometryMatrix3<f64>, InteropError> {
     let text = read_text(path)?;
     let bad = |problem: String| InteropError::Format {
         path: path.to_path_buf(),
@@ -147,8 +147,7 @@ pub fn read_calib(path: &Path) -> Result<DMat4, InteropError> {
     }
     let r = |row: usize| [numbers[4 * row], numbers[4 * row + 1], numbers[4 * row + 2]];
     let m = from_rows([r(0), r(1), r(2)]);
-    let off = (m.transpose() * m - DMat3::IDENTITY)
-        .to_cols_array()
+    let off = (m.transpose() * m - Matrix3::identity())
         .iter()
         .fold(0.0f64, |a, x| a.max(x.abs()));
     if off > ROTATION_TOLERANCE || (m.determinant() - 1.0).abs() > ROTATION_TOLERANCE {
@@ -157,14 +156,9 @@ pub fn read_calib(path: &Path) -> Result<DMat4, InteropError> {
             m.determinant()
         )));
     }
-    let rotation = DMat3::from_quat(DQuat::from_mat3(&m).normalize());
-    let t = DVec3::new(numbers[3], numbers[7], numbers[11]);
-    Ok(DMat4::from_cols(
-        rotation.x_axis.extend(0.0),
-        rotation.y_axis.extend(0.0),
-        rotation.z_axis.extend(0.0),
-        t.extend(1.0),
-    ))
+    let rotation = orthonormalised(&m);
+    let t = Translation3::new(numbers[3], numbers[7], numbers[11]);
+    Ok(IsometryMatrix3::from_parts(t, rotation))
 }
 
 #[cfg(test)]
@@ -198,18 +192,18 @@ DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10\n"
         assert_eq!(set.categories, vec!["Truck".to_string(), "Car".to_string()]);
         let truck = &set.boxes[0];
         // Centre half the height above (y down: minus) the bottom centre.
-        assert!((truck.center - DVec3::new(0.47, 1.49 - 2.85 / 2.0, 69.44)).length() < 1e-12);
-        assert_eq!(truck.size.to_array(), [12.34, 2.85, 2.63]);
+        assert!((truck.center - Point3::new(0.47, 1.49 - 2.85 / 2.0, 69.44)).norm() < 1e-12);
+        assert_eq!(<[f64; 3]>::from(truck.size), [12.34, 2.85, 2.63]);
         // rotation_y turns the length axis (box x) about camera y: Ry(a) x = (cos a, 0, -sin a).
         let a: f64 = -1.56;
-        assert!((truck.rotation * DVec3::X - DVec3::new(a.cos(), 0.0, -a.sin())).length() < 1e-12);
+        assert!((truck.rotation * Vector3::x() - Vector3::new(a.cos(), 0.0, -a.sin())).norm() < 1e-12);
         assert!(
-            (truck.rotation * DVec3::Y - DVec3::Y).length() < 1e-12,
+            (truck.rotation * Vector3::y() - Vector3::y()).norm() < 1e-12,
             "height stays along camera y"
         );
         // The bottom face centre is where KITTI put the object's origin.
-        let bottom = truck.center + truck.rotation * DVec3::new(0.0, truck.size.y / 2.0, 0.0);
-        assert!((bottom - DVec3::new(0.47, 1.49, 69.44)).length() < 1e-12);
+        let bottom = truck.center + truck.rotation * Vector3::new(0.0, truck.size.y / 2.0, 0.0);
+        assert!((bottom - Point3::new(0.47, 1.49, 69.44)).norm() < 1e-12);
     }
 
     #[test]
@@ -220,16 +214,16 @@ DontCare -1 -1 -10 503.89 169.71 590.61 190.13 -1 -1 -1 -1000 -1000 -1000 -10\n"
         let b = import(line, Some(calib)).unwrap().boxes.boxes.remove(0);
         // Camera point (0.5, 1.2 - 0.75, 10) -> world (1 + 10, 2 - 0.5, 3 - 0.45).
         assert!(
-            (b.center - DVec3::new(11.0, 1.5, 2.55)).length() < 1e-12,
+            (b.center - Point3::new(11.0, 1.5, 2.55)).norm() < 1e-12,
             "{:?}",
             b.center
         );
         // Height axis (camera y, down) is world -z; the yaw turns about world z.
-        assert!((b.rotation * DVec3::Y - DVec3::NEG_Z).length() < 1e-12);
+        assert!((b.rotation * Vector3::y() + Vector3::z()).norm() < 1e-12);
         let a: f64 = 0.3;
-        let length_axis_cam = DVec3::new(a.cos(), 0.0, -a.sin());
-        let world = DVec3::new(length_axis_cam.z, -length_axis_cam.x, -length_axis_cam.y);
-        assert!((b.rotation * DVec3::X - world).length() < 1e-12);
+        let length_axis_cam = Vector3::new(a.cos(), 0.0, -a.sin());
+        let world = Vector3::new(length_axis_cam.z, -length_axis_cam.x, -length_axis_cam.y);
+        assert!((b.rotation * Vector3::x() - world).norm() < 1e-12);
         // 12 numbers (3x4) mean the same.
         let short = import(line, Some("0 0 1 1 -1 0 0 2 0 -1 0 3"))
             .unwrap()

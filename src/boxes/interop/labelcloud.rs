@@ -211,7 +211,7 @@ mod tests {
     use super::*;
     use crate::boxes::parse::{Box3, BoxSet};
     use crate::rng::Rng;
-    use glam::{DMat3, DVec3};
+    use nalgebra::{Point3, Rotation3, Vector3};
 
     fn import(text: &str, format: ImportFormat) -> Result<BoxSet, InteropError> {
         let dir = tempfile::tempdir().unwrap();
@@ -236,21 +236,21 @@ mod tests {
             let set = import(CART, format).unwrap();
             let b = &set.boxes[0];
             assert_eq!(b.label, "cart");
-            assert_eq!(b.center.to_array(), [-0.186338, -0.241696, 0.054818]);
-            assert_eq!(b.size.to_array(), [0.80014, 0.512493, 0.186055]);
+            assert_eq!(<[f64; 3]>::from(b.center.coords), [-0.186338, -0.241696, 0.054818]);
+            assert_eq!(<[f64; 3]>::from(b.size), [0.80014, 0.512493, 0.186055]);
             // The length axis points at the yaw angle from world x, in the xy plane.
-            let length_axis = b.rotation * DVec3::X;
-            assert!((length_axis - DVec3::new(yaw.cos(), yaw.sin(), 0.0)).length() < 1e-12);
-            assert!((b.rotation * DVec3::Z - DVec3::Z).length() < 1e-12);
+            let length_axis = b.rotation * Vector3::x();
+            assert!((length_axis - Vector3::new(yaw.cos(), yaw.sin(), 0.0)).norm() < 1e-12);
+            assert!((b.rotation * Vector3::z() - Vector3::z()).norm() < 1e-12);
         }
         // Order of rotation: x first, then y, then z (labelCloud's rotate_around_zyx).
         let text = r#"{"objects": [{"name": "a", "centroid": {"x": 1, "y": 2, "z": 3},
             "dimensions": {"length": 1, "width": 2, "height": 3}, "rotations": {"x": 90, "y": 0, "z": 90}}]}"#;
         let b = import(text, ImportFormat::LabelcloudAbs).unwrap().boxes.remove(0);
         // x by 90: the width (y) axis goes up; z by 90 leaves it up and turns the length axis to +y.
-        assert!((b.rotation * DVec3::Y - DVec3::Z).length() < 1e-12);
-        assert!((b.rotation * DVec3::X - DVec3::Y).length() < 1e-12);
-        assert!((b.rotation * DVec3::Z - DVec3::X).length() < 1e-12);
+        assert!((b.rotation * Vector3::y() - Vector3::z()).norm() < 1e-12);
+        assert!((b.rotation * Vector3::x() - Vector3::y()).norm() < 1e-12);
+        assert!((b.rotation * Vector3::z() - Vector3::x()).norm() < 1e-12);
     }
 
     #[test]
@@ -260,10 +260,10 @@ mod tests {
             .map(|i| Box3 {
                 label: ["mug", "box", "can"][i % 3].into(),
                 instance_id: i as u32,
-                center: DVec3::new(rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)),
-                size: DVec3::new(rng.range(0.01, 1.0), rng.range(0.01, 1.0), rng.range(0.01, 1.0)),
+                center: Point3::new(rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)),
+                size: Vector3::new(rng.range(0.01, 1.0), rng.range(0.01, 1.0), rng.range(0.01, 1.0)),
                 rotation: if i % 4 == 0 {
-                    DMat3::from_rotation_z(rng.range(-3.0, 3.0))
+                    Rotation3::from_axis_angle(&Vector3::z_axis(), rng.range(-3.0, 3.0))
                 } else {
                     zyx(rng.range(-3.1, 3.1), rng.range(-1.5, 1.5), rng.range(-3.1, 3.1))
                 },
@@ -289,9 +289,9 @@ mod tests {
             assert_eq!(back.categories, set.categories);
             for (a, b) in set.boxes.iter().zip(&back.boxes) {
                 assert_eq!((&a.label, a.instance_id), (&b.label, b.instance_id));
-                assert!((a.center - b.center).abs().max_element() < 1e-9);
-                assert!((a.size - b.size).abs().max_element() < 1e-9);
-                assert!((a.rotation - b.rotation).abs_diff_eq(DMat3::ZERO, 1e-9), "{to:?}");
+                assert!((a.center - b.center).abs().max() < 1e-9);
+                assert!((a.size - b.size).abs().max() < 1e-9);
+                assert!((a.rotation.matrix() - b.rotation.matrix()).amax() < 1e-9, "{to:?}");
             }
             if to == ExportFormat::LabelcloudAbs {
                 let z = doc["objects"][0]["rotations"]["z"].as_f64().unwrap();

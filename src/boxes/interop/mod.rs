@@ -192,8 +192,8 @@ pub fn boxes_json(set: &BoxSet) -> String {
             format!(
                 "    {{\"label\": {}, \"center\": {}, \"size\": {}, \"rotation\": {}}}",
                 compact(&b.label),
-                compact(&b.center.to_array()),
-                compact(&b.size.to_array()),
+                compact(&<[f64; 3]>::from(b.center.coords)),
+                compact(&<[f64; 3]>::from(b.size)),
                 compact(&rotation::rows(&b.rotation)),
             )
         })

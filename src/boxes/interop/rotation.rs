@@ -4,32 +4,37 @@
 //! order (R = Rx Ry Rz); KITTI turns a box about the camera's y axis.
 //! Angles in radians; rotations are box-to-world, columns the box axes.
 
-use glam::DMat3;
+use nalgebra::{Matrix3, Rotation3, Vector3};
 
 /// Rows of a 3x3 matrix.
-pub fn rows(m: &DMat3) -> [[f64; 3]; 3] {
-    let t = m.transpose();
-    [t.x_axis.to_array(), t.y_axis.to_array(), t.z_axis.to_array()]
+pub fn rows(m: &Rotation3<f64>) -> [[f64; 3]; 3] {
+    let m = m.matrix();
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
 }
 
 /// A matrix from its rows.
-pub fn from_rows(r: [[f64; 3]; 3]) -> DMat3 {
-    DMat3::from_cols_array_2d(&r).transpose()
+pub fn from_rows(r: [[f64; 3]; 3]) -> Matrix3<f64> {
+    Matrix3::from_fn(|i, j| r[i][j])
 }
 
 /// labelCloud: rotate about world x by `x`, then y by `y`, then z by `z`.
-pub fn zyx(x: f64, y: f64, z: f64) -> DMat3 {
-    DMat3::from_rotation_z(z) * DMat3::from_rotation_y(y) * DMat3::from_rotation_x(x)
+pub fn zyx(x: f64, y: f64, z: f64) -> Rotation3<f64> {
+    about(&Vector3::z_axis(), z) * about(&Vector3::y_axis(), y) * about(&Vector3::x_axis(), x)
 }
 
 /// three.js `Euler(x, y, z, 'XYZ')`, as CVAT stores a cuboid's rotation.
-pub fn xyz(x: f64, y: f64, z: f64) -> DMat3 {
-    DMat3::from_rotation_x(x) * DMat3::from_rotation_y(y) * DMat3::from_rotation_z(z)
+pub fn xyz(x: f64, y: f64, z: f64) -> Rotation3<f64> {
+    about(&Vector3::x_axis(), x) * about(&Vector3::y_axis(), y) * about(&Vector3::z_axis(), z)
+}
+
+/// Rotation by `angle` about a coordinate axis.
+fn about(axis: &nalgebra::Unit<Vector3<f64>>, angle: f64) -> Rotation3<f64> {
+    Rotation3::from_axis_angle(axis, angle)
 }
 
 /// The angles `(x, y, z)` with `zyx(x, y, z) == r`, each in (-pi, pi]
 /// (y in [-pi/2, pi/2]); at y = +-pi/2 (gimbal lock) x is 0.
-pub fn to_zyx(r: &DMat3) -> (f64, f64, f64) {
+pub fn to_zyx(r: &Rotation3<f64>) -> (f64, f64, f64) {
     let m = rows(r);
     let cos_y = m[0][0].hypot(m[1][0]);
     let y = (-m[2][0]).atan2(cos_y);
@@ -44,21 +49,18 @@ pub fn to_zyx(r: &DMat3) -> (f64, f64, f64) {
 mod tests {
     use super::*;
     use crate::rng::Rng;
-    use glam::DVec3;
 
     #[test]
     fn conventions_turn_the_axes_as_their_tools_do() {
         let q = std::f64::consts::FRAC_PI_2;
         // labelCloud: z = 90 degrees takes the box's x (length) axis to world +y.
-        assert!((zyx(0.0, 0.0, q) * DVec3::X - DVec3::Y).length() < 1e-15);
+        assert!((zyx(0.0, 0.0, q) * Vector3::x() - Vector3::y()).norm() < 1e-15);
         // x first, then z: the box's y axis goes to world z (by x), stays there (z).
-        assert!((zyx(q, 0.0, q) * DVec3::Y - DVec3::Z).length() < 1e-15);
+        assert!((zyx(q, 0.0, q) * Vector3::y() - Vector3::z()).norm() < 1e-15);
         // three.js XYZ: z first in the object's frame, then y, then x.
-        assert!((xyz(q, 0.0, q) * DVec3::X - DVec3::Z).length() < 1e-15);
-        assert_eq!(
-            rows(&from_rows([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]]))[1],
-            [4.0, 5.0, 6.0]
-        );
+        assert!((xyz(q, 0.0, q) * Vector3::x() - Vector3::z()).norm() < 1e-15);
+        let m = from_rows([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]]);
+        assert_eq!(rows(&Rotation3::from_matrix_unchecked(m))[1], [4.0, 5.0, 6.0]);
     }
 
     #[test]
@@ -68,13 +70,13 @@ mod tests {
             let (x, y, z) = (rng.range(-3.1, 3.1), rng.range(-1.5, 1.5), rng.range(-3.1, 3.1));
             let r = zyx(x, y, z);
             let (a, b, c) = to_zyx(&r);
-            assert!((zyx(a, b, c) - r).abs_diff_eq(DMat3::ZERO, 1e-12));
+            assert!((zyx(a, b, c).matrix() - r.matrix()).amax() < 1e-12);
             assert!((a - x).abs() < 1e-9 && (b - y).abs() < 1e-9 && (c - z).abs() < 1e-9);
         }
         for y in [std::f64::consts::FRAC_PI_2, -std::f64::consts::FRAC_PI_2] {
             let r = zyx(0.4, y, -1.1);
             let (a, b, c) = to_zyx(&r);
-            assert!((zyx(a, b, c) - r).abs_diff_eq(DMat3::ZERO, 1e-12), "{a} {b} {c}");
+            assert!((zyx(a, b, c).matrix() - r.matrix()).amax() < 1e-12, "{a} {b} {c}");
         }
     }
 }

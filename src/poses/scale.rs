@@ -64,11 +64,16 @@ impl ScaleEstimate {
         } else if self.looks_metric() {
             format!("poses look metric (best scale {:.3})", self.scale)
         } else {
+            // At scale 1 the frames' depth may not meet at all (no finite cost).
+            let without = if self.cost_at_one.is_finite() {
+                format!("{:.1} mm without", self.cost_at_one * 1e3)
+            } else {
+                "not at all without".to_string()
+            };
             format!(
-                "poses are up to scale: estimated scale {:.3} (depth agrees to {:.1} mm with it, {:.1} mm without)",
+                "poses are up to scale: estimated scale {:.3} (depth agrees to {:.1} mm with it, {without})",
                 self.scale,
                 self.cost_at_scale * 1e3,
-                self.cost_at_one * 1e3
             )
         }
     }
@@ -226,5 +231,24 @@ mod tests {
         }
         let e = estimate_pose_scale(&scan).unwrap().unwrap();
         assert!(e.looks_metric(), "{e:?}");
+    }
+
+    /// Poses so far off scale that the frames' depth never meets at scale 1
+    /// are reported in words, not as "inf mm".
+    #[test]
+    fn a_verdict_without_any_agreement_at_scale_one_says_so() {
+        let e = ScaleEstimate {
+            scale: 2.5,
+            cost_at_scale: 0.002,
+            cost_at_one: f64::INFINITY,
+            sharpness: 0.5,
+        };
+        let verdict = e.verdict();
+        assert!(
+            verdict.contains("estimated scale 2.500")
+                && verdict.contains("not at all without")
+                && !verdict.contains("inf"),
+            "{verdict}"
+        );
     }
 }

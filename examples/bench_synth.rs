@@ -23,7 +23,6 @@ use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::boxes::BoxClassifier;
 use nerflabel::fixture::{generate, read_meta, trajectory, FixtureOptions, SceneKind};
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::render::rays::render_image;
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -289,7 +288,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let views: Vec<serde_json::Value> = holdout
         .iter()
         .map(|p| {
-            let rows: Vec<[f64; 4]> = (0..4).map(|r| p.row(r).to_array()).collect();
+            let m = p.to_homogeneous();
+            let rows: Vec<[f64; 4]> = (0..4).map(|r| [0, 1, 2, 3].map(|c| m[(r, c)])).collect();
             serde_json::json!({ "camera_to_world": rows, "intrinsics": [k.fx, k.fy, k.cx, k.cy],
                                 "width": meta.width, "height": meta.height })
         })
@@ -309,7 +309,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let rows = read_rows(&held_path, usize::MAX)?;
     for row in &rows {
         let gt = scene.render(
-            &row.spec.camera_to_world.to_glam(),
+            &row.spec.camera_to_world,
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,
@@ -332,7 +332,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let sampled = read_rows(&sampled_path, 50)?;
     for row in &sampled {
         let gt = scene.render(
-            &row.spec.camera_to_world.to_glam(),
+            &row.spec.camera_to_world,
             &row.spec.intrinsics,
             row.spec.width,
             row.spec.height,

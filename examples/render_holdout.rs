@@ -22,13 +22,7 @@ fn main() -> anyhow::Result<()> {
     let (w, h) = (meta.width, meta.height);
     for (i, pose) in path.holdout.iter().enumerate().take(4) {
         let truth = scene.render(pose, &meta.intrinsics, w, h);
-        let view = renderer.render_view(
-            &nerflabel::glam_bridge::ToNalgebra::to_na(pose),
-            &meta.intrinsics,
-            w,
-            h,
-            true,
-        );
+        let view = renderer.render_view(pose, &meta.intrinsics, w, h, true);
         let mut img = image::RgbImage::new(3 * w, h);
         for y in 0..h {
             for x in 0..w {

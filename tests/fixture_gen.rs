@@ -1,7 +1,8 @@
 //! End-to-end checks of the fixture generator: the files it writes parse,
 //! match the scene's exact ground truth, and are deterministic for a seed.
 
-use glam::{DMat3, DMat4, DVec3, DVec4};
+use glam::{DMat3, DVec3};
+use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Rotation3, Translation3, Vector4};
 use nerflabel::fixture::{
     generate, read_meta, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions, Scene, SceneKind,
 };
@@ -28,12 +29,20 @@ fn read_matrix(path: &Path) -> Vec<Vec<f64>> {
         .collect()
 }
 
-fn mat4(rows: &[Vec<f64>]) -> DMat4 {
+fn mat4(rows: &[Vec<f64>]) -> Matrix4<f64> {
     assert_eq!(rows.len(), 4);
-    DMat4::from_cols_array_2d(&[0, 1, 2, 3].map(|c| [0, 1, 2, 3].map(|r| rows[r][c])))
+    Matrix4::from_fn(|r, c| rows[r][c])
 }
 
-fn json_mat4(v: &Value) -> DMat4 {
+/// The rigid transform in the top three rows of `m`.
+fn rigid(m: &Matrix4<f64>) -> IsometryMatrix3<f64> {
+    IsometryMatrix3::from_parts(
+        Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
+        Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned()),
+    )
+}
+
+fn json_mat4(v: &Value) -> Matrix4<f64> {
     let rows: Vec<Vec<f64>> = v
         .as_array()
         .unwrap()
@@ -43,8 +52,8 @@ fn json_mat4(v: &Value) -> DMat4 {
     mat4(&rows)
 }
 
-fn max_abs_diff(a: &DMat4, b: &DMat4) -> f64 {
-    (*a - *b).to_cols_array().iter().fold(0.0, |m, v| m.max(v.abs()))
+fn max_abs_diff(a: &Matrix4<f64>, b: &IsometryMatrix3<f64>) -> f64 {
+    (a - b.to_homogeneous()).amax()
 }
 
 fn read_json(path: &Path) -> Value {
@@ -97,11 +106,11 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
         let name = format!("{i:06}");
         // pose/ holds world-to-camera; its inverse is the render pose.
         let w2c = mat4(&read_matrix(&out.join(format!("pose/{name}.txt"))));
-        let back = w2c.inverse();
+        let back = rigid(&w2c).inverse();
         assert!(
-            max_abs_diff(&back, c2w) < 1e-9,
+            max_abs_diff(&back.to_homogeneous(), c2w) < 1e-9,
             "frame {i}: pose off by {}",
-            max_abs_diff(&back, c2w)
+            max_abs_diff(&back.to_homogeneous(), c2w)
         );
 
         let rgb = image::open(out.join(format!("rgb/{name}.png"))).unwrap();
@@ -137,7 +146,7 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     for (i, c2w) in path.holdout.iter().enumerate() {
         let name = format!("{i:06}");
         let w2c = mat4(&read_matrix(&out.join(format!("gt/holdout/pose/{name}.txt"))));
-        assert!(max_abs_diff(&w2c.inverse(), c2w) < 1e-9);
+        assert!(max_abs_diff(&rigid(&w2c).inverse().to_homogeneous(), c2w) < 1e-9);
         let rgb = image::open(out.join(format!("gt/holdout/rgb/{name}.png")))
             .unwrap()
             .to_rgb8();
@@ -193,7 +202,8 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
     let objs = objects["objects"].as_array().unwrap();
     for (o, j) in scene.labelled().zip(objs) {
         assert_eq!(j["instance_id"].as_u64().unwrap(), o.instance_id as u64);
-        assert!(max_abs_diff(&json_mat4(&j["object_to_world"]), &o.object_to_world) < 1e-15);
+        let object_to_world = Matrix4::from_column_slice(&o.object_to_world.to_cols_array());
+        assert!((json_mat4(&j["object_to_world"]) - object_to_world).amax() < 1e-15);
         assert_eq!(j["no_sensor_depth"].as_bool().unwrap(), o.no_sensor_depth);
     }
 
@@ -332,7 +342,7 @@ fn nerfstudio_layout_at_large_scale_keeps_depth_in_range() {
     assert!((unit - 0.1).abs() < 1e-12);
     let scene = Scene::new(SceneKind::Small, 100.0);
     let path = trajectory(&scene, 3, 0, 11);
-    let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
+    let flip = Matrix4::from_diagonal(&Vector4::new(1.0, -1.0, -1.0, 1.0));
     let frames = t["frames"].as_array().unwrap();
     assert_eq!(frames.len(), 3);
     for (f, c2w) in frames.iter().zip(&path.scan) {
@@ -444,15 +454,10 @@ fn realistic_scans_have_jpeg_colour_pose_error_and_drawn_boxes() {
         let name = format!("{i:06}.txt");
         let written = mat4(&read_matrix(&dir.path().join("pose").join(&name)));
         let exact = mat4(&read_matrix(&dir.path().join("gt/pose").join(&name)));
-        let error = written * exact.inverse();
-        shift.push(error.w_axis.truncate().length());
-        let r = DMat3::from_mat4(error);
-        turn.push(
-            ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0)
-                .clamp(-1.0, 1.0)
-                .acos()
-                .to_degrees(),
-        );
+        let error = rigid(&written) * rigid(&exact).inverse();
+        shift.push(error.translation.vector.norm());
+        let r: Matrix3<f64> = *error.rotation.matrix();
+        turn.push(((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees());
     }
     let c = Corruptions::realistic();
     assert!(turn.iter().all(|&t| t > 0.0 && t < 4.0 * c.pose_sigma_deg), "{turn:?}");

@@ -11,7 +11,6 @@ use image::DynamicImage;
 use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::fixture::{generate, read_meta, Corruptions, FixtureOptions, Render, SceneKind};
-use nerflabel::glam_bridge::ToGlam;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::metrics::psnr;
@@ -189,12 +188,7 @@ fn boxes_of_mask(mask: &[u8], width: u32) -> BTreeMap<i32, [f32; 4]> {
 /// Exact ground truth of a view.
 fn truth(spec: &ViewSpec) -> Render {
     let scene = read_meta(&fitted().scan_dir).unwrap().build_scene();
-    scene.render(
-        &spec.camera_to_world.to_glam(),
-        &spec.intrinsics,
-        spec.width,
-        spec.height,
-    )
+    scene.render(&spec.camera_to_world, &spec.intrinsics, spec.width, spec.height)
 }
 
 /// Mean IoU over the instances present in either mask, pixels pooled over views.

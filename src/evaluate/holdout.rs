@@ -47,13 +47,7 @@ pub fn score_holdout(model: &Model, fixture: &Path) -> Result<HoldoutScore, Scor
     let (mut depth_sum, mut depth_views, mut missing, mut surface) = (0.0, 0usize, 0usize, 0usize);
     for pose in &path.holdout {
         let truth = scene.render(pose, &meta.intrinsics, meta.width, meta.height);
-        let view = renderer.render_view(
-            &crate::glam_bridge::ToNalgebra::to_na(pose),
-            &meta.intrinsics,
-            meta.width,
-            meta.height,
-            true,
-        );
+        let view = renderer.render_view(pose, &meta.intrinsics, meta.width, meta.height, true);
         score.psnr += psnr(&view.rgb, truth.rgb.as_raw());
         score.ssim += ssim(&view.rgb, truth.rgb.as_raw(), meta.width as usize, meta.height as usize);
         if let Some(mae) = depth_mae(&view.depth_m, &truth.depth) {

@@ -82,13 +82,13 @@ fn main() -> Result<(), Error> {
 /// Distances of the cloud's points that `keep` accepts.
 fn distances(
     cloud: &PointCloud,
-    keep: impl Fn(glam::DVec3) -> bool,
-    distance: impl Fn(glam::DVec3) -> f64,
+    keep: impl Fn(nalgebra::Vector3<f64>) -> bool,
+    distance: impl Fn(nalgebra::Vector3<f64>) -> f64,
 ) -> Vec<f64> {
     cloud
         .positions
         .iter()
-        .map(|p| glam::DVec3::from(p.map(f64::from)))
+        .map(|p| nalgebra::Vector3::from(p.map(f64::from)))
         .filter(|p| keep(*p))
         .map(distance)
         .collect()

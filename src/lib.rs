@@ -13,8 +13,6 @@ pub mod batch;
 pub mod boxes;
 pub mod evaluate;
 pub mod fixture;
-#[doc(hidden)]
-pub mod glam_bridge;
 pub mod mask;
 pub mod masks;
 pub mod nerf;

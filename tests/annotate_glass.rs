@@ -75,11 +75,9 @@ fn an_object_without_sensor_depth_is_fitted_from_the_model_surface() {
     let as_box = |o: &nerflabel::fixture::scene::SceneObject| Box3 {
         label: o.label.clone(),
         instance_id: u32::from(o.instance_id),
-        center: Point3::from(o.center().to_array()),
-        size: Vector3::from(o.size.to_array()),
-        rotation: nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_column_slice(
-            &o.rotation().to_cols_array(),
-        )),
+        center: Point3::from(o.center()),
+        size: o.size,
+        rotation: nalgebra::Rotation3::from_matrix_unchecked(o.rotation()),
     };
     let can = as_box(can);
     let cuboid = as_box(truth.labelled().find(|o| o.instance_id == 1).unwrap());

@@ -68,7 +68,7 @@ fn the_object_without_sensor_depth_appears_in_the_cloud_of_a_fitted_model_on_its
     let around_can = |points: &[([f32; 3], [u8; 3])]| -> Vec<f64> {
         points
             .iter()
-            .map(|(p, _)| glam::DVec3::from(p.map(f64::from)))
+            .map(|(p, _)| nalgebra::Vector3::from(p.map(f64::from)))
             .filter(|p| can.box_contains(*p, 0.01) && p.z > bottom + 0.01)
             .map(|p| can.surface_distance(p))
             .collect()

@@ -1,8 +1,7 @@
 //! End-to-end checks of the fixture generator: the files it writes parse,
 //! match the scene's exact ground truth, and are deterministic for a seed.
 
-use glam::{DMat3, DVec3};
-use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Rotation3, Translation3, Vector4};
+use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Point3, Rotation3, Translation3, Vector3, Vector4};
 use nerflabel::fixture::{
     generate, read_meta, trajectory, Corruptions, FixtureError, FixtureLayout, FixtureOptions, Scene, SceneKind,
 };
@@ -174,35 +173,35 @@ fn native_scan_parses_and_matches_exact_ground_truth() {
         .zip(list.iter().zip(tight["boxes"].as_array().unwrap()))
     {
         assert_eq!(b["label"], o.label.as_str());
-        let v3 = |v: &Value| DVec3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
+        let v3 = |v: &Value| Vector3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
         let rot = match b.get("rotation") {
-            Some(r) => DMat3::from_cols(v3(&r[0]), v3(&r[1]), v3(&r[2])).transpose(),
-            None => DMat3::IDENTITY,
+            Some(r) => Matrix3::from_rows(&[v3(&r[0]).transpose(), v3(&r[1]).transpose(), v3(&r[2]).transpose()]),
+            None => Matrix3::identity(),
         };
         let (center, size) = (v3(&b["center"]), v3(&b["size"]));
-        assert!((v3(&t["size"]) - o.size).length() < 1e-12 && (v3(&t["center"]) - o.center()).length() < 1e-12);
+        assert!((v3(&t["size"]) - o.size).norm() < 1e-12 && (v3(&t["center"]) - o.center()).norm() < 1e-12);
         for c in 0..8 {
-            let s = DVec3::new(
+            let s = Vector3::new(
                 (c & 1) as f64 - 0.5,
                 ((c >> 1) & 1) as f64 - 0.5,
                 ((c >> 2) & 1) as f64 - 0.5,
             );
-            let corner = o.object_to_world.transform_point3(s * o.size);
+            let corner = (o.object_to_world * Point3::from(s.component_mul(&o.size))).coords;
             let local = rot.transpose() * (corner - center);
-            let slack = (local.abs() - size * 0.5).max_element();
+            let slack = (local.abs() - size * 0.5).max();
             // Inside, except the bottom face, which sits just above the support.
             assert!(
-                slack <= 0.01 * o.size.max_element(),
+                slack <= 0.01 * o.size.max(),
                 "{}: corner {c} outside by {slack}",
                 o.label
             );
         }
-        assert!((size - o.size).max_element() < 0.04 * o.size.max_element());
+        assert!((size - o.size).max() < 0.04 * o.size.max());
     }
     let objs = objects["objects"].as_array().unwrap();
     for (o, j) in scene.labelled().zip(objs) {
         assert_eq!(j["instance_id"].as_u64().unwrap(), o.instance_id as u64);
-        let object_to_world = Matrix4::from_column_slice(&o.object_to_world.to_cols_array());
+        let object_to_world = o.object_to_world.to_homogeneous();
         assert!((json_mat4(&j["object_to_world"]) - object_to_world).amax() < 1e-15);
         assert_eq!(j["no_sensor_depth"].as_bool().unwrap(), o.no_sensor_depth);
     }

@@ -69,7 +69,8 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     let log = PlainProgress::new();
     let stop = stop_flag();
     let mut last_eval = String::new();
-    let mut on_event = |event: FitEvent| match event {
+    let mut on_event = |event: FitEvent| {
+        match event {
         FitEvent::PosesScaled(r) => bar.suspend(|| {
             eprintln!(
                 "warning: {}; camera positions multiplied by {:.4}",
@@ -87,6 +88,15 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             ));
             bar.suspend(|| note!("poses vs depth: {}", r.verdict));
         }
+        FitEvent::PosesAligned(r) => bar.suspend(|| note!(
+            "aligned {} of {} frames' images to the field at step {}: median shift {:.2} px; largest correction {:.1} mm, {:.2} deg",
+            r.frames_refined,
+            r.frames_aligned,
+            r.at_step,
+            r.median_shift_px,
+            r.largest_translation_m * 1e3,
+            r.largest_rotation_deg
+        )),
         FitEvent::Prepared {
             train_views,
             holdout_views,
@@ -134,6 +144,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         }
         FitEvent::CheckpointSaved { .. } => bar.suspend(|| detail!("checkpoint saved: {}", checkpoint.display())),
         FitEvent::CheckpointFailed(e) => bar.suspend(|| eprintln!("warning: {e}")),
+    }
     };
     let outcome = match from {
         Some(c) => resume(&mut scan, &options, c, stop, &mut on_event)?,

@@ -11,7 +11,7 @@ use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::fit::FitOptions;
-use crate::nerf::train::report::{CurvePoint, Timings};
+use crate::nerf::train::report::{CurvePoint, PoseAlignmentReport, Timings};
 use crate::nerf::train::settings::{FitSettings, NerfSettings};
 use crate::nerf::train::step::{TrainCounters, Trainer};
 use crate::scan::fingerprint::{scan_fingerprint, Fnv};
@@ -108,6 +108,13 @@ pub struct FitProgress {
     pub resumed_from: Vec<u64>,
     /// Whether training stopped on request before its budget.
     pub interrupted: bool,
+    /// What each pass of aligning the images to the field did.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pose_alignment: Vec<PoseAlignmentReport>,
+    /// The poses training went on with after that (camera-to-world,
+    /// column-major, scan order); empty when it changed none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub aligned_poses: Vec<[f64; 16]>,
 }
 
 /// Everything in a checkpoint besides the arrays.

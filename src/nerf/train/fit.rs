@@ -12,8 +12,9 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
 use crate::nerf::train::dataset::{self, Dataset};
+use crate::nerf::train::photometric::{align_to_field, PhotometricOptions};
 use crate::nerf::train::report::{
-    AppearanceReport, CurvePoint, FitReport, PoseRefinementReport, PoseScaleReport, Timings,
+    AppearanceReport, CurvePoint, FitReport, PoseAlignmentReport, PoseRefinementReport, PoseScaleReport, Timings,
 };
 use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
 use crate::nerf::train::step::{StepStats, Trainer};
@@ -24,6 +25,7 @@ use crate::poses::{
 };
 use crate::rng::Rng;
 use crate::scan::Scan;
+use nalgebra::IsometryMatrix3;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -116,6 +118,8 @@ pub enum FitEvent<'a> {
     PosesScaled(&'a PoseScaleReport),
     /// The poses were aligned to the depth.
     PosesRefined(&'a PoseRefinementReport),
+    /// Part-way through training, the frames' images were aligned to the field.
+    PosesAligned(&'a PoseAlignmentReport),
     /// Set-up done; training starts.
     Prepared {
         train_views: usize,
@@ -260,6 +264,68 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     })
 }
 
+/// Share of the budget trained before the frames' images are aligned to the
+/// field: sharp enough by then to align to, with time left to train on the
+/// corrected poses.
+const POSE_ALIGN_AT: f64 = 0.45;
+
+/// Align the images of `frames` to the field (`train::photometric`), then
+/// move the scan's poses and the views' cameras to the result. `None` when
+/// the field is still in its warm-up (nothing to align to yet).
+fn align_poses_to_field(
+    scan: &mut Scan,
+    data: &mut Dataset,
+    trainer: &mut Trainer,
+    transform: &SceneTransform,
+    render: &RenderOptions,
+    frames: &[usize],
+) -> Option<PoseAlignmentReport> {
+    if trainer.counters.steps < trainer.config.warmup_steps {
+        return None;
+    }
+    let grid = trainer.rendering_occupancy();
+    let maps = match &trainer.appearance {
+        Some(learner) => appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len()),
+        None => vec![appearance::IDENTITY; scan.frames.len()],
+    };
+    let alignment = align_to_field(
+        &trainer.field,
+        &grid,
+        render,
+        transform,
+        &scan.frames,
+        &maps,
+        frames,
+        &PhotometricOptions::default(),
+    );
+    let report = PoseAlignmentReport::new(trainer.counters.steps, &alignment);
+    if report.frames_refined > 0 {
+        scan.set_poses(&alignment.camera_to_world);
+        set_view_cameras(scan, data, transform);
+    }
+    Some(report)
+}
+
+/// Rebuild every view's camera from its frame's pose.
+fn set_view_cameras(scan: &Scan, data: &mut Dataset, transform: &SceneTransform) {
+    let train = data.train.iter_mut().zip(&data.train_frames);
+    for (view, &i) in train.chain(data.holdout.iter_mut().zip(&data.holdout_frames)) {
+        view.camera = dataset::local_camera(&scan.frames[i], transform);
+    }
+}
+
+/// A pose as the column-major 4x4 matrix FORMATS.md stores.
+fn column_major(pose: &IsometryMatrix3<f64>) -> [f64; 16] {
+    let m = pose.to_homogeneous();
+    std::array::from_fn(|i| m[i])
+}
+
+fn from_column_major(m: &[f64; 16]) -> IsometryMatrix3<f64> {
+    let m = nalgebra::Matrix4::from_column_slice(m);
+    let rotation = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
+    IsometryMatrix3::from_parts(nalgebra::Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rotation)
+}
+
 /// Scale the scan's camera positions: by `forced`, else by the estimate
 /// from the depth when the poses are clearly not metric. `None`: unchanged.
 fn apply_pose_scale(scan: &mut Scan, forced: Option<f64>) -> Result<Option<PoseScaleReport>, FitError> {
@@ -334,7 +400,7 @@ fn run(
     let pose_refine_s = t.elapsed().as_secs_f64();
     let scaled = scale_report.is_some();
     let Prepared {
-        data,
+        mut data,
         settings,
         transform,
         metres_per_unit,
@@ -413,45 +479,48 @@ fn run(
     // The rendering grid of the latest evaluation: the model's, when no
     // step came after it.
     let mut latest_grid: Option<(u64, OccupancyGrid)> = None;
-    let evaluate_now =
-        |trainer: &mut Trainer, state: &mut FitProgress, side: u32| -> Option<(CurvePoint, f64, OccupancyGrid)> {
-            if data.holdout.is_empty() {
-                return None;
-            }
-            let wall = spent();
-            let t = Instant::now();
-            let grid = trainer.rendering_occupancy();
-            // A held-out frame is seen with its training neighbours' appearance.
-            let holdout_maps = trainer.appearance.as_ref().map(|learner| {
-                let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
-                data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
-            });
-            let rendering = Instant::now();
-            let r: Validation = validate(
-                &trainer.field,
-                &grid,
-                &render_opts,
-                &data.holdout,
-                metres_per_unit,
-                side,
-                holdout_maps.as_deref(),
-            );
-            let render_s = rendering.elapsed().as_secs_f64();
-            state.timings.eval_s += t.elapsed().as_secs_f64();
-            let samples = trainer.counters.samples;
-            let dt = (state.train_seconds - state.last_point.0).max(1e-9);
-            let point = CurvePoint {
-                seconds: wall,
-                step: trainer.counters.steps,
-                psnr: r.psnr,
-                ssim: r.ssim,
-                depth_mae_m: r.depth_mae_m,
-                samples_per_s: samples.saturating_sub(state.last_point.1) as f64 / dt,
-            };
-            state.last_point = (state.train_seconds, samples);
-            state.curve.push(point);
-            Some((point, render_s, grid))
+    let evaluate_now = |trainer: &mut Trainer,
+                        state: &mut FitProgress,
+                        data: &Dataset,
+                        side: u32|
+     -> Option<(CurvePoint, f64, OccupancyGrid)> {
+        if data.holdout.is_empty() {
+            return None;
+        }
+        let wall = spent();
+        let t = Instant::now();
+        let grid = trainer.rendering_occupancy();
+        // A held-out frame is seen with its training neighbours' appearance.
+        let holdout_maps = trainer.appearance.as_ref().map(|learner| {
+            let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
+            data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
+        });
+        let rendering = Instant::now();
+        let r: Validation = validate(
+            &trainer.field,
+            &grid,
+            &render_opts,
+            &data.holdout,
+            metres_per_unit,
+            side,
+            holdout_maps.as_deref(),
+        );
+        let render_s = rendering.elapsed().as_secs_f64();
+        state.timings.eval_s += t.elapsed().as_secs_f64();
+        let samples = trainer.counters.samples;
+        let dt = (state.train_seconds - state.last_point.0).max(1e-9);
+        let point = CurvePoint {
+            seconds: wall,
+            step: trainer.counters.steps,
+            psnr: r.psnr,
+            ssim: r.ssim,
+            depth_mae_m: r.depth_mae_m,
+            samples_per_s: samples.saturating_sub(state.last_point.1) as f64 / dt,
         };
+        state.last_point = (state.train_seconds, samples);
+        state.curve.push(point);
+        Some((point, render_s, grid))
+    };
     let save_checkpoint = |trainer: &Trainer, state: &mut FitProgress, on_event: &mut dyn FnMut(FitEvent)| {
         let Some(path) = &opts.checkpoint else { return };
         let t = Instant::now();
@@ -464,6 +533,14 @@ fn run(
             Err(e) => on_event(FitEvent::CheckpointFailed(&e)),
         }
     };
+    // What the last pass of aligning the images to the field will cost.
+    let mut final_align_s = 0.0;
+    // A resumed fit goes on with the poses its images were aligned to.
+    if state.aligned_poses.len() == scan.frames.len() {
+        let poses: Vec<_> = state.aligned_poses.iter().map(from_column_major).collect();
+        scan.set_poses(&poses);
+        set_view_cameras(scan, &mut data, &transform);
+    }
     loop {
         let used = |limit: f64| (spent() + finish_cost) / limit;
         let progress = match (time_budget, step_budget) {
@@ -480,6 +557,24 @@ fn run(
             state.interrupted = true;
             break;
         }
+        // Training frames only: the held-out ones must not learn from
+        // their own images before they are scored.
+        let field_ready = trainer.counters.steps >= trainer.config.warmup_steps;
+        if opts.settings.refine_poses && state.pose_alignment.is_empty() && progress >= POSE_ALIGN_AT && field_ready {
+            let t = Instant::now();
+            let frames = data.train_frames.clone();
+            let report = align_poses_to_field(scan, &mut data, &mut trainer, &transform, &render_opts, &frames);
+            let seconds = t.elapsed().as_secs_f64();
+            state.timings.pose_align_s += seconds;
+            if let Some(report) = report {
+                on_event(FitEvent::PosesAligned(&report));
+                state.pose_alignment.push(report);
+                state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
+            }
+            // The last pass (every frame) comes out of the budget too.
+            final_align_s = seconds * frame_count as f64 / frames.len().max(1) as f64;
+            continue;
+        }
         let t = Instant::now();
         let stats = trainer.step(&data.train, progress as f32);
         state.train_seconds += t.elapsed().as_secs_f64();
@@ -493,7 +588,7 @@ fn run(
         let near_end = time_budget.is_some_and(|limit| spent() + 2.0 * finish_cost >= limit);
         if state.train_seconds >= next_eval && !near_end {
             let eval_s_before = state.timings.eval_s;
-            if let Some((point, render_s, grid)) = evaluate_now(&mut trainer, &mut state, eval_side) {
+            if let Some((point, render_s, grid)) = evaluate_now(&mut trainer, &mut state, &data, eval_side) {
                 on_event(FitEvent::Eval(&point));
                 latest_grid = Some((point.step, grid));
                 last_render = Some((eval_side, render_s));
@@ -512,7 +607,7 @@ fn run(
                 let final_side = side_for(side, render_s, final_eval_s);
                 last_cost + render_s * ((final_side as f64 / side as f64).powi(2) - 1.0)
             });
-            finish_cost = final_eval + 1.5 * (state.timings.checkpoint_s - checkpoint_s_before);
+            finish_cost = final_eval + 1.5 * (state.timings.checkpoint_s - checkpoint_s_before) + final_align_s;
             let spacing = (EVAL_COST_RATIO * last_cost).min(MAX_EVAL_SPACING * interval);
             next_eval = (next_eval + interval).max(state.train_seconds + spacing);
             while next_eval <= state.train_seconds {
@@ -522,10 +617,22 @@ fn run(
     }
     if state.curve.last().map(|p| p.step) != Some(trainer.counters.steps) {
         let side = last_render.map_or(eval_side, |(side, render_s)| side_for(side, render_s, final_eval_s));
-        if let Some((point, _, grid)) = evaluate_now(&mut trainer, &mut state, side) {
+        if let Some((point, _, grid)) = evaluate_now(&mut trainer, &mut state, &data, side) {
             on_event(FitEvent::Eval(&point));
             latest_grid = Some((point.step, grid));
         }
+    }
+    // Last, every frame (held-out ones too: `label` draws through them all)
+    // is aligned to the final field, once the first pass ran.
+    if opts.settings.refine_poses && !state.pose_alignment.is_empty() && !state.interrupted {
+        let t = Instant::now();
+        let frames: Vec<usize> = (0..frame_count).collect();
+        if let Some(report) = align_poses_to_field(scan, &mut data, &mut trainer, &transform, &render_opts, &frames) {
+            on_event(FitEvent::PosesAligned(&report));
+            state.pose_alignment.push(report);
+            state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
+        }
+        state.timings.pose_align_s += t.elapsed().as_secs_f64();
     }
     state.timings.train_s = state.train_seconds;
     state.timings.wall_s = spent();
@@ -546,16 +653,8 @@ fn run(
         scan: scan.root.display().to_string(),
         scan_frames: Some(scan.frames.len()),
         scan_fingerprint: Some(captured_fingerprint),
-        fitted_poses: (scaled || refinement.is_some()).then(|| {
-            scan.frames
-                .iter()
-                .map(|f| {
-                    // Column-major (FORMATS.md).
-                    let m = f.camera_to_world.to_homogeneous();
-                    std::array::from_fn(|i| m[i])
-                })
-                .collect()
-        }),
+        fitted_poses: (scaled || refinement.is_some() || !state.aligned_poses.is_empty())
+            .then(|| scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect()),
         appearance: trainer
             .appearance
             .as_ref()
@@ -590,6 +689,7 @@ fn run(
         occupied_fraction: occupancy.occupied_fraction(),
         pose_scale: scale_report,
         pose_refinement: refinement_report,
+        pose_alignment: state.pose_alignment.clone(),
         appearance: trainer.appearance.as_ref().and_then(|learner| {
             let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
             AppearanceReport::new(&learner.maps(), &names)

@@ -8,6 +8,7 @@ pub mod checkpoint;
 pub mod dataset;
 pub mod fit;
 pub mod metrics;
+pub mod photometric;
 pub mod report;
 pub mod settings;
 pub mod step;

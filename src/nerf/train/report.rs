@@ -3,6 +3,7 @@
 
 use crate::nerf::appearance::{strength, Affine};
 use crate::nerf::field::FieldConfig;
+use crate::nerf::train::photometric::{PhotometricAlignment, PhotometricCorrection};
 use crate::nerf::train::settings::Preset;
 use crate::nerf::train::settings::TrainConfig;
 use crate::nerf::train::step::TrainCounters;
@@ -30,6 +31,9 @@ pub struct Timings {
     /// (`FitOptions::pose_scale`, `FitOptions::refine_poses`).
     #[serde(default)]
     pub pose_refine_s: f64,
+    /// Aligning the frames' images to the field part-way through training.
+    #[serde(default)]
+    pub pose_align_s: f64,
     pub bounds_s: f64,
     pub views_s: f64,
     pub occupancy_seed_s: f64,
@@ -87,6 +91,11 @@ pub struct FitReport {
     /// too little depth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_refinement: Option<PoseRefinementReport>,
+    /// What each pass of aligning the frames' images to the field changed
+    /// (part-way, the training frames; at the end, every frame); empty when
+    /// pose refinement was off or the fit ended before it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pose_alignment: Vec<PoseAlignmentReport>,
     /// How far the learnt per-frame appearance strays from neutral; `None`
     /// when it was not learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -161,6 +170,41 @@ impl PoseRefinementReport {
             largest_rotation_deg: rotation,
             verdict: r.verdict(),
             frames: r.frames.clone(),
+        }
+    }
+}
+
+/// The report's account of the poses aligned to the field
+/// (`train::photometric`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseAlignmentReport {
+    /// Training step before which the frames were aligned.
+    pub at_step: u64,
+    /// Frames aligned, and those whose correction was kept.
+    pub frames_aligned: usize,
+    pub frames_refined: usize,
+    /// Median over the refined frames of how far the correction moved the
+    /// frame's surface points in its image, pixels.
+    pub median_shift_px: f64,
+    /// Largest change of a camera centre (m) and orientation (degrees).
+    pub largest_translation_m: f64,
+    pub largest_rotation_deg: f64,
+    pub frames: Vec<PhotometricCorrection>,
+}
+
+impl PoseAlignmentReport {
+    pub fn new(at_step: u64, alignment: &PhotometricAlignment) -> PoseAlignmentReport {
+        let refined: Vec<&PhotometricCorrection> = alignment.frames.iter().filter(|f| f.refined).collect();
+        let mut shifts: Vec<f64> = refined.iter().map(|f| f.shift_px).collect();
+        shifts.sort_by(f64::total_cmp);
+        PoseAlignmentReport {
+            at_step,
+            frames_aligned: alignment.frames.len(),
+            frames_refined: refined.len(),
+            median_shift_px: shifts.get(shifts.len() / 2).copied().unwrap_or(0.0),
+            largest_translation_m: alignment.frames.iter().map(|f| f.translation_m).fold(0.0, f64::max),
+            largest_rotation_deg: alignment.frames.iter().map(|f| f.rotation_deg).fold(0.0, f64::max),
+            frames: alignment.frames.clone(),
         }
     }
 }

@@ -21,5 +21,7 @@ pub use cloud::{fuse_cloud, fuse_depth_maps, write_ply, CloudOptions, PointCloud
 pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
 pub(crate) use orient::symmetric_eigen;
-pub use refine::{pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions};
+pub use refine::{
+    median, pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions,
+};
 pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};

@@ -581,7 +581,8 @@ fn rigid_fit(from: &[Point3<f64>], to: &[Point3<f64>]) -> IsometryMatrix3<f64> {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// Median of the finite values; NaN when there are none.
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.retain(|x| x.is_finite());
     if v.is_empty() {
         return f64::NAN;

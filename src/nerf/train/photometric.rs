@@ -19,7 +19,7 @@ use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
 use crate::nerf::train::dataset::local_camera;
-use crate::poses::{pose_difference, trajectory_alignment, SceneTransform};
+use crate::poses::{median, pose_difference, trajectory_alignment, SceneTransform};
 use crate::scan::Frame;
 use nalgebra::{IsometryMatrix3, Matrix6, Point3, Rotation3, Translation3, Vector3, Vector6};
 use rayon::prelude::*;
@@ -636,15 +636,6 @@ fn gaussian(ws: &mut Workspace, w: usize, h: usize, sigma: f32) {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -703,6 +694,10 @@ mod tests {
         out
     }
 
+    fn align(frame: &Frame, points: &[SurfacePoint]) -> Option<FrameOutcome> {
+        align_frame(frame, points, &PhotometricOptions::default(), &mut Workspace::default())
+    }
+
     #[test]
     fn a_known_pose_error_is_undone() {
         let frame = frame();
@@ -712,13 +707,7 @@ mod tests {
             Rotation3::new(Vector3::new(0.004, -0.005, 0.003)),
         );
         let points = points_seen_from(&error);
-        let outcome = align_frame(
-            &frame,
-            &points,
-            &PhotometricOptions::default(),
-            &mut Workspace::default(),
-        )
-        .unwrap();
+        let outcome = align(&frame, &points).unwrap();
         assert!(outcome.kept, "cost {} -> {}", outcome.cost_before, outcome.cost_after);
         assert!(
             outcome.shift_px > 2.0,
@@ -735,13 +724,7 @@ mod tests {
     fn an_exact_pose_stays_and_a_flat_image_is_left_alone() {
         let frame = frame();
         let points = points_seen_from(&IsometryMatrix3::identity());
-        let outcome = align_frame(
-            &frame,
-            &points,
-            &PhotometricOptions::default(),
-            &mut Workspace::default(),
-        )
-        .unwrap();
+        let outcome = align(&frame, &points).unwrap();
         let (t, r) = pose_difference(&IsometryMatrix3::identity(), &outcome.correction);
         assert!(t < 0.0003 && r < 0.02, "moved {:.2} mm, {:.3} deg", t * 1e3, r);
         // Without texture nothing constrains the pose: no correction is kept.

@@ -118,7 +118,8 @@ pub enum FitEvent<'a> {
     PosesScaled(&'a PoseScaleReport),
     /// The poses were aligned to the depth.
     PosesRefined(&'a PoseRefinementReport),
-    /// Part-way through training, the frames' images were aligned to the field.
+    /// The frames' images were aligned to the field (part-way through
+    /// training, and at its end).
     PosesAligned(&'a PoseAlignmentReport),
     /// Set-up done; training starts.
     Prepared {
@@ -269,9 +270,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
 /// corrected poses.
 const POSE_ALIGN_AT: f64 = 0.45;
 
-/// Align the images of `frames` to the field (`train::photometric`), then
-/// move the scan's poses and the views' cameras to the result. `None` when
-/// the field is still in its warm-up (nothing to align to yet).
+/// Align the images of `frames` to the field (`train::photometric`), move
+/// the scan's poses and the views' cameras to the result, and record the
+/// pass (its report, time and the poses training goes on with) in `state`.
+#[allow(clippy::too_many_arguments)]
 fn align_poses_to_field(
     scan: &mut Scan,
     data: &mut Dataset,
@@ -279,10 +281,10 @@ fn align_poses_to_field(
     transform: &SceneTransform,
     render: &RenderOptions,
     frames: &[usize],
-) -> Option<PoseAlignmentReport> {
-    if trainer.counters.steps < trainer.config.warmup_steps {
-        return None;
-    }
+    state: &mut FitProgress,
+    on_event: &mut dyn FnMut(FitEvent),
+) {
+    let t = Instant::now();
     let grid = trainer.rendering_occupancy();
     let maps = match &trainer.appearance {
         Some(learner) => appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len()),
@@ -302,8 +304,11 @@ fn align_poses_to_field(
     if report.frames_refined > 0 {
         scan.set_poses(&alignment.camera_to_world);
         set_view_cameras(scan, data, transform);
+        state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
     }
-    Some(report)
+    on_event(FitEvent::PosesAligned(&report));
+    state.pose_alignment.push(report);
+    state.timings.pose_align_s += t.elapsed().as_secs_f64();
 }
 
 /// Rebuild every view's camera from its frame's pose.
@@ -321,9 +326,7 @@ fn column_major(pose: &IsometryMatrix3<f64>) -> [f64; 16] {
 }
 
 fn from_column_major(m: &[f64; 16]) -> IsometryMatrix3<f64> {
-    let m = nalgebra::Matrix4::from_column_slice(m);
-    let rotation = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
-    IsometryMatrix3::from_parts(nalgebra::Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rotation)
+    crate::scan::isometry(&nalgebra::Matrix4::from_column_slice(m))
 }
 
 /// Scale the scan's camera positions: by `forced`, else by the estimate
@@ -558,20 +561,24 @@ fn run(
             break;
         }
         // Training frames only: the held-out ones must not learn from
-        // their own images before they are scored.
+        // their own images before they are scored. After the warm-up at
+        // least: an untrained field has nothing to align to.
         let field_ready = trainer.counters.steps >= trainer.config.warmup_steps;
         if opts.settings.refine_poses && state.pose_alignment.is_empty() && progress >= POSE_ALIGN_AT && field_ready {
-            let t = Instant::now();
             let frames = data.train_frames.clone();
-            let report = align_poses_to_field(scan, &mut data, &mut trainer, &transform, &render_opts, &frames);
-            let seconds = t.elapsed().as_secs_f64();
-            state.timings.pose_align_s += seconds;
-            if let Some(report) = report {
-                on_event(FitEvent::PosesAligned(&report));
-                state.pose_alignment.push(report);
-                state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
-            }
+            let before = state.timings.pose_align_s;
+            align_poses_to_field(
+                scan,
+                &mut data,
+                &mut trainer,
+                &transform,
+                &render_opts,
+                &frames,
+                &mut state,
+                &mut *on_event,
+            );
             // The last pass (every frame) comes out of the budget too.
+            let seconds = state.timings.pose_align_s - before;
             final_align_s = seconds * frame_count as f64 / frames.len().max(1) as f64;
             continue;
         }
@@ -625,14 +632,17 @@ fn run(
     // Last, every frame (held-out ones too: `label` draws through them all)
     // is aligned to the final field, once the first pass ran.
     if opts.settings.refine_poses && !state.pose_alignment.is_empty() && !state.interrupted {
-        let t = Instant::now();
         let frames: Vec<usize> = (0..frame_count).collect();
-        if let Some(report) = align_poses_to_field(scan, &mut data, &mut trainer, &transform, &render_opts, &frames) {
-            on_event(FitEvent::PosesAligned(&report));
-            state.pose_alignment.push(report);
-            state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
-        }
-        state.timings.pose_align_s += t.elapsed().as_secs_f64();
+        align_poses_to_field(
+            scan,
+            &mut data,
+            &mut trainer,
+            &transform,
+            &render_opts,
+            &frames,
+            &mut state,
+            &mut *on_event,
+        );
     }
     state.timings.train_s = state.train_seconds;
     state.timings.wall_s = spent();

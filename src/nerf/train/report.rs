@@ -31,7 +31,7 @@ pub struct Timings {
     /// (`FitOptions::pose_scale`, `FitOptions::refine_poses`).
     #[serde(default)]
     pub pose_refine_s: f64,
-    /// Aligning the frames' images to the field part-way through training.
+    /// Aligning the frames' images to the field (both passes).
     #[serde(default)]
     pub pose_align_s: f64,
     pub bounds_s: f64,

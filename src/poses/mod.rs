@@ -22,6 +22,7 @@ pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
 pub(crate) use orient::symmetric_eigen;
 pub use refine::{
-    median, pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement, RefineOptions,
+    gauss_newton_solve, median, pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement,
+    RefineOptions,
 };
 pub use scale::{estimate_pose_scale, scale_poses, ScaleEstimate};

@@ -490,7 +490,20 @@ fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<IsometryMatrix3<f64
     if used < MIN_CORRESPONDENCES {
         return None;
     }
-    let eig = SymmetricEigen::new(hessian);
+    let delta = gauss_newton_solve(&hessian, &gradient, WEAK_DIRECTION)?;
+    let omega = Vector3::new(delta[0], delta[1], delta[2]) / lever_length;
+    let translation = Vector3::new(delta[3], delta[4], delta[5]);
+    // x -> R (x - c) + c + t
+    let rotation = IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(omega));
+    Some(Translation3::from(m.centre.coords + translation) * rotation * Translation3::from(-m.centre.coords))
+}
+
+/// The Gauss-Newton step `-H^-1 g` solved in `hessian`'s eigenbasis, leaving
+/// out directions with less than `weak` times the information of the best
+/// constrained one (they are not moved); `None` when nothing is constrained
+/// or the step is not finite.
+pub fn gauss_newton_solve(hessian: &Matrix6<f64>, gradient: &Vector6<f64>, weak: f64) -> Option<Vector6<f64>> {
+    let eig = SymmetricEigen::new(*hessian);
     let strongest = eig.eigenvalues.max();
     if !(strongest > 0.0) {
         return None;
@@ -498,19 +511,12 @@ fn gauss_newton_step(m: &FrameMatches, scale: f64) -> Option<IsometryMatrix3<f64
     let mut delta = Vector6::<f64>::zeros();
     for k in 0..6 {
         let information = eig.eigenvalues[k];
-        if information > WEAK_DIRECTION * strongest {
+        if information > weak * strongest {
             let v = eig.eigenvectors.column(k);
-            delta -= v * (v.dot(&gradient) / information);
+            delta -= v * (v.dot(gradient) / information);
         }
     }
-    if !delta.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let omega = Vector3::new(delta[0], delta[1], delta[2]) / lever_length;
-    let translation = Vector3::new(delta[3], delta[4], delta[5]);
-    // x -> R (x - c) + c + t
-    let rotation = IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(omega));
-    Some(Translation3::from(m.centre.coords + translation) * rotation * Translation3::from(-m.centre.coords))
+    delta.iter().all(|v| v.is_finite()).then_some(delta)
 }
 
 /// The rigid motion that best carries every frame's points as `moved` puts

@@ -19,7 +19,7 @@ use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
 use crate::nerf::train::dataset::local_camera;
-use crate::poses::{median, pose_difference, trajectory_alignment, SceneTransform};
+use crate::poses::{gauss_newton_solve, median, pose_difference, trajectory_alignment, SceneTransform};
 use crate::scan::Frame;
 use nalgebra::{IsometryMatrix3, Matrix6, Point3, Rotation3, Translation3, Vector3, Vector6};
 use rayon::prelude::*;
@@ -544,21 +544,8 @@ fn gauss_newton_step(
             gradient += j * (weight * r[c]);
         }
     });
-    // Solve in the eigenbasis, leaving out directions the image cannot tell.
-    let eig = hessian.symmetric_eigen();
-    let strongest = eig.eigenvalues.iter().copied().fold(0.0f64, f64::max);
-    if !(strongest > 0.0 && strongest.is_finite()) {
-        return None;
-    }
-    let mut step = Vector6::<f64>::zeros();
-    for i in 0..6 {
-        let information = eig.eigenvalues[i];
-        if information > WEAK_DIRECTION * strongest {
-            let v = eig.eigenvectors.column(i);
-            step -= v * (v.dot(&gradient) / information);
-        }
-    }
-    step.iter().all(|v| v.is_finite()).then_some(step)
+    // Directions the image cannot tell are left alone.
+    gauss_newton_solve(&hessian, &gradient, WEAK_DIRECTION)
 }
 
 /// The camera-to-camera motion of an increment: points q become

@@ -167,6 +167,8 @@ struct Workspace {
     small: [Vec<f32>; 3],
     blurred: [Vec<f32>; 3],
     scratch: Vec<f32>,
+    /// One edge-padded row of the blur.
+    padded: Vec<f32>,
     kernel: Vec<f32>,
 }
 
@@ -593,7 +595,9 @@ fn gaussian(ws: &mut Workspace, w: usize, h: usize, sigma: f32) {
         .extend((0..=2 * radius).map(|i| (-((i as f32 - radius as f32).powi(2)) / (2.0 * sigma * sigma)).exp()));
     let total: f32 = ws.kernel.iter().sum();
     ws.kernel.iter_mut().for_each(|v| *v /= total);
-    let mut padded = vec![0.0f32; w + 2 * radius];
+    let padded = &mut ws.padded;
+    padded.clear();
+    padded.resize(w + 2 * radius, 0.0);
     for c in 0..3 {
         ws.scratch.clear();
         ws.scratch.resize(w * h, 0.0);

@@ -417,11 +417,11 @@ impl<'a> Labeler<'a> {
             if z_image.is_empty() {
                 z_image = z_image_of_jobs();
             }
-            // One surface seen obliquely steps by a few pixel footprints
-            // between neighbouring pixels, rendered surfaces by up to a cell.
-            let focal = 0.5 * (k.fx + k.fy);
-            let max_step = |z: f64| self.surface_error_m + REACH_STEP_PIXELS * z / focal;
-            reach::resolve(&mut mask, &z_image, w as usize, &contested, max_step);
+            let steps = reach::SurfaceSteps {
+                footprint_per_m: 2.0 / (k.fx + k.fy),
+                surface_error_m: self.surface_error_m,
+            };
+            reach::resolve(&mut mask, &z_image, w as usize, &contested, steps);
         }
         let mask = finish_mask(mask, frame, &self.options);
         let instances = instances_of(&mask, w, h, self.boxes, &c2w.inverse());
@@ -502,12 +502,6 @@ impl<'a> Labeler<'a> {
         depth
     }
 }
-
-/// Largest depth step, in pixel footprints, between neighbouring pixels of
-/// one surface when deciding which object reaches a contested pixel
-/// ([`reach`]): a surface seen at up to 76 degrees from its normal
-/// (tan 76° = 4) steps by less.
-const REACH_STEP_PIXELS: f64 = 4.0;
 
 /// A surface within an excluded plane's band whose normal is at more than
 /// 45 degrees to the plane's belongs to what stands on the plane, not to it.
@@ -844,16 +838,19 @@ mod tests {
     }
 
     /// Two boxes side by side on the wall, overlapping by 10 cm: the
-    /// smallest rule gives the overlap to the smaller box, the deepest rule
-    /// splits it where the two boxes' faces are equally far.
+    /// smallest rule taken exactly gives the overlap to the smaller box; by
+    /// default each box's surface reaches the overlap without a depth step,
+    /// so it splits where the two are equally far, as the deepest rule
+    /// splits it where the boxes' faces are.
     #[test]
     fn overlapping_boxes_follow_the_overlap_rule() {
         let (frame, boxes) = two_boxes_side_by_side(|_| 2.0, (1.75, 2.25));
         let (w, h, k) = (64usize, 48usize, frame.intrinsics);
-        let id_at = |overlap: Overlap, x: f64| {
+        let id_at = |overlap: Overlap, exact_boxes: bool, x: f64| {
             let opts = LabelOptions {
                 source: DepthSource::Sensor,
                 overlap,
+                exact_boxes,
                 ..LabelOptions::default()
             };
             let label = Labeler::new(&boxes, None, opts).unwrap().label_frame(&frame);
@@ -861,11 +858,25 @@ mod tests {
             let u = (k.cx + k.fx * x / 2.0).round() as usize;
             label.mask[(h / 2) * w + u]
         };
-        // The overlap's right part (x = 0.04): the smaller box 1, or box 2 whose faces are farther.
-        assert_eq!(id_at(Overlap::Smallest, 0.04), 1);
-        assert_eq!(id_at(Overlap::Deepest, 0.04), 2);
-        // Its left part (x = -0.04): box 1 either way (the rules agree outside the overlap too).
-        assert_eq!(id_at(Overlap::Deepest, -0.04), 1);
-        assert_eq!((id_at(Overlap::Smallest, -0.3), id_at(Overlap::Deepest, 0.3)), (1, 2));
+        // The overlap's right part (x = 0.04): the smaller box 1 taken
+        // exactly, else box 2, whose own surface and faces are nearer.
+        assert_eq!(id_at(Overlap::Smallest, true, 0.04), 1);
+        assert_eq!(id_at(Overlap::Smallest, false, 0.04), 2);
+        assert_eq!(id_at(Overlap::Deepest, false, 0.04), 2);
+        // Its left part (x = -0.04): box 1 by every rule, as outside the overlap.
+        for (overlap, exact) in [
+            (Overlap::Smallest, true),
+            (Overlap::Smallest, false),
+            (Overlap::Deepest, false),
+        ] {
+            assert_eq!(id_at(overlap, exact, -0.04), 1);
+        }
+        assert_eq!(
+            (
+                id_at(Overlap::Smallest, false, -0.3),
+                id_at(Overlap::Deepest, false, 0.3)
+            ),
+            (1, 2)
+        );
     }
 }

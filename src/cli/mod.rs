@@ -322,9 +322,10 @@ pub struct LabelArgs {
     /// behind it) is excluded from the box, with what lies behind it. An
     /// object lying flat on its support (a sheet) keeps its box whole; one
     /// thinner than the plane's measured noise band is lost to the support.
-    /// Also by default, where boxes overlap, a neighbour's face that a box
-    /// encloses behind a depth step goes to the neighbour, not to the
-    /// smaller box. With --masks, the same planes are excluded from the
+    /// Also by default, where boxes overlap, a surface point in several
+    /// boxes goes to the object nearest to it along the surface (each
+    /// box's object is the surface that box alone holds; depth steps
+    /// separate surfaces), not simply to the smaller box. With --masks, the same planes are excluded from the
     /// masks' objects (a mask that bleeds onto the table around an object).
     #[arg(long)]
     pub exact_boxes: bool,

@@ -5,7 +5,8 @@
 //! scan's up, see [`super::ground`]). Inside the region: the support (the
 //! dominant horizontal surface around the region, below the object) is
 //! measured and removed with its noise band, the largest connected cluster
-//! of what is left is the object; its yaw comes from the 2D principal axes
+//! of what is left is the object when it holds more points than the
+//! support's tail (what the band lets through) puts there; its yaw comes from the 2D principal axes
 //! of the points, refined to the smallest robust footprint; its extents are
 //! robust percentiles plus a margin of the measured noise, and its bottom
 //! reaches down to the support.
@@ -61,8 +62,8 @@ pub enum FitError {
     BadRegion(String),
     #[error("no scan points inside the region")]
     Empty,
-    #[error("only {found} points stand above the support inside the region (at least {MIN_OBJECT_POINTS} are needed)")]
-    NoObject { found: usize },
+    #[error("only {found} points stand above the support inside the region (more than {needed} are needed)")]
+    NoObject { found: usize, needed: usize },
 }
 
 /// A fitted box and what it was fitted to.
@@ -205,16 +206,23 @@ impl FitPoints {
             return Err(FitError::Empty);
         }
         let support = support_plane(&ring, &inside);
-        let above: Vec<Point3<f64>> = match support {
-            Some((h, band)) => inside.iter().copied().filter(|p| p.z > h + band).collect(),
-            None => inside,
+        let (above, needed) = match support {
+            Some(s) => {
+                let above: Vec<Point3<f64>> = inside.iter().copied().filter(|p| p.z > s.height + s.band).collect();
+                (above, s.tail_in(&inside).max(MIN_OBJECT_POINTS - 1))
+            }
+            None => (inside.clone(), MIN_OBJECT_POINTS - 1),
         };
+        let support = support.map(|s| (s.height, s.band));
         let object = match seed {
-            Some(s) => cluster_near(&above, &s),
+            Some(s) => cluster_near(&above, &s, needed),
             None => largest_cluster(&above),
         };
-        if object.len() < MIN_OBJECT_POINTS {
-            return Err(FitError::NoObject { found: object.len() });
+        if object.len() <= needed {
+            return Err(FitError::NoObject {
+                found: object.len(),
+                needed,
+            });
         }
         let flat: Vec<Point2<f64>> = object.iter().map(|p| p.xy()).collect();
         let yaw = fixed_yaw.unwrap_or_else(|| best_yaw(&flat));
@@ -356,10 +364,33 @@ fn trimmed(values: &mut [f64]) -> (f64, f64) {
     (quantile(values, TRIM), quantile(values, 1.0 - TRIM))
 }
 
+/// The support below a region's object, ground frame.
+#[derive(Clone, Copy, Debug)]
+struct Support {
+    /// Height, metres.
+    height: f64,
+    /// What lies less than this above or below the height belongs to the support, metres.
+    band: f64,
+    /// The support's points above its band per point inside it: the tail
+    /// the band lets through, which alone cannot make an object.
+    tail_ratio: f64,
+}
+
+impl Support {
+    /// How many of `points` the support's tail puts above its band: as many
+    /// per point inside the band as among the points it was measured on.
+    /// The tail is not spread evenly (mixed depth gathers along the
+    /// silhouettes of what the sensor missed), so a cluster of up to this
+    /// many points may be the support's alone.
+    fn tail_in(&self, points: &[Point3<f64>]) -> usize {
+        let in_band = points.iter().filter(|p| (p.z - self.height).abs() <= self.band).count();
+        (in_band as f64 * self.tail_ratio).ceil() as usize
+    }
+}
+
 /// The support below the region's object: the fullest height bin of the
 /// context points that lies below the middle of the region's points.
-/// Returns its height and band (ground frame, metres).
-fn support_plane(context: &[Point3<f64>], inside: &[Point3<f64>]) -> Option<(f64, f64)> {
+fn support_plane(context: &[Point3<f64>], inside: &[Point3<f64>]) -> Option<Support> {
     if context.len() < MIN_OBJECT_POINTS {
         return None;
     }
@@ -386,7 +417,14 @@ fn support_plane(context: &[Point3<f64>], inside: &[Point3<f64>]) -> Option<(f64
     // Resampled depth has heavier tails than its spread says: the band
     // also holds all but a hundredth of the support's points.
     let tail = quantile(&mut dev, SUPPORT_KEEP);
-    Some((h, (BAND_SIGMAS * sigma).max(tail).max(MIN_BAND)))
+    let band = (BAND_SIGMAS * sigma).max(tail).max(MIN_BAND);
+    let in_band = near.iter().filter(|z| (*z - h).abs() <= band).count();
+    let above = near.iter().filter(|z| **z > h + band).count();
+    Some(Support {
+        height: h,
+        band,
+        tail_ratio: above as f64 / in_band.max(1) as f64,
+    })
 }
 
 type Cell = (i64, i64, i64);
@@ -449,15 +487,15 @@ fn largest_cluster(points: &[Point3<f64>]) -> Vec<Point3<f64>> {
         .unwrap_or_default()
 }
 
-/// The cluster whose top-view footprint comes nearest the seed.
-fn cluster_near(points: &[Point3<f64>], seed: &Point3<f64>) -> Vec<Point3<f64>> {
+/// The cluster of more than `needed` points whose top-view footprint comes nearest the seed.
+fn cluster_near(points: &[Point3<f64>], seed: &Point3<f64>, needed: usize) -> Vec<Point3<f64>> {
     let s = seed.xy();
     let gap = |c: &Vec<usize>| {
         c.iter()
             .map(|&i| distance(&points[i].xy(), &s))
             .fold(f64::INFINITY, f64::min)
     };
-    (clusters(points).into_iter().filter(|c| c.len() >= MIN_OBJECT_POINTS))
+    (clusters(points).into_iter().filter(|c| c.len() > needed))
         .min_by(|a, b| gap(a).total_cmp(&gap(b)))
         .map(|c| c.into_iter().map(|i| points[i]).collect())
         .unwrap_or_default()
@@ -615,8 +653,48 @@ mod tests {
         assert!((b.center.coords.xy() - c).norm() < 0.005, "{:?}", b.center);
         assert_eq!(
             fit.fit(&rect(Vector2::new(-0.6, -0.6), 0.1)).unwrap_err(),
-            FitError::NoObject { found: 0 }
+            FitError::NoObject {
+                found: 0,
+                needed: MIN_OBJECT_POINTS - 1
+            }
         );
+    }
+
+    /// Regression (issue 16): the support band lets a hundredth of the
+    /// support's points through, and mixed depth gathers them along the
+    /// silhouette of what the sensor missed; 22 of them, more than the fixed
+    /// 20 an object needed, made a box of the table's rim. An object now
+    /// needs more points than the support's tail puts above its band.
+    #[test]
+    fn the_support_tail_gathered_at_a_silhouette_is_not_an_object() {
+        let mut rng = crate::rng::Rng::new(16, 0);
+        let (yaw, size, c) = (0.0, Vector3::new(0.1, 0.1, 0.1), Vector2::new(0.5, 0.5));
+        let mut points: Vec<Point3<f64>> = scene(yaw, size, c)
+            .into_iter()
+            .map(|p| {
+                if p.z != 0.0 {
+                    return p;
+                }
+                // Sensor noise of 1 mm; one floor point in 50 lifted 4-12 mm.
+                let lift = if rng.below(50) == 0 {
+                    rng.range(0.004, 0.012)
+                } else {
+                    0.0
+                };
+                Point3::new(p.x, p.y, 0.001 * rng.normal() + lift)
+            })
+            .collect();
+        // The rim: 40 such points in a 4 x 1 cm strip.
+        points.extend((0..40).map(|i| Point3::new(-0.02 + 0.001 * f64::from(i), 0.004 * f64::from(i % 3), 0.011)));
+        let fit = FitPoints::new(Ground::z_up(), &points, 0.0);
+        let rim = fit.fit(&rect(Vector2::zeros(), 0.15));
+        assert!(
+            matches!(rim, Err(FitError::NoObject { found, needed }) if found >= 40 && needed >= found),
+            "{rim:?}"
+        );
+        // A box on the same floor is still found.
+        let b = fit.fit(&rect(c, 0.15)).unwrap();
+        assert!((b.size - size).abs().max() < 0.02, "{:?}", b.size);
     }
 
     #[test]
@@ -628,7 +706,10 @@ mod tests {
         );
         assert_eq!(
             fit.fit(&rect(Vector2::new(0.7, 0.7), 0.1)).unwrap_err(),
-            FitError::NoObject { found: 0 }
+            FitError::NoObject {
+                found: 0,
+                needed: MIN_OBJECT_POINTS - 1
+            }
         );
         assert_eq!(
             fit.fit(&rect(Vector2::new(5.0, 5.0), 0.1)).unwrap_err(),

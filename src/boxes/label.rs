@@ -418,6 +418,7 @@ impl<'a> Labeler<'a> {
                 z_image = z_image_of_jobs();
             }
             let steps = reach::SurfaceSteps {
+                camera: k,
                 footprint_per_m: 2.0 / (k.fx + k.fy),
                 surface_error_m: self.surface_error_m,
             };

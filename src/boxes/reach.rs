@@ -14,6 +14,8 @@
 //! holds nothing alone in the frame and is smaller than the nearest
 //! object's box: a box nested in another (a lid on a crate) keeps its part.
 
+use crate::scan::Intrinsics;
+use nalgebra::Point3;
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
@@ -58,6 +60,8 @@ impl Contested {
 /// How surfaces meet between neighbouring pixels, for [`resolve`].
 #[derive(Clone, Copy, Debug)]
 pub struct SurfaceSteps {
+    /// The frame's camera.
+    pub camera: Intrinsics,
     /// Metres between neighbouring pixels' rays per metre of depth (1 / focal).
     pub footprint_per_m: f64,
     /// Depth error of the surfaces, metres (rendered surfaces: a grid cell).
@@ -71,6 +75,56 @@ impl SurfaceSteps {
         self.surface_error_m + REACH_STEP_PIXELS * z * self.footprint_per_m
     }
 
+    /// Whether the surface folds inward (a valley seen from the camera)
+    /// between neighbouring pixels `p` and `q`: where two convex objects
+    /// touch, or an object meets a face behind it. Judged over
+    /// [`CREASE_REACH`] pixels on either side: the midpoint of p and q lies
+    /// behind the chord of the outer points by more than a bend of
+    /// [`CREASE_MIN_BEND_DEG`] makes and more than half the surface error
+    /// (the band of an excluded plane, [`super::support`]). Every pair
+    /// within the reach of a valley folds; `deepest` asks for the pair at
+    /// its bottom (the crease), which folds more than the pairs beside it.
+    fn folds_inward(&self, z: &[f64], width: usize, p: usize, q: usize, deepest: bool) -> bool {
+        let height = z.len() / width;
+        let (x, y) = ((p % width) as i64, (p / width) as i64);
+        let (dx, dy) = ((q % width) as i64 - x, (q / width) as i64 - y);
+        let sag_at = |i: i64| self.sag(z, width, height, (x + i * dx, y + i * dy), (dx, dy));
+        sag_at(0).is_some_and(|(sag, bend)| {
+            sag > bend
+                && (!deepest
+                    || [-1, 1]
+                        .iter()
+                        .all(|&i| sag_at(i).is_none_or(|(beside, _)| sag >= beside)))
+        })
+    }
+
+    /// How far the midpoint of the pixel pair starting at `start` and going
+    /// `step` lies behind the chord of the points [`CREASE_REACH`] pixels
+    /// out on either side, and the least sag of a crease there, metres.
+    fn sag(&self, z: &[f64], width: usize, height: usize, start: (i64, i64), step: (i64, i64)) -> Option<(f64, f64)> {
+        let k = CREASE_REACH as i64;
+        let at = |i: i64| -> Option<Point3<f64>> {
+            let (x, y) = (start.0 + i * step.0, start.1 + i * step.1);
+            if x < 0 || y < 0 || x >= width as i64 || y >= height as i64 {
+                return None;
+            }
+            let depth = z[y as usize * width + x as usize];
+            (depth > 0.0).then(|| Point3::from(self.camera.unproject(x as f64, y as f64) * depth))
+        };
+        let (a, p, q, b) = (at(-k)?, at(0)?, at(1)?, at(1 + k)?);
+        // The outer points must lie on the same surfaces as p and q.
+        let reach = |u: &Point3<f64>, v: &Point3<f64>| (u.z - v.z).abs() <= k as f64 * self.max_step(u.z.min(v.z));
+        if !reach(&a, &p) || !reach(&q, &b) {
+            return None;
+        }
+        let s = (k as f64 + 0.5) / (2 * k + 1) as f64;
+        let chord = a + (b - a) * s;
+        let mid = Point3::from((p.coords + q.coords) * 0.5);
+        let sag = (mid - chord).dot(&mid.coords.normalize());
+        let bend = 0.5 * (0.5 * CREASE_MIN_BEND_DEG.to_radians()).tan() * (b - a).norm();
+        Some((sag, bend.max(0.5 * self.surface_error_m)))
+    }
+
     /// Distance along the surface between neighbouring pixels at depths
     /// `a` and `b`, or `None` across a depth step (two surfaces).
     fn across(&self, a: f64, b: f64) -> Option<f64> {
@@ -79,6 +133,12 @@ impl SurfaceSteps {
         (step <= self.max_step(near)).then(|| (near * self.footprint_per_m).hypot(step))
     }
 }
+
+/// Pixels on either side of a pixel pair over which a crease is judged.
+const CREASE_REACH: usize = 3;
+
+/// A fold of less than this (degrees) is a curved or noisy surface, not a crease.
+const CREASE_MIN_BEND_DEG: f64 = 20.0;
 
 /// Largest depth step, in pixel footprints, between neighbouring pixels of
 /// one surface: a surface seen at up to 76 degrees from its normal
@@ -145,6 +205,9 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
                 let Some(along) = steps.across(z[p], z[q]) else {
                     continue;
                 };
+                if steps.folds_inward(z, width, p, q, false) {
+                    continue;
+                }
                 if d + along < distance[slot] {
                     distance[slot] = d + along;
                     queue.push(Reached {
@@ -164,6 +227,66 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
             if better {
                 nearest[slot] = Some((d, id));
             }
+        }
+    }
+    // Pixels near a valley, which no object reached across it, go to the
+    // side of its crease they lie on: filled from the reached pixels and
+    // the objects' own surfaces around them, nearest first.
+    queue.clear();
+    distance.fill(f64::INFINITY);
+    let label_of = |p: usize, nearest: &[Option<(f64, u32)>]| match contested.slot_of(p) {
+        Some(slot) => nearest[slot].map(|(_, id)| id),
+        None => Some(mask[p] as u32).filter(|&id| id > 0),
+    };
+    for (slot, &p) in contested.pixels.iter().enumerate() {
+        if nearest[slot].is_none() {
+            for q in neighbours(p) {
+                if label_of(q, &nearest).is_some() {
+                    queue.push(Reached {
+                        distance: 0.0,
+                        pixel: q,
+                    });
+                }
+            }
+        }
+    }
+    let mut filled: Vec<Option<u32>> = vec![None; contested.pixels.len()];
+    while let Some(Reached { distance: d, pixel: p }) = queue.pop() {
+        let id = match contested.slot_of(p) {
+            Some(slot) if nearest[slot].is_none() => {
+                if d > distance[slot] {
+                    continue;
+                }
+                filled[slot]
+            }
+            _ => label_of(p, &nearest),
+        };
+        let Some(id) = id else {
+            continue;
+        };
+        for q in neighbours(p) {
+            let Some(slot) = contested.slot_of(q).filter(|&s| nearest[s].is_none()) else {
+                continue;
+            };
+            if !contested.holders[slot].contains(&id) || steps.folds_inward(z, width, p, q, true) {
+                continue;
+            }
+            let Some(along) = steps.across(z[p], z[q]) else {
+                continue;
+            };
+            if d + along < distance[slot] {
+                distance[slot] = d + along;
+                filled[slot] = Some(id);
+                queue.push(Reached {
+                    distance: d + along,
+                    pixel: q,
+                });
+            }
+        }
+    }
+    for (slot, id) in filled.iter().enumerate() {
+        if let (None, Some(id)) = (nearest[slot], id) {
+            nearest[slot] = Some((f64::INFINITY, *id));
         }
     }
     for (slot, &p) in contested.pixels.iter().enumerate() {
@@ -242,6 +365,12 @@ mod tests {
     }
 
     const STEPS: SurfaceSteps = SurfaceSteps {
+        camera: Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 6.0,
+            cy: 1.5,
+        },
         footprint_per_m: 0.002,
         surface_error_m: 0.001,
     };
@@ -266,6 +395,21 @@ mod tests {
         let (mut mask, z, contested) = strip(|x| 0.5 + if x < 6 { 0.0 } else { 0.003 * (x - 5) as f64 });
         resolve(&mut mask, &z, 12, &contested, STEPS);
         assert_eq!(columns(&mask), [1, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2]);
+    }
+
+    #[test]
+    fn objects_meeting_in_a_valley_split_at_the_valley() {
+        // Two faces at 45 degrees meet in a valley between columns 4 and 5,
+        // nearer box 1's own surface than the overlap's middle: box 1's
+        // object does not reach past the valley.
+        let valley = |x: usize| 0.6 - 0.001 * (x as f64 - 4.5).abs();
+        let (mut mask, z, contested) = strip(valley);
+        resolve(&mut mask, &z, 12, &contested, STEPS);
+        assert_eq!(columns(&mask), [1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2]);
+        // A ridge there (a convex edge of one object) splits in the middle as a plane does.
+        let (mut mask, z, contested) = strip(|x| 0.5 + 0.001 * (x as f64 - 4.5).abs());
+        resolve(&mut mask, &z, 12, &contested, STEPS);
+        assert_eq!(columns(&mask), [1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2]);
     }
 
     #[test]

@@ -9,10 +9,14 @@
 //! along the surface (3D distance over pixel neighbours), the smaller box
 //! on a tie: neighbours' margins overlap about equally, so on a surface
 //! no depth step cuts, the objects' own surfaces are equally far where
-//! the two objects meet. A pixel no object reaches stays with the smallest
-//! box (FORMATS.md section 2), and so does a box's pixel where that box
-//! holds nothing alone in the frame and is smaller than the nearest
-//! object's box: a box nested in another (a lid on a crate) keeps its part.
+//! the two objects meet. Where two objects touch, their surfaces meet in
+//! a valley seen from the camera (most objects are convex): no object
+//! reaches across one, and the pixels beside it that no object reached
+//! go to the side of its deepest pair they lie on. A pixel no object
+//! reaches stays with the smallest box (FORMATS.md section 2), and so does
+//! a box's pixel where that box holds nothing alone in the frame and is
+//! smaller than the nearest object's box: a box nested in another (a lid
+//! on a crate) keeps its part.
 
 use crate::scan::Intrinsics;
 use nalgebra::Point3;

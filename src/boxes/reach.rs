@@ -115,12 +115,15 @@ impl SurfaceSteps {
             let depth = z[y as usize * width + x as usize];
             (depth > 0.0).then(|| Point3::from(self.camera.unproject(x as f64, y as f64) * depth))
         };
+        // The outer points must lie on the same surfaces as p and q: no
+        // depth step between neighbours on the way out.
+        let on_surface = |from: i64, to: i64| -> Option<()> {
+            let run: Vec<f64> = (from..=to).map(|i| at(i).map(|v| v.z)).collect::<Option<_>>()?;
+            run.windows(2).all(|w| self.across(w[0], w[1]).is_some()).then_some(())
+        };
+        on_surface(-k, 0)?;
+        on_surface(1, 1 + k)?;
         let (a, p, q, b) = (at(-k)?, at(0)?, at(1)?, at(1 + k)?);
-        // The outer points must lie on the same surfaces as p and q.
-        let reach = |u: &Point3<f64>, v: &Point3<f64>| (u.z - v.z).abs() <= k as f64 * self.max_step(u.z.min(v.z));
-        if !reach(&a, &p) || !reach(&q, &b) {
-            return None;
-        }
         let s = (k as f64 + 0.5) / (2 * k + 1) as f64;
         let chord = a + (b - a) * s;
         let mid = Point3::from((p.coords + q.coords) * 0.5);

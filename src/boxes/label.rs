@@ -419,7 +419,6 @@ impl<'a> Labeler<'a> {
             }
             let steps = reach::SurfaceSteps {
                 camera: k,
-                footprint_per_m: 2.0 / (k.fx + k.fy),
                 surface_error_m: self.surface_error_m,
             };
             reach::resolve(&mut mask, &z_image, w as usize, &contested, steps);

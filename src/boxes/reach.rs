@@ -66,17 +66,20 @@ impl Contested {
 pub struct SurfaceSteps {
     /// The frame's camera.
     pub camera: Intrinsics,
-    /// Metres between neighbouring pixels' rays per metre of depth (1 / focal).
-    pub footprint_per_m: f64,
     /// Depth error of the surfaces, metres (rendered surfaces: a grid cell).
     pub surface_error_m: f64,
 }
 
 impl SurfaceSteps {
+    /// Metres between neighbouring pixels' rays per metre of depth (1 / focal).
+    fn footprint_per_m(&self) -> f64 {
+        2.0 / (self.camera.fx + self.camera.fy)
+    }
+
     /// Largest depth step between neighbouring pixels of one surface at
     /// depth `z` (see [`REACH_STEP_PIXELS`]).
     fn max_step(&self, z: f64) -> f64 {
-        self.surface_error_m + REACH_STEP_PIXELS * z * self.footprint_per_m
+        self.surface_error_m + REACH_STEP_PIXELS * z * self.footprint_per_m()
     }
 
     /// Whether the surface folds inward (a valley seen from the camera)
@@ -118,8 +121,13 @@ impl SurfaceSteps {
         // The outer points must lie on the same surfaces as p and q: no
         // depth step between neighbours on the way out.
         let on_surface = |from: i64, to: i64| -> Option<()> {
-            let run: Vec<f64> = (from..=to).map(|i| at(i).map(|v| v.z)).collect::<Option<_>>()?;
-            run.windows(2).all(|w| self.across(w[0], w[1]).is_some()).then_some(())
+            let mut previous = at(from)?.z;
+            for i in from + 1..=to {
+                let z = at(i)?.z;
+                self.across(previous, z)?;
+                previous = z;
+            }
+            Some(())
         };
         on_surface(-k, 0)?;
         on_surface(1, 1 + k)?;
@@ -137,7 +145,7 @@ impl SurfaceSteps {
     fn across(&self, a: f64, b: f64) -> Option<f64> {
         let near = a.min(b);
         let step = (a - b).abs();
-        (step <= self.max_step(near)).then(|| (near * self.footprint_per_m).hypot(step))
+        (step <= self.max_step(near)).then(|| (near * self.footprint_per_m()).hypot(step))
     }
 }
 
@@ -159,26 +167,72 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
     if contested.is_empty() || width == 0 {
         return;
     }
-    let height = mask.len() / width;
+    let grid = PixelGrid {
+        width,
+        height: mask.len() / width,
+    };
+    let (mut nearest, seedless) = reach_from_own_surfaces(mask, z, grid, contested, &steps);
+    fill_beside_valleys(mask, z, grid, contested, &steps, &mut nearest);
+    for (slot, &p) in contested.pixels.iter().enumerate() {
+        let holders = &contested.holders[slot];
+        // A box whose object shows nothing alone keeps what it holds where
+        // it is smaller than the nearest object's box (a lid on a crate),
+        // and a pixel no object reaches stays with the smallest box.
+        let winner = match nearest[slot] {
+            None => holders[0],
+            Some((_, id)) => {
+                let rank = |id: &u32| holders.iter().position(|h| h == id);
+                seedless
+                    .iter()
+                    .filter(|s| holders.contains(s))
+                    .min_by_key(|s| rank(s))
+                    .filter(|s| rank(s) < rank(&id))
+                    .copied()
+                    .unwrap_or(id)
+            }
+        };
+        mask[p] = winner as u16;
+    }
+}
+
+/// The size of a frame's pixel grid, for its 4-neighbours.
+#[derive(Clone, Copy, Debug)]
+struct PixelGrid {
+    width: usize,
+    height: usize,
+}
+
+impl PixelGrid {
+    fn neighbours(self, p: usize) -> impl Iterator<Item = usize> {
+        let (x, y) = (p % self.width, p / self.width);
+        [
+            (x > 0).then(|| p - 1),
+            (x + 1 < self.width).then(|| p + 1),
+            (y > 0).then(|| p - self.width),
+            (y + 1 < self.height).then(|| p + self.width),
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
+/// Per contested pixel, the nearest object that reaches it from the surface
+/// its box alone holds (distance, instance id), without crossing a depth
+/// step or a valley; and the boxes that hold nothing alone in the frame.
+fn reach_from_own_surfaces(
+    mask: &[u16],
+    z: &[f64],
+    grid: PixelGrid,
+    contested: &Contested,
+    steps: &SurfaceSteps,
+) -> (Vec<Option<(f64, u32)>>, Vec<u32>) {
     let mut ids: Vec<u32> = contested.holders.iter().flatten().copied().collect();
     ids.sort_unstable();
     ids.dedup();
-    // Per contested pixel, the nearest object's distance and id so far.
     let mut nearest: Vec<Option<(f64, u32)>> = vec![None; contested.pixels.len()];
     let mut seedless: Vec<u32> = Vec::new();
     let mut distance = vec![f64::INFINITY; contested.pixels.len()];
     let mut queue = BinaryHeap::new();
-    let neighbours = |p: usize| {
-        let (x, y) = (p % width, p / width);
-        [
-            (x > 0).then(|| p - 1),
-            (x + 1 < width).then(|| p + 1),
-            (y > 0).then(|| p - width),
-            (y + 1 < height).then(|| p + width),
-        ]
-        .into_iter()
-        .flatten()
-    };
     for &id in &ids {
         let holds = |q: usize| contested.slot_of(q).filter(|&s| contested.holders[s].contains(&id));
         // Seeds: the surface only this box holds, where it borders its contested pixels.
@@ -187,7 +241,7 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
         let mut has_seeds = false;
         for p in (0..mask.len()).filter(|&p| mask[p] as u32 == id && contested.slot_of(p).is_none()) {
             has_seeds = true;
-            if neighbours(p).any(|q| holds(q).is_some()) {
+            if grid.neighbours(p).any(|q| holds(q).is_some()) {
                 queue.push(Reached {
                     distance: 0.0,
                     pixel: p,
@@ -205,14 +259,14 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
             if contested.slot_of(p).is_some_and(|s| d > distance[s]) {
                 continue;
             }
-            for q in neighbours(p) {
+            for q in grid.neighbours(p) {
                 let Some(slot) = holds(q) else {
                     continue;
                 };
                 let Some(along) = steps.across(z[p], z[q]) else {
                     continue;
                 };
-                if steps.folds_inward(z, width, p, q, false) {
+                if steps.folds_inward(z, grid.width, p, q, false) {
                     continue;
                 }
                 if d + along < distance[slot] {
@@ -236,19 +290,32 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
             }
         }
     }
-    // Pixels near a valley, which no object reached across it, go to the
-    // side of its crease they lie on: filled from the reached pixels and
-    // the objects' own surfaces around them, nearest first.
-    queue.clear();
-    distance.fill(f64::INFINITY);
+    (nearest, seedless)
+}
+
+/// Pixels near a valley, which no object reached across it, go to the side
+/// of its crease they lie on: filled from the reached pixels and the
+/// objects' own surfaces around them, nearest first, stopping only at the
+/// valley's deepest pair. Filled pixels enter `nearest` at an infinite
+/// distance.
+fn fill_beside_valleys(
+    mask: &[u16],
+    z: &[f64],
+    grid: PixelGrid,
+    contested: &Contested,
+    steps: &SurfaceSteps,
+    nearest: &mut [Option<(f64, u32)>],
+) {
+    let mut queue = BinaryHeap::new();
+    let mut distance = vec![f64::INFINITY; contested.pixels.len()];
     let label_of = |p: usize, nearest: &[Option<(f64, u32)>]| match contested.slot_of(p) {
         Some(slot) => nearest[slot].map(|(_, id)| id),
         None => Some(mask[p] as u32).filter(|&id| id > 0),
     };
     for (slot, &p) in contested.pixels.iter().enumerate() {
         if nearest[slot].is_none() {
-            for q in neighbours(p) {
-                if label_of(q, &nearest).is_some() {
+            for q in grid.neighbours(p) {
+                if label_of(q, nearest).is_some() {
                     queue.push(Reached {
                         distance: 0.0,
                         pixel: q,
@@ -266,16 +333,16 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
                 }
                 filled[slot]
             }
-            _ => label_of(p, &nearest),
+            _ => label_of(p, nearest),
         };
         let Some(id) = id else {
             continue;
         };
-        for q in neighbours(p) {
+        for q in grid.neighbours(p) {
             let Some(slot) = contested.slot_of(q).filter(|&s| nearest[s].is_none()) else {
                 continue;
             };
-            if !contested.holders[slot].contains(&id) || steps.folds_inward(z, width, p, q, true) {
+            if !contested.holders[slot].contains(&id) || steps.folds_inward(z, grid.width, p, q, true) {
                 continue;
             }
             let Some(along) = steps.across(z[p], z[q]) else {
@@ -295,26 +362,6 @@ pub fn resolve(mask: &mut [u16], z: &[f64], width: usize, contested: &Contested,
         if let (None, Some(id)) = (nearest[slot], id) {
             nearest[slot] = Some((f64::INFINITY, *id));
         }
-    }
-    for (slot, &p) in contested.pixels.iter().enumerate() {
-        let holders = &contested.holders[slot];
-        // A box whose object shows nothing alone keeps what it holds where
-        // it is smaller than the nearest object's box (a lid on a crate),
-        // and a pixel no object reaches stays with the smallest box.
-        let winner = match nearest[slot] {
-            None => holders[0],
-            Some((_, id)) => {
-                let rank = |id: &u32| holders.iter().position(|h| h == id);
-                seedless
-                    .iter()
-                    .filter(|s| holders.contains(s))
-                    .min_by_key(|s| rank(s))
-                    .filter(|s| rank(s) < rank(&id))
-                    .copied()
-                    .unwrap_or(id)
-            }
-        };
-        mask[p] = winner as u16;
     }
 }
 
@@ -378,7 +425,6 @@ mod tests {
             cx: 6.0,
             cy: 1.5,
         },
-        footprint_per_m: 0.002,
         surface_error_m: 0.001,
     };
 

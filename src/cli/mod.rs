@@ -324,8 +324,9 @@ pub struct LabelArgs {
     /// thinner than the plane's measured noise band is lost to the support.
     /// Also by default, where boxes overlap, a surface point in several
     /// boxes goes to the object nearest to it along the surface (each
-    /// box's object is the surface that box alone holds; depth steps
-    /// separate surfaces), not simply to the smaller box. With --masks, the same planes are excluded from the
+    /// box's object is the surface that box alone holds; depth steps and
+    /// valleys where objects touch separate surfaces), not simply to the
+    /// smaller box. With --masks, the same planes are excluded from the
     /// masks' objects (a mask that bleeds onto the table around an object).
     #[arg(long)]
     pub exact_boxes: bool,

@@ -156,6 +156,79 @@ fn masks_of_every_sixth_frame_label_the_other_frames() {
     );
 }
 
+/// Remove object `id` from the given mask of frame `stem` in `dir`.
+fn erase_object(dir: &Path, stem: &str, id: u16) {
+    let path = dir.join(format!("{stem}.png"));
+    let (w, h) = image::image_dimensions(&path).unwrap();
+    let mask: Vec<u16> = read_gray16(&path)
+        .unwrap()
+        .into_iter()
+        .map(|v| if v == id { 0 } else { v })
+        .collect();
+    write_mask(&path, &mask, w, h);
+}
+
+/// A segmenter that lost the ball in one frame is outvoted by the frames
+/// that have it, and objects drawn in one frame only are carried to the
+/// frames beside it.
+#[test]
+fn a_frame_missing_an_object_and_objects_given_once_are_still_labelled() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = small_scan_fitted(dir.path());
+    let label = |masks: &Path, out: &Path| {
+        let model = scan.join("nerflabel/model.nlf");
+        let o = run(&[
+            "label",
+            s(&scan),
+            "--masks",
+            s(masks),
+            "--model",
+            s(&model),
+            "--out",
+            s(out),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    };
+
+    let given = ["000000", "000006", "000012", "000018"];
+    let (clean, clean_out) = (dir.path().join("clean"), dir.path().join("clean-labels"));
+    given_masks(&scan, &clean, &given, 0);
+    label(&clean, &clean_out);
+    let ball_clean = score_others(&scan, &clean_out, &given).per_object_mean_frame()[&2];
+    let (lost, lost_out) = (dir.path().join("lost"), dir.path().join("lost-labels"));
+    given_masks(&scan, &lost, &given, 0);
+    erase_object(&lost, "000006", 2);
+    label(&lost, &lost_out);
+    let ball = score_others(&scan, &lost_out, &given).per_object_mean_frame()[&2];
+
+    let (once, once_out) = (dir.path().join("once"), dir.path().join("once-labels"));
+    given_masks(&scan, &once, &["000000"], 0);
+    label(&once, &once_out);
+    let mut beside = MaskScores::default();
+    for stem in ["000001", "000002", "000023"] {
+        let truth_path = scan.join("gt/masks").join(format!("{stem}.png"));
+        let predicted = read_gray16(&once_out.join("masks").join(format!("{stem}.png"))).unwrap();
+        let width = image::image_dimensions(&truth_path).unwrap().0 as usize;
+        beside.add(&predicted, &read_gray16(&truth_path).unwrap(), width);
+    }
+    eprintln!(
+        "ball missing from one of four masks: IoU {ball:.4} ({ball_clean:.4} with all four); one frame given, the frames beside it: mIoU {:.4}",
+        beside.mean_frame_iou()
+    );
+    // Measured 0.914 against 0.958 (what only the lost frame saw is lost);
+    // 0.854 when that frame's background voted inside the ball.
+    assert!(
+        ball > ball_clean - 0.07,
+        "the ball, lost in one given frame: IoU {ball} against {ball_clean}"
+    );
+    // Measured 0.804 (objects of 20-40 px at 160x120, each seen from one side).
+    assert!(
+        beside.mean_frame_iou() > 0.75,
+        "objects given once: mIoU {}",
+        beside.mean_frame_iou()
+    );
+}
+
 #[test]
 fn both_layouts_give_the_same_labels_and_boxes_take_the_ids_after_the_masks() {
     let dir = tempfile::tempdir().unwrap();

@@ -19,7 +19,7 @@ use crate::boxes::{Box3, BoxClassifier, BoxSet, FrameLabel, LabelError, LabelOpt
 use crate::poses::symmetric_eigen;
 use crate::scan::{Frame, Scan};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 /// Distance (pixels) to a label change from which a given pixel votes with
 /// full weight; nearer pixels vote with (d + 1) / (this + 1).
@@ -79,7 +79,10 @@ pub fn lift(
     labeler: &Labeler,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Lifted, LabelError> {
-    let mut votes: Option<VoteVolume> = None;
+    // Lift every given frame first: a frame that lacks an object needs the
+    // object's rough extent from the others before its background votes.
+    let mut voxel: Option<f64> = None;
+    let mut lifted_frames: Vec<(Vec<(Point3<f64>, u16, f32)>, BTreeSet<u16>)> = Vec::new();
     let mut object_points: BTreeMap<u16, Vec<Point3<f64>>> = given.objects.keys().map(|&id| (id, Vec::new())).collect();
     let mut lifted_points = 0;
     for (done, (&index, mask)) in given.frames.iter().enumerate() {
@@ -88,33 +91,59 @@ pub fn lift(
         let near_objects = object_surroundings(mask, w as usize, h as usize);
         let surface = labeler.surface_where(frame, &|x, y| near_objects.contains(x, y));
         let points: Vec<(u32, u32, f64)> = surface.points().collect();
-        let volume = votes.get_or_insert_with(|| VoteVolume::new(voxel_size(&points, frame, labeler)));
+        voxel.get_or_insert_with(|| voxel_size(&points, frame, labeler));
         let mut weights = boundary_weights(mask, w as usize, h as usize);
         let k = frame.intrinsics;
         let footprint = 1.0 / (0.5 * (k.fx + k.fy)).max(1e-9);
         drop_bleeding(mask, &mut weights, &points, w as usize, h as usize, |z, pixels| {
             labeler.surface_error_m() + STEP_PIXELS * pixels as f64 * z * footprint
         });
+        let mut lifted = Vec::with_capacity(points.len());
         for &(x, y, z) in &points {
             let i = y as usize * w as usize + x as usize;
             let p = world_point(frame, x, y, z);
-            let weight = if mask[i] == 0 {
-                BACKGROUND_WEIGHT * weights[i]
-            } else {
-                weights[i]
-            };
-            volume.add(&p, mask[i], weight);
+            lifted.push((p, mask[i], weights[i]));
             if mask[i] > 0 && weights[i] >= 1.0 {
                 if let Some(list) = object_points.get_mut(&mask[i]) {
                     list.push(p);
                 }
             }
         }
+        let present: BTreeSet<u16> = mask.iter().copied().filter(|&id| id > 0).collect();
+        lifted_frames.push((lifted, present));
         lifted_points += points.len();
         progress(done + 1);
     }
-    let votes = votes.ok_or_else(|| LabelError::Option("no given mask names a frame of the scan".into()))?;
-    let voxel = votes.voxel_m();
+    let voxel = voxel.ok_or_else(|| LabelError::Option("no given mask names a frame of the scan".into()))?;
+    // A mask that lacks an object (a segmenter lost it) says background
+    // where the object is: its background points inside the object's rough
+    // box do not vote, so frames that have the object decide there.
+    let rough: BTreeMap<u16, Box3> = object_points
+        .iter()
+        .filter_map(|(&id, points)| {
+            Some((
+                id,
+                principal_box(&largest_cluster(points, CLUSTER_VOXELS * voxel), voxel)?,
+            ))
+        })
+        .collect();
+    let mut votes = VoteVolume::new(voxel);
+    for (lifted, present) in &lifted_frames {
+        let lost: Vec<&Box3> = rough
+            .iter()
+            .filter(|(id, _)| !present.contains(id))
+            .map(|(_, b)| b)
+            .collect();
+        for (p, id, weight) in lifted {
+            if *id == 0 {
+                if !lost.iter().any(|b| b.contains(p)) {
+                    votes.add(p, 0, BACKGROUND_WEIGHT * weight);
+                }
+            } else {
+                votes.add(p, *id, *weight);
+            }
+        }
+    }
     let mut objects = Vec::new();
     let mut regions = Vec::new();
     let mut warnings = Vec::new();

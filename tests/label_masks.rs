@@ -79,25 +79,28 @@ fn score_others(scan: &Path, out: &Path, given: &[&str]) -> MaskScores {
     scores
 }
 
+/// `label --masks` with the scan's fitted model into `out`.
+fn label_from_masks(scan: &Path, masks: &Path, out: &Path) {
+    let model = scan.join("nerflabel/model.nlf");
+    let o = run(&[
+        "label",
+        s(scan),
+        "--masks",
+        s(masks),
+        "--model",
+        s(&model),
+        "--out",
+        s(out),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
 #[test]
 fn masks_of_every_sixth_frame_label_the_other_frames() {
     let dir = tempfile::tempdir().unwrap();
     let scan = small_scan_fitted(dir.path());
-    let model = scan.join("nerflabel/model.nlf");
     let given = ["000000", "000006", "000012", "000018"];
-    let label = |masks: &Path, out: &Path| {
-        let o = run(&[
-            "label",
-            s(&scan),
-            "--masks",
-            s(masks),
-            "--model",
-            s(&model),
-            "--out",
-            s(out),
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-    };
+    let label = |masks: &Path, out: &Path| label_from_masks(&scan, masks, out);
 
     let (clean, clean_out) = (dir.path().join("clean"), dir.path().join("clean-labels"));
     given_masks(&scan, &clean, &given, 0);
@@ -175,20 +178,7 @@ fn erase_object(dir: &Path, stem: &str, id: u16) {
 fn a_frame_missing_an_object_and_objects_given_once_are_still_labelled() {
     let dir = tempfile::tempdir().unwrap();
     let scan = small_scan_fitted(dir.path());
-    let label = |masks: &Path, out: &Path| {
-        let model = scan.join("nerflabel/model.nlf");
-        let o = run(&[
-            "label",
-            s(&scan),
-            "--masks",
-            s(masks),
-            "--model",
-            s(&model),
-            "--out",
-            s(out),
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-    };
+    let label = |masks: &Path, out: &Path| label_from_masks(&scan, masks, out);
 
     let given = ["000000", "000006", "000012", "000018"];
     let (clean, clean_out) = (dir.path().join("clean"), dir.path().join("clean-labels"));

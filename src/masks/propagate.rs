@@ -71,6 +71,13 @@ impl Lifted {
     }
 }
 
+/// A given frame's lifted pixels (world point, given id, vote weight) and
+/// the objects its mask has.
+struct LiftedFrame {
+    points: Vec<(Point3<f64>, u16, f32)>,
+    objects: BTreeSet<u16>,
+}
+
 /// Lift the given masks: `labeler` must give every pixel's surface
 /// (full depth, no boxes).
 pub fn lift(
@@ -82,7 +89,7 @@ pub fn lift(
     // Lift every given frame first: a frame that lacks an object needs the
     // object's rough extent from the others before its background votes.
     let mut voxel: Option<f64> = None;
-    let mut lifted_frames: Vec<(Vec<(Point3<f64>, u16, f32)>, BTreeSet<u16>)> = Vec::new();
+    let mut lifted_frames: Vec<LiftedFrame> = Vec::new();
     let mut object_points: BTreeMap<u16, Vec<Point3<f64>>> = given.objects.keys().map(|&id| (id, Vec::new())).collect();
     let mut lifted_points = 0;
     for (done, (&index, mask)) in given.frames.iter().enumerate() {
@@ -110,7 +117,10 @@ pub fn lift(
             }
         }
         let present: BTreeSet<u16> = mask.iter().copied().filter(|&id| id > 0).collect();
-        lifted_frames.push((lifted, present));
+        lifted_frames.push(LiftedFrame {
+            points: lifted,
+            objects: present,
+        });
         lifted_points += points.len();
         progress(done + 1);
     }
@@ -128,13 +138,13 @@ pub fn lift(
         })
         .collect();
     let mut votes = VoteVolume::new(voxel);
-    for (lifted, present) in &lifted_frames {
+    for frame in &lifted_frames {
         let lost: Vec<&Box3> = rough
             .iter()
-            .filter(|(id, _)| !present.contains(id))
+            .filter(|(id, _)| !frame.objects.contains(id))
             .map(|(_, b)| b)
             .collect();
-        for (p, id, weight) in lifted {
+        for (p, id, weight) in &frame.points {
             if *id == 0 {
                 if !lost.iter().any(|b| b.contains(p)) {
                     votes.add(p, 0, BACKGROUND_WEIGHT * weight);

@@ -79,7 +79,7 @@ fn a_loose_box_labels_the_object_not_the_table() {
     let (exact_iou, exact_wrong) = label(&scan, &loose, &dir.path().join("exact"), &["--exact-boxes"]);
     let (rule_iou, rule_wrong) = label(&scan, &loose, &dir.path().join("rule"), &[]);
     eprintln!("sensor source, small fixture: tight boxes {tight_iou:.3}; loose boxes --exact-boxes {exact_iou:.3} ({:.1} % of labelled pixels wrong), default {rule_iou:.3} ({:.1} % wrong)", exact_wrong * 100.0, rule_wrong * 100.0);
-    // Measured: 28.6 % and 5.1 % (colour snapping peels a pixel of table off the exact box).
+    // Measured: 27.0 % and 5.1 % (colour snapping peels a pixel of table off the exact box).
     assert!(exact_wrong > 0.2, "the exact loose box takes the table: {exact_wrong}");
     assert!(rule_wrong < 0.1, "the table is excluded: {rule_wrong}");
     assert!(rule_iou > exact_iou + 0.07, "{rule_iou} vs {exact_iou}");

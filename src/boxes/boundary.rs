@@ -81,20 +81,14 @@ fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
         }
         let (x, y) = (i % w, i / w);
         means.clear();
-        for wy in y.saturating_sub(MEAN_WINDOW)..(y + MEAN_WINDOW + 1).min(h) {
-            for wx in x.saturating_sub(MEAN_WINDOW)..(x + MEAN_WINDOW + 1).min(w) {
-                let j = wy * w + wx;
-                if band[j] <= MEAN_BAND {
-                    continue;
+        for j in sure_pixels_around(x, y, w, h, &band, MEAN_BAND, MEAN_WINDOW) {
+            let c = pixel(j);
+            match means.iter_mut().find(|m| m.0 == mask[j]) {
+                Some(m) => {
+                    (0..3).for_each(|k| m.1[k] += c[k]);
+                    m.2 += 1;
                 }
-                let c = pixel(j);
-                match means.iter_mut().find(|m| m.0 == mask[j]) {
-                    Some(m) => {
-                        (0..3).for_each(|k| m.1[k] += c[k]);
-                        m.2 += 1;
-                    }
-                    None => means.push((mask[j], c, 1)),
-                }
+                None => means.push((mask[j], c, 1)),
             }
         }
         let c = pixel(i);
@@ -133,22 +127,16 @@ pub fn snap_to_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
         }
         let (x, y, c) = (i % w, i / w, pixel(i));
         nearest.clear();
-        for wy in y.saturating_sub(WINDOW)..(y + WINDOW + 1).min(h) {
-            for wx in x.saturating_sub(WINDOW)..(x + WINDOW + 1).min(w) {
-                let j = wy * w + wx;
-                if band[j] <= BAND {
-                    continue;
-                }
-                let s = pixel(j);
-                let d = (0..3).map(|k| (s[k] - c[k]).powi(2)).sum::<f32>();
-                match nearest.iter_mut().find(|n| n.label == mask[j]) {
-                    Some(n) => n.insert(d),
-                    None => nearest.push(NearestColours {
-                        label: mask[j],
-                        distances: [d; NEAREST],
-                        count: 1,
-                    }),
-                }
+        for j in sure_pixels_around(x, y, w, h, &band, BAND, WINDOW) {
+            let s = pixel(j);
+            let d = (0..3).map(|k| (s[k] - c[k]).powi(2)).sum::<f32>();
+            match nearest.iter_mut().find(|n| n.label == mask[j]) {
+                Some(n) => n.insert(d),
+                None => nearest.push(NearestColours {
+                    label: mask[j],
+                    distances: [d; NEAREST],
+                    count: 1,
+                }),
             }
         }
         let Some(own) = nearest
@@ -170,6 +158,23 @@ pub fn snap_to_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
         }
     }
     out
+}
+
+/// Indices of the pixels within `window` (Chebyshev) of (x, y) that are
+/// farther than `band_px` from every label change: the sure pixels a band
+/// pixel is compared with.
+fn sure_pixels_around(
+    x: usize,
+    y: usize,
+    w: usize,
+    h: usize,
+    band: &[usize],
+    band_px: usize,
+    window: usize,
+) -> impl Iterator<Item = usize> + '_ {
+    (y.saturating_sub(window)..(y + window + 1).min(h))
+        .flat_map(move |wy| (x.saturating_sub(window)..(x + window + 1).min(w)).map(move |wx| wy * w + wx))
+        .filter(move |&j| band[j] > band_px)
 }
 
 /// Chebyshev distance in pixels from each pixel to the nearest pixel with a

@@ -113,7 +113,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
                 .transpose()?;
             // A mask object's surface first; the boxes label the rest. Each
             // loses the support and wall planes `label` excludes from it.
-            let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| -> u32 {
+            let classify = |p: Point3<f64>, normal: &dyn Fn(f64) -> Option<Vector3<f64>>| -> u32 {
                 let p = &p;
                 let id = from_masks.classify(p);
                 if id > 0 {

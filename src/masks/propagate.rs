@@ -536,7 +536,7 @@ impl FrameLabelling for MaskLabeler<'_> {
                     // lifts to the support plane: the plane is not the object.
                     let on_support = self.region_of.get(&id).is_some_and(|&region| {
                         self.surface
-                            .excluded_at(region, &p, || surface_normal(&z_image, w, h, x, y, &point_at))
+                            .excluded_at(region, &p, |span| surface_normal(&z_image, w, h, x, y, span, &point_at))
                     });
                     mask[y as usize * w as usize + x as usize] = if on_support { 0 } else { id };
                 }

@@ -196,7 +196,7 @@ pub fn synthesize(
     };
     let classifier = BoxClassifier::new(set);
     let supports = support_planes(set, model, scan, options.exact_boxes)?;
-    let classify = |p: Point3<f64>, normal: &dyn Fn() -> Option<Vector3<f64>>| match classifier.classify(&p) {
+    let classify = |p: Point3<f64>, normal: &dyn Fn(f64) -> Option<Vector3<f64>>| match classifier.classify(&p) {
         0 => 0,
         id if supports.excluded_at(id as usize - 1, &p, normal) => 0,
         id => id,

@@ -16,7 +16,7 @@ use nalgebra::{IsometryMatrix3, Point3, Vector3};
 /// Instance id of a world point (0 = none), given the surface normal there
 /// on request, where neighbouring pixels give one (a support plane's band
 /// keeps the foot of an object, which is steep to it).
-pub type PointClassifier<'a> = dyn Fn(Point3<f64>, &dyn Fn() -> Option<Vector3<f64>>) -> u32 + Sync + 'a;
+pub type PointClassifier<'a> = dyn Fn(Point3<f64>, &dyn Fn(f64) -> Option<Vector3<f64>>) -> u32 + Sync + 'a;
 
 /// Maps world points to instance ids (0 = none) and ids to labels.
 pub struct Instances<'a> {
@@ -103,7 +103,7 @@ pub fn instance_mask(
             }
             let (u, v) = ((i % w) as u32, (i / w) as u32);
             // Computed only where a classifier asks (a point on a support plane's band).
-            let normal = || surface_normal(&z, w as u32, h as u32, u, v, &point_at);
+            let normal = |span: f64| surface_normal(&z, w as u32, h as u32, u, v, span, &point_at);
             let id = classify(point_at(u, v, depth), &normal);
             // Ids fit in 16 bits: parsing caps the box count at 65535.
             id.min(65_535) as u16
@@ -205,7 +205,7 @@ mod tests {
             cy: 1.0,
         };
         // Box 1: world x in [1.5, 2.5] (depth 2 m hits it, depth 1 m does not).
-        let classify = |p: Point3<f64>, _: &dyn Fn() -> Option<Vector3<f64>>| {
+        let classify = |p: Point3<f64>, _: &dyn Fn(f64) -> Option<Vector3<f64>>| {
             u32::from((1.5..2.5).contains(&p.x) && p.y.abs() < 0.6 && p.z.abs() < 0.6)
         };
         let depth = [2.0, 2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, f32::NAN];

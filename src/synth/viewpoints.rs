@@ -130,7 +130,7 @@ fn sees_object(
             && z.is_finite()
             && (instances.classify)(
                 c2w * Point3::from(k.unproject(f64::from(u), f64::from(v)) * f64::from(z)),
-                &|| None,
+                &|_| None,
             ) > 0
     })
 }

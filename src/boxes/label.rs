@@ -640,6 +640,16 @@ mod tests {
     use crate::scan::{DepthMap, Intrinsics};
     use nalgebra::Rotation3;
 
+    /// A camera of focal length `f` pixels looking through the middle of a w x h image.
+    fn centred_camera(f: f64, w: u32, h: u32) -> Intrinsics {
+        Intrinsics {
+            fx: f,
+            fy: f,
+            cx: (w as f64 - 1.0) / 2.0,
+            cy: (h as f64 - 1.0) / 2.0,
+        }
+    }
+
     /// Found on a real YCB-Video scan: sensor depth of a table 0.6 m away,
     /// 1 mm noisy on pixels 0.6 mm apart, gave one-pixel normals at random,
     /// so the table beside an object counted as the object's steep side.
@@ -647,12 +657,7 @@ mod tests {
     #[test]
     fn a_noisy_table_is_flat_over_its_noise_band() {
         let (w, h) = (120u32, 90u32);
-        let k = Intrinsics {
-            fx: 1000.0,
-            fy: 1000.0,
-            cx: 59.5,
-            cy: 44.5,
-        };
+        let k = centred_camera(1000.0, w, h);
         // The camera looks straight down at the table: depth 0.6 m + noise.
         let mut rng = crate::rng::Rng::new(11, 0);
         let z: Vec<f64> = (0..w * h).map(|_| 0.6 + 0.001 * rng.normal()).collect();
@@ -681,12 +686,7 @@ mod tests {
     #[test]
     fn sensor_labels_of_a_wall_through_a_box() {
         let (w, h) = (64u32, 48u32);
-        let k = Intrinsics {
-            fx: 40.0,
-            fy: 40.0,
-            cx: 31.5,
-            cy: 23.5,
-        };
+        let k = centred_camera(40.0, w, h);
         let depth = DepthMap {
             width: w,
             height: h,
@@ -760,12 +760,7 @@ mod tests {
     #[test]
     fn an_objects_foot_in_the_support_band_is_kept_and_the_support_is_not() {
         let (w, h) = (200u32, 200u32);
-        let k = Intrinsics {
-            fx: 400.0,
-            fy: 400.0,
-            cx: 99.5,
-            cy: 99.5,
-        };
+        let k = centred_camera(400.0, w, h);
         // Camera at the origin looking along +z, y down: a face at z = 2 for
         // |x| <= 0.25 down to the floor at y = 0.3.
         let surface = |u: u32, v: u32| -> (f64, bool) {
@@ -844,12 +839,7 @@ mod tests {
     /// [-0.5, 0.05], box 2 (larger) with x in [-0.05, 0.55].
     fn two_boxes_side_by_side(metres: impl Fn(u32) -> f32, (z0, z1): (f64, f64)) -> (Frame, BoxSet) {
         let (w, h) = (64u32, 48u32);
-        let k = Intrinsics {
-            fx: 40.0,
-            fy: 40.0,
-            cx: 31.5,
-            cy: 23.5,
-        };
+        let k = centred_camera(40.0, w, h);
         let depth = DepthMap {
             width: w,
             height: h,

@@ -481,7 +481,7 @@ mod tests {
         let mut points = Vec::new();
         for _ in 0..60_000 {
             let (x, y) = (rng.f64() * 0.4 - 0.2, rng.f64() * 0.4 - 0.2);
-            // One point in 16 where x > 0 and y > 0 (both sides beyond the box).
+            // One point in 16 beyond the box on its +x and +y sides.
             let sparse = x > 0.05 || y > 0.05;
             if (x.abs() > 0.03 || y.abs() > 0.03) && (!sparse || rng.below(16) == 0) {
                 points.push(Point3::new(x, y, noise(&mut rng)));

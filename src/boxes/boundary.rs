@@ -69,10 +69,7 @@ fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
     assert_eq!(mask.len(), w * h, "mask and image sizes differ");
     let band = distance_to_change(mask, w, h, MEAN_BAND + 1);
     let mut out = mask.to_vec();
-    let pixel = |i: usize| {
-        let p = rgb.get_pixel((i % w) as u32, (i / w) as u32).0;
-        p.map(f32::from)
-    };
+    let pixel = |i: usize| colour_at(rgb, i);
     // Mean colour of each label's sure pixels in the window (at most a few labels).
     let mut means: Vec<(u16, [f32; 3], u32)> = Vec::new();
     for i in 0..w * h {
@@ -111,15 +108,12 @@ fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
 
 /// The mask with band pixels relabelled by colour (see the module doc).
 pub fn snap_to_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
+    // Stage 1 checks that the mask and the image have the same size.
     let mask = &snap_to_mean_colour(mask, rgb);
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    assert_eq!(mask.len(), w * h, "mask and image sizes differ");
     let band = distance_to_change(mask, w, h, BAND + 1);
     let mut out = mask.to_vec();
-    let pixel = |i: usize| {
-        let p = rgb.get_pixel((i % w) as u32, (i / w) as u32).0;
-        p.map(f32::from)
-    };
+    let pixel = |i: usize| colour_at(rgb, i);
     let mut nearest: Vec<NearestColours> = Vec::new();
     for i in 0..w * h {
         if band[i] > BAND {
@@ -158,6 +152,12 @@ pub fn snap_to_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
         }
     }
     out
+}
+
+/// RGB of pixel `i` (row-major index) of `rgb`, as floats.
+fn colour_at(rgb: &RgbImage, i: usize) -> [f32; 3] {
+    let w = rgb.width() as usize;
+    rgb.get_pixel((i % w) as u32, (i / w) as u32).0.map(f32::from)
 }
 
 /// Indices of the pixels within `window` (Chebyshev) of (x, y) that are

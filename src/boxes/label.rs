@@ -544,8 +544,13 @@ pub(crate) fn surface_normal(
     let at = |x: u32, y: u32| z[y as usize * w as usize + x as usize];
     let centre_z = at(x, y);
     let centre = point_at(x, y, centre_z);
-    let footprint = (point_at(x + 1, y, centre_z) - centre).norm();
-    let step = (span_m / footprint).ceil().clamp(1.0, MAX_NORMAL_STEP_PX) as u32;
+    // Pixels between the neighbours: one, unless a span is asked for.
+    let step = if span_m > 0.0 {
+        let footprint = (point_at(x + 1, y, centre_z) - centre).norm();
+        (span_m / footprint).ceil().clamp(1.0, MAX_NORMAL_STEP_PX) as u32
+    } else {
+        1
+    };
     // The neighbour along one axis nearer in depth, as a vector from the centre.
     let tangent = |a: Option<(u32, u32)>, b: Option<(u32, u32)>| -> Option<Vector3<f64>> {
         let near = |p: Option<(u32, u32)>| p.map(|(px, py)| (px, py, at(px, py))).filter(|&(_, _, pz)| pz > 0.0);

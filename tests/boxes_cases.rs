@@ -13,10 +13,12 @@ use nalgebra::{Point3, Rotation3, Vector3};
 use nerflabel::boxes::{
     read_boxes, write_labels, Box3, BoxSet, DepthSource, LabelOptions, LabelSummary, Labeler, OutputOptions,
 };
+use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::occupancy::OccupancyGrid;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::settings::FitSettings;
 use nerflabel::nerf::train::settings::Preset;
-use nerflabel::scan::{load, LoadOptions, Scan};
+use nerflabel::scan::{load, vouched_free_distance, LoadOptions, Scan};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::OnceLock;
@@ -331,30 +333,40 @@ fn box_behind_every_camera_is_warned_about_and_gets_no_pixel() {
     );
 }
 
-#[test]
-fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
-    // A few training steps are enough: this checks the rendering path, not accuracy.
-    let opts = FitOptions {
-        settings: FitSettings {
-            preset: Preset::Fast,
-            holdout_every: 0,
-            refine_poses: false,
-            ..FitSettings::default()
-        },
-        steps: Some(5),
-        ..FitOptions::default()
-    };
-    let model = fit(&mut scan().clone(), &opts, &AtomicBool::new(false), &mut |_| {})
-        .unwrap()
-        .model;
-    let boxes = set(vec![enclosing(), behind_every_camera()]);
-    let options = LabelOptions {
+/// A model of a few training steps: enough for the rendering path, not for accuracy.
+fn briefly_fitted() -> &'static Model {
+    static MODEL: OnceLock<Model> = OnceLock::new();
+    MODEL.get_or_init(|| {
+        let opts = FitOptions {
+            settings: FitSettings {
+                preset: Preset::Fast,
+                holdout_every: 0,
+                refine_poses: false,
+                ..FitSettings::default()
+            },
+            steps: Some(5),
+            ..FitOptions::default()
+        };
+        fit(&mut scan().clone(), &opts, &AtomicBool::new(false), &mut |_| {})
+            .unwrap()
+            .model
+    })
+}
+
+/// Rendered depth of every pixel, with no colour snapping.
+fn rendered_depth() -> LabelOptions {
+    LabelOptions {
         source: DepthSource::Nerf,
         full_depth: true,
         snap_to_colour: false,
         ..LabelOptions::default()
-    };
-    let labeler = Labeler::new(&boxes, Some(&model), options).unwrap();
+    }
+}
+
+#[test]
+fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
+    let boxes = set(vec![enclosing(), behind_every_camera()]);
+    let labeler = Labeler::new(&boxes, Some(briefly_fitted()), rendered_depth()).unwrap();
     let mut room = 0;
     for f in scan().frames.iter().step_by(6) {
         let l = labeler.label_frame(f);
@@ -381,4 +393,53 @@ fn rendered_depth_handles_a_box_around_the_cameras_and_one_behind_them() {
         );
     }
     assert!(room > 0, "the room box must receive the rendered surface");
+}
+
+/// Regression: in front of a frame the fit held out, space no training view
+/// constrained held a floater that hid half of that frame's objects. Where
+/// a frame measured depth it vouches that space nearer than half its
+/// nearest measurement is free, as it did for the fit. Here density fills
+/// all space, so only that rule keeps the rendered surface off the lens.
+#[test]
+fn space_a_frame_measured_free_renders_no_floater() {
+    let mut model = briefly_fitted().clone();
+    let density = &mut model.field.density;
+    let outputs = density.config.output;
+    let params = density.params.len();
+    density.params.fill(0.0);
+    density.params[params - outputs..].fill(8.0);
+    model.occupancy = OccupancyGrid::full(model.occupancy.resolution());
+    let boxes = set(vec![enclosing()]);
+    let labeler = Labeler::new(&boxes, Some(&model), rendered_depth()).unwrap();
+    let (mut measured, mut unmeasured_near) = (0, 0);
+    for f in scan().frames.iter().step_by(5) {
+        let sensor = &f.depth.as_ref().unwrap().metres;
+        let free = vouched_free_distance(sensor);
+        assert!(free > 0.1, "{}: test set-up: the frame measures depth", f.name);
+        let rendered = labeler.label_frame(f).depth_m.unwrap();
+        for (&r, &s) in rendered.iter().zip(sensor) {
+            if s > 0.0 {
+                measured += 1;
+                assert!(
+                    r >= free * 0.999,
+                    "{}: rendered {r} m in space the frame measured free (< {free} m)",
+                    f.name
+                );
+            } else if r < free {
+                unmeasured_near += 1;
+            }
+        }
+    }
+    assert!(measured > 10_000, "{measured} measured pixels checked");
+    // Where the frame measured nothing it vouches for nothing: the density is rendered.
+    let unmeasured = scan()
+        .frames
+        .iter()
+        .step_by(5)
+        .map(|f| f.depth.as_ref().unwrap().metres.iter().filter(|&&s| s <= 0.0).count())
+        .sum::<usize>();
+    assert_eq!(
+        unmeasured_near, unmeasured,
+        "pixels without depth render the density in front of them"
+    );
 }

@@ -23,8 +23,7 @@ use crate::nerf::render::march::ray_interval;
 use crate::nerf::render::rays::{RenderOptions, RenderRay};
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::sample_depth_points;
-use crate::scan::Frame;
-use crate::scan::Scan;
+use crate::scan::{vouched_free_distance, Frame, Scan};
 use nalgebra::{IsometryMatrix3, Point3, Vector3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -474,7 +473,19 @@ impl<'a> Labeler<'a> {
         let (w, h) = frame.size();
         let camera: LocalCamera = renderer.local_camera(&frame.camera_to_world, &frame.intrinsics, w, h);
         let scale = renderer.transform.scale();
-        let near = opts.rule.min_step;
+        // Where the frame measured depth it vouches that space nearer than
+        // its nearest measurement is free, as it did for the fit: a floater
+        // there (space no training view held, before a frame the fit kept
+        // out) would hide everything behind it. Local distance along the
+        // ray to that depth = metres * scale * norm.
+        let free_z = frame
+            .depth
+            .as_ref()
+            .map_or(0.0, |d| vouched_free_distance(&d.metres) as f64 * scale) as f32;
+        let near_of = |j: &Job, norm: f32| match &frame.depth {
+            Some(d) if d.get(j.x, j.y) > 0.0 => opts.rule.min_step.max(free_z * norm),
+            _ => opts.rule.min_step,
+        };
         let (field, grid) = (&renderer.model.field, renderer.grid());
         let crossing = CrossingOptions {
             rule: opts.rule,
@@ -488,7 +499,7 @@ impl<'a> Labeler<'a> {
                 index.clear();
                 for (i, j) in chunk.iter().enumerate() {
                     let (ray, norm) = camera.ray(j.x as f32, j.y as f32);
-                    let Some((t0, t1)) = ray_interval(&ray, near) else {
+                    let Some((t0, t1)) = ray_interval(&ray, near_of(j, norm)) else {
                         continue;
                     };
                     // World metres along the unit ray -> local units along the unit local ray.

@@ -13,6 +13,26 @@ pub struct DepthMap {
 /// one are treated as lying across an edge and are not blended.
 pub const EDGE_RELATIVE_GAP: f32 = 0.03;
 
+/// Share of a frame's nearest measured depth within which it vouches that
+/// space is free (margin for flying pixels and depth noise).
+pub const FREE_FRACTION: f32 = 0.5;
+
+/// Distance in front of a camera within which its depth image measured
+/// nothing, less the [`FREE_FRACTION`] margin, in the depth's own unit; 0
+/// without a measurement.
+pub fn vouched_free_distance(depth: &[f32]) -> f32 {
+    let nearest = depth
+        .iter()
+        .copied()
+        .filter(|&z| z > 0.0 && z.is_finite())
+        .fold(f32::INFINITY, f32::min);
+    if nearest.is_finite() {
+        FREE_FRACTION * nearest
+    } else {
+        0.0
+    }
+}
+
 impl DepthMap {
     /// Depth at pixel (x, y), 0 outside the map or where missing.
     #[inline]

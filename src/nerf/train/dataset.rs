@@ -5,7 +5,7 @@ use crate::mask::{components, dilate_mask};
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::occupancy::{CameraSpace, DepthRay};
 use crate::poses::SceneTransform;
-use crate::scan::{Frame, Scan};
+use crate::scan::{vouched_free_distance, Frame, Scan};
 use rayon::prelude::*;
 
 /// One training or evaluation view: camera, colour and optional depth.
@@ -214,30 +214,13 @@ fn mean_colour(views: &[View]) -> [f32; 3] {
     sum.map(|s| (s / n as f64 / 255.0) as f32)
 }
 
-/// Fraction of a view's nearest measured depth within which it vouches
-/// that space is free (margin for flying pixels and depth noise).
-const CAMERA_FREE_FRACTION: f32 = 0.5;
-
 /// Each view's camera and the distance within which it measured nothing.
 pub fn camera_spaces(views: &[View]) -> Vec<CameraSpace> {
     views
         .iter()
-        .map(|view| {
-            let nearest = view.depth.as_deref().map_or(f32::INFINITY, |d| {
-                d.iter()
-                    .copied()
-                    .filter(|&z| z > 0.0 && z.is_finite())
-                    .fold(f32::INFINITY, f32::min)
-            });
-            let free_distance = if nearest.is_finite() {
-                CAMERA_FREE_FRACTION * nearest
-            } else {
-                0.0
-            };
-            CameraSpace {
-                origin: view.camera.origin,
-                free_distance,
-            }
+        .map(|view| CameraSpace {
+            origin: view.camera.origin,
+            free_distance: view.depth.as_deref().map_or(0.0, vouched_free_distance),
         })
         .collect()
 }

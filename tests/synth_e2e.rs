@@ -12,6 +12,7 @@ use nalgebra::Matrix4;
 use nerflabel::boxes::read_boxes;
 use nerflabel::fixture::{generate, read_meta, Corruptions, FixtureOptions, Render, SceneKind};
 use nerflabel::nerf::model_file::Model;
+use nerflabel::nerf::occupancy::OccupancyGrid;
 use nerflabel::nerf::train::fit::{fit, FitOptions};
 use nerflabel::nerf::train::metrics::psnr;
 use nerflabel::nerf::train::settings::FitSettings;
@@ -487,6 +488,52 @@ fn interruption_and_impossible_clearance_leave_nothing_behind() {
         0,
         "something was left at the output"
     );
+}
+
+/// Regression: a sampled camera can stand where no training view
+/// constrained the field, and a floater there filled a quarter of a room
+/// view. Every scanned point is at least the clearance away, so a surface
+/// nearer than that is a floater: with density everywhere, no view passes.
+#[test]
+fn a_floater_before_the_lens_rejects_the_view() {
+    let f = fitted();
+    let mut model = f.model.clone();
+    let density = &mut model.field.density;
+    let (outputs, params) = (density.config.output, density.params.len());
+    density.params.fill(0.0);
+    density.params[params - outputs..].fill(8.0);
+    model.occupancy = OccupancyGrid::full(model.occupancy.resolution());
+    let boxes = read_boxes(&f.scan_dir.join("boxes.json")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let options = SynthOptions {
+        n: 2,
+        ..SynthOptions::default()
+    };
+    let err = synthesize(
+        &f.scan,
+        &model,
+        Some(&boxes),
+        &options,
+        &dir.path().join("x.parquet"),
+        &|_| {},
+        &AtomicBool::new(false),
+    )
+    .unwrap_err();
+    let SynthError::GaveUp {
+        attempts,
+        accepted: 0,
+        rejections,
+        ..
+    } = &err
+    else {
+        panic!("{err}")
+    };
+    assert_eq!(rejections.near_surface + rejections.too_close, *attempts, "{err}");
+    assert!(rejections.near_surface > 0, "{err}");
+    assert!(err.to_string().contains("floater before the lens"), "{err}");
+    // The fitted field itself has none before the sampled cameras.
+    let summary = run(&options, &dir.path().join("y.parquet"), &AtomicBool::new(false)).unwrap();
+    assert_eq!(summary.rejections.near_surface, 0, "{:?}", summary.rejections);
 }
 
 /// Runs `script` with the file's path in python3 when `modules` import;

@@ -12,12 +12,15 @@ pub struct Rejections {
     pub no_object: u64,
     /// Too few probe pixels with opacity > 0.5: mostly space the scan never observed.
     pub unobserved: u64,
+    /// A surface in space the scan vouches free (nearer than the clearance
+    /// or half the nearest scanned point): a floater before the lens.
+    pub near_surface: u64,
 }
 
 impl Rejections {
     /// All rejections.
     pub fn total(&self) -> u64 {
-        self.too_close + self.no_object + self.unobserved
+        self.too_close + self.no_object + self.unobserved + self.near_surface
     }
 }
 
@@ -25,8 +28,9 @@ impl std::fmt::Display for Rejections {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} too close to the scanned surface, {} saw no object, {} looked mostly at unobserved space",
-            self.too_close, self.no_object, self.unobserved
+            "{} too close to the scanned surface, {} saw no object, {} looked mostly at unobserved space, \
+             {} had a floater before the lens",
+            self.too_close, self.no_object, self.unobserved, self.near_surface
         )
     }
 }

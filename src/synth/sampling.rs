@@ -49,6 +49,8 @@ pub enum Candidate {
         camera_to_world: IsometryMatrix3<f64>,
         /// Index of the target looked at.
         target: usize,
+        /// Distance to the nearest scanned point (infinite without a cloud).
+        nearest_scanned_m: f64,
     },
 }
 
@@ -168,7 +170,8 @@ impl<'a> PoseSampler<'a> {
         let Some(look) = look_at(&eye, &region.target.center) else {
             return Candidate::TooClose;
         };
-        if self.clearance > 0.0 && self.cloud.distance(&eye) < self.clearance {
+        let nearest_scanned_m = self.cloud.distance(&eye);
+        if self.clearance > 0.0 && nearest_scanned_m < self.clearance {
             return Candidate::TooClose;
         }
         let rotation = look
@@ -179,6 +182,7 @@ impl<'a> PoseSampler<'a> {
         Candidate::Pose {
             camera_to_world,
             target: which,
+            nearest_scanned_m,
         }
     }
 }
@@ -271,9 +275,14 @@ mod tests {
         for seed in 0..20 {
             for i in 0..40 {
                 match sampler.candidate(seed, i) {
-                    Candidate::Pose { camera_to_world, .. } => {
+                    Candidate::Pose {
+                        camera_to_world,
+                        nearest_scanned_m,
+                        ..
+                    } => {
                         let d = brute_distance(&points, &Point3::from(camera_to_world.translation.vector));
                         assert!(d >= clearance - 1e-5, "seed {seed} candidate {i}: {d} m from the cloud");
+                        assert!((nearest_scanned_m - d).abs() < 1e-5, "{nearest_scanned_m} vs {d}");
                         kept += 1;
                     }
                     Candidate::TooClose => refused += 1,
@@ -298,10 +307,12 @@ mod tests {
                 let Candidate::Pose {
                     camera_to_world,
                     target,
+                    nearest_scanned_m,
                 } = sampler.candidate(seed, i)
                 else {
                     panic!("no clearance, no refusal")
                 };
+                assert_eq!(nearest_scanned_m, f64::INFINITY, "an empty cloud is infinitely far");
                 n += 1;
                 let eye = Point3::from(camera_to_world.translation.vector);
                 let r = *camera_to_world.rotation.matrix();

@@ -378,6 +378,7 @@ pub fn synthesize_objects(
     writer.append_metadata("rejected_too_close", rejections.too_close.to_string());
     writer.append_metadata("rejected_no_object", rejections.no_object.to_string());
     writer.append_metadata("rejected_unobserved", rejections.unobserved.to_string());
+    writer.append_metadata("rejected_near_surface", rejections.near_surface.to_string());
     let bytes = writer.finish()?;
     let seconds = start.elapsed().as_secs_f64();
     Ok(SynthSummary {

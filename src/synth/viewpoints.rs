@@ -7,7 +7,11 @@
 //! just behind space the sensor saw free) or, when there are boxes, that sees
 //! no labelled object. The untrained field is a faint fog wherever the scan
 //! never looked: rays into it pile up opacity > 0.5 deep inside unseen space,
-//! so opacity alone would count a view full of fog as observed.
+//! so opacity alone would count a view full of fog as observed. It also
+//! rejects a view with a surface nearer than the clearance or half the
+//! distance to the nearest scanned point (the space a frame's own depth
+//! vouches free): the scan has no such surface, so it is a floater left
+//! where no training view constrained the field.
 
 use super::error::{Rejections, SynthError};
 use super::poses_file::ViewSpec;
@@ -17,7 +21,7 @@ use crate::nerf::camera::LocalRay;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::render_pixels;
 use crate::nerf::render::view::ViewRenderer;
-use crate::scan::Intrinsics;
+use crate::scan::{Intrinsics, FREE_FRACTION};
 use nalgebra::{IsometryMatrix3, Point3};
 use rayon::prelude::*;
 use std::collections::VecDeque;
@@ -41,7 +45,12 @@ pub enum Verdict {
     TooClose,
     Unobserved,
     NoObject,
+    NearSurface,
 }
+
+/// Share of probe pixels with a surface in vouched-free space that
+/// rejects a view (one probe pixel of a 32-wide probe is about 0.13 %).
+pub const MAX_NEAR_SURFACE: f64 = 0.01;
 
 /// How far (in occupancy cells) a probe pixel's surface may lie behind the
 /// nearest space the sensor saw free and still count as observed: carving
@@ -65,7 +74,13 @@ fn free_space_before(grid: &OccupancyGrid, ray: &LocalRay, t: f32, margin: f32) 
 }
 
 /// Probe a view: opacity and depth at [`PROBE_WIDTH`] pixels across.
-pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, min_observed: f64) -> Verdict {
+pub fn probe(
+    renderer: &ViewRenderer,
+    spec: &ViewSpec,
+    instances: &Instances,
+    min_observed: f64,
+    vouched_free_m: f64,
+) -> Verdict {
     let pw = PROBE_WIDTH.min(spec.width).max(1);
     let ph =
         ((f64::from(spec.height) * f64::from(pw) / f64::from(spec.width)).round() as u32).clamp(1, spec.height.max(1));
@@ -82,6 +97,19 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         &camera,
         &pixels,
     );
+    // Checked first: a floater over the lens also fails the tests below.
+    let metres_per_unit = 1.0 / renderer.transform.scale();
+    let near = out
+        .iter()
+        .filter(|o| {
+            o.opacity > 0.5
+                && o.depth_median
+                    .is_some_and(|t| f64::from(t) * metres_per_unit < vouched_free_m)
+        })
+        .count();
+    if near as f64 > MAX_NEAR_SURFACE * pixels.len() as f64 {
+        return Verdict::NearSurface;
+    }
     // Observed space is what the sensor saw free: the model's own grid.
     let grid = &model.occupancy;
     // Without any carved cell (a scan without depth) opacity is all there is to go by.
@@ -101,7 +129,6 @@ pub fn probe(renderer: &ViewRenderer, spec: &ViewSpec, instances: &Instances, mi
         return Verdict::Unobserved;
     }
     if instances.max_id() > 0 {
-        let metres_per_unit = 1.0 / renderer.transform.scale();
         let depth: Vec<f32> = out
             .iter()
             .zip(&pixels)
@@ -209,6 +236,16 @@ impl<'a> ViewStream<'a> {
         }
     }
 
+    /// Distance before a candidate camera within which no surface can be
+    /// one the scan has: the clearance, or the share of the nearest scanned
+    /// point that a frame's own depth vouches free ([`FREE_FRACTION`]).
+    fn vouched_free_m(&self, nearest_scanned_m: f64) -> f64 {
+        let vouched = f64::from(FREE_FRACTION) * nearest_scanned_m;
+        self.sampler
+            .clearance()
+            .max(if vouched.is_finite() { vouched } else { 0.0 })
+    }
+
     /// Evaluate the next chunk of candidates in parallel.
     fn evaluate_chunk(&mut self) {
         let first = self.next;
@@ -216,11 +253,16 @@ impl<'a> ViewStream<'a> {
             .into_par_iter()
             .map(|i| match self.sampler.candidate(self.seed, i) {
                 Candidate::TooClose => Verdict::TooClose,
-                Candidate::Pose { camera_to_world, .. } => probe(
+                Candidate::Pose {
+                    camera_to_world,
+                    nearest_scanned_m,
+                    ..
+                } => probe(
                     self.renderer,
                     &self.spec(camera_to_world),
                     self.instances,
                     self.min_observed,
+                    self.vouched_free_m(nearest_scanned_m),
                 ),
             })
             .collect();
@@ -258,6 +300,7 @@ impl<'a> ViewStream<'a> {
                 Verdict::TooClose => self.rejections.too_close += 1,
                 Verdict::Unobserved => self.rejections.unobserved += 1,
                 Verdict::NoObject => self.rejections.no_object += 1,
+                Verdict::NearSurface => self.rejections.near_surface += 1,
             }
         }
         Ok(Some(out))

@@ -377,6 +377,7 @@ fn with_workspace<R>(f: impl FnOnce(&mut RenderWorkspace) -> R) -> R {
 /// Render one packet of pixels on the calling thread: ray `k` of `count`
 /// goes through pixel `(u, v)` and lands in `out[i]`, where
 /// `(u, v, i) = pixel(k)`; pixels of `out` no ray lands in get the background.
+#[allow(clippy::too_many_arguments)]
 fn render_packet(
     field: &Field,
     grid: &OccupancyGrid,
@@ -384,9 +385,9 @@ fn render_packet(
     camera: &LocalCamera,
     count: usize,
     pixel: impl Fn(usize) -> (f32, f32, usize),
+    near_of: impl Fn(usize) -> f32,
     out: &mut [RayOutput],
 ) {
-    let near = opts.rule.min_step;
     out.fill(RayOutput::background(opts));
     with_workspace(|ws| {
         let mut rays = std::mem::take(&mut ws.rays);
@@ -396,6 +397,7 @@ fn render_packet(
         index.clear();
         for k in 0..count {
             let (u, v, i) = pixel(k);
+            let near = opts.rule.min_step.max(near_of(i));
             if let Some(r) = RenderRay::through_cube(camera.ray(u, v).0, near) {
                 rays.push(r);
                 index.push(i as u32);
@@ -425,7 +427,48 @@ pub fn render_pixels(
         .par_chunks(PACKET)
         .zip(out.par_chunks_mut(PACKET))
         .for_each(|(px, out)| {
-            render_packet(field, grid, opts, camera, px.len(), |k| (px[k].0, px[k].1, k), out);
+            render_packet(
+                field,
+                grid,
+                opts,
+                camera,
+                px.len(),
+                |k| (px[k].0, px[k].1, k),
+                |_| 0.0,
+                out,
+            );
+        });
+    out
+}
+
+/// [`render_pixels`] with each ray starting no nearer than `near[i]` (local
+/// distance along the ray): space a frame's own depth vouches free.
+pub fn render_pixels_past(
+    field: &Field,
+    grid: &OccupancyGrid,
+    opts: &RenderOptions,
+    camera: &LocalCamera,
+    pixels: &[(f32, f32)],
+    near: &[f32],
+) -> Vec<RayOutput> {
+    use rayon::prelude::*;
+    assert_eq!(pixels.len(), near.len(), "one start per pixel");
+    let mut out = vec![RayOutput::default(); pixels.len()];
+    pixels
+        .par_chunks(PACKET)
+        .zip(near.par_chunks(PACKET))
+        .zip(out.par_chunks_mut(PACKET))
+        .for_each(|((px, near), out)| {
+            render_packet(
+                field,
+                grid,
+                opts,
+                camera,
+                px.len(),
+                |k| (px[k].0, px[k].1, k),
+                |k| near[k],
+                out,
+            );
         });
     out
 }
@@ -456,7 +499,7 @@ pub fn render_rows(
         let (y, x) = (rest / tile_w, x0 + rest % tile_w);
         (x as f32, (first_row + y) as f32, y * w + x)
     };
-    render_packet(field, grid, opts, camera, rows * w, pixel, out);
+    render_packet(field, grid, opts, camera, rows * w, pixel, |_| 0.0, out);
 }
 
 /// Render every pixel of a camera's image (row-major) in parallel bands of rows.

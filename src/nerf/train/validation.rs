@@ -5,9 +5,10 @@
 use crate::nerf::appearance::{apply, Affine};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::render::rays::{render_pixels, RenderOptions};
+use crate::nerf::render::rays::{render_pixels_past, RenderOptions};
 use crate::nerf::train::dataset::View;
 use crate::nerf::train::metrics;
+use crate::scan::vouched_free_distance;
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -53,7 +54,25 @@ pub fn validate(
         let map = appearance.and_then(|maps| maps.get(i));
         let cam = &view.camera;
         let (w, h, pixels) = subsample_grid(cam.width, cam.height, max_side);
-        let out = render_pixels(field, grid, opts, cam, &pixels);
+        // Rays start past the space the view's own depth vouches free, as
+        // `label` renders every frame: a held-out camera can stand in
+        // density no training view constrained.
+        let free_z = view.depth.as_deref().map_or(0.0, vouched_free_distance);
+        let near: Vec<f32> = pixels
+            .iter()
+            .map(|&(u, v)| {
+                let measured = view
+                    .depth
+                    .as_deref()
+                    .is_some_and(|d| d[v as usize * cam.width as usize + u as usize] > 0.0);
+                if measured {
+                    free_z * cam.ray(u, v).1
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let out = render_pixels_past(field, grid, opts, cam, &pixels, &near);
         let mut rendered = Vec::with_capacity(w * h * 3);
         let mut truth = Vec::with_capacity(w * h * 3);
         for (o, &(u, v)) in out.iter().zip(&pixels) {
@@ -78,5 +97,41 @@ pub fn validate(
         psnr: psnr / n,
         ssim: ssim / n,
         depth_mae_m: (depth_n > 0).then(|| depth_sum / depth_n as f64),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nerf::train::step::tests::{plane_views, small_config};
+    use crate::rng::Rng;
+
+    /// Regression: a held-out camera can stand in density no training view
+    /// constrained (a room scan's last frame rendered its floor at 3 cm).
+    /// Its rays start past the space its own depth vouches free, as `label`
+    /// renders every frame. Here density fills all space: the plane is
+    /// 0.45 away, the view vouches 0.225 free, so the rendered surface sits
+    /// at the free distance, not on the lens.
+    #[test]
+    fn held_out_views_render_past_the_space_their_depth_vouches_free() {
+        let (config, train) = small_config(1);
+        let mut field = Field::new(config, &mut Rng::new(1, 0));
+        let (outputs, params) = (field.density.config.output, field.density.params.len());
+        field.density.params.fill(0.0);
+        field.density.params[params - outputs..].fill(8.0);
+        let opts = RenderOptions {
+            color: true,
+            rule: train.step,
+            max_samples_per_ray: 4096,
+            background: [0.5; 3],
+        };
+        let views = plane_views(1, 32, true);
+        let r = validate(&field, &OccupancyGrid::full(64), &opts, &views, 1.0, 32, None);
+        let mae = r.depth_mae_m.unwrap();
+        assert!(
+            (0.2..0.25).contains(&mae),
+            "depth error {mae} (0.45 on the lens, 0.225 past the free space)"
+        );
+        assert!(r.psnr.is_finite());
     }
 }

@@ -421,24 +421,7 @@ pub fn render_pixels(
     camera: &LocalCamera,
     pixels: &[(f32, f32)],
 ) -> Vec<RayOutput> {
-    use rayon::prelude::*;
-    let mut out = vec![RayOutput::default(); pixels.len()];
-    pixels
-        .par_chunks(PACKET)
-        .zip(out.par_chunks_mut(PACKET))
-        .for_each(|(px, out)| {
-            render_packet(
-                field,
-                grid,
-                opts,
-                camera,
-                px.len(),
-                |k| (px[k].0, px[k].1, k),
-                |_| 0.0,
-                out,
-            );
-        });
-    out
+    render_pixels_from(field, grid, opts, camera, pixels, None)
 }
 
 /// [`render_pixels`] with each ray starting no nearer than `near[i]` (local
@@ -451,14 +434,26 @@ pub fn render_pixels_past(
     pixels: &[(f32, f32)],
     near: &[f32],
 ) -> Vec<RayOutput> {
-    use rayon::prelude::*;
     assert_eq!(pixels.len(), near.len(), "one start per pixel");
+    render_pixels_from(field, grid, opts, camera, pixels, Some(near))
+}
+
+fn render_pixels_from(
+    field: &Field,
+    grid: &OccupancyGrid,
+    opts: &RenderOptions,
+    camera: &LocalCamera,
+    pixels: &[(f32, f32)],
+    near: Option<&[f32]>,
+) -> Vec<RayOutput> {
+    use rayon::prelude::*;
     let mut out = vec![RayOutput::default(); pixels.len()];
     pixels
         .par_chunks(PACKET)
-        .zip(near.par_chunks(PACKET))
         .zip(out.par_chunks_mut(PACKET))
-        .for_each(|((px, near), out)| {
+        .enumerate()
+        .for_each(|(c, (px, out))| {
+            let near_of = |k: usize| near.map_or(0.0, |n| n[c * PACKET + k]);
             render_packet(
                 field,
                 grid,
@@ -466,7 +461,7 @@ pub fn render_pixels_past(
                 camera,
                 px.len(),
                 |k| (px[k].0, px[k].1, k),
-                |k| near[k],
+                near_of,
                 out,
             );
         });

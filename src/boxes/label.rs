@@ -23,7 +23,7 @@ use crate::nerf::render::march::ray_interval;
 use crate::nerf::render::rays::{RenderOptions, RenderRay};
 use crate::nerf::render::view::ViewRenderer;
 use crate::poses::sample_depth_points;
-use crate::scan::{vouched_free_distance, Frame, Scan};
+use crate::scan::{vouched_free_distance, vouched_start, Frame, Scan};
 use nalgebra::{IsometryMatrix3, Point3, Vector3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -482,9 +482,9 @@ impl<'a> Labeler<'a> {
             .depth
             .as_ref()
             .map_or(0.0, |d| vouched_free_distance(&d.metres) as f64 * scale) as f32;
-        let near_of = |j: &Job, norm: f32| match &frame.depth {
-            Some(d) if d.get(j.x, j.y) > 0.0 => opts.rule.min_step.max(free_z * norm),
-            _ => opts.rule.min_step,
+        let near_of = |j: &Job, norm: f32| {
+            let measured = frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y));
+            opts.rule.min_step.max(vouched_start(measured, free_z, norm))
         };
         let (field, grid) = (&renderer.model.field, renderer.grid());
         let crossing = CrossingOptions {

@@ -33,6 +33,18 @@ pub fn vouched_free_distance(depth: &[f32]) -> f32 {
     }
 }
 
+/// Where a ray may start: past `free_z` (from [`vouched_free_distance`])
+/// when its pixel measured depth `measured_z`, from the camera otherwise
+/// (a pixel without depth vouches for nothing); `t_per_z` turns z-depth
+/// into distance along the ray.
+pub fn vouched_start(measured_z: f32, free_z: f32, t_per_z: f32) -> f32 {
+    if measured_z > 0.0 {
+        free_z * t_per_z
+    } else {
+        0.0
+    }
+}
+
 impl DepthMap {
     /// Depth at pixel (x, y), 0 outside the map or where missing.
     #[inline]

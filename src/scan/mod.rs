@@ -27,7 +27,7 @@ mod text;
 mod tum;
 mod validate;
 
-pub use depth::{resample_depth_to, vouched_free_distance, DepthMap, EDGE_RELATIVE_GAP, FREE_FRACTION};
+pub use depth::{resample_depth_to, vouched_free_distance, vouched_start, DepthMap, EDGE_RELATIVE_GAP, FREE_FRACTION};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
 pub use rigid::isometry;

@@ -8,7 +8,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels_past, RenderOptions};
 use crate::nerf::train::dataset::View;
 use crate::nerf::train::metrics;
-use crate::scan::vouched_free_distance;
+use crate::scan::{vouched_free_distance, vouched_start};
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -57,19 +57,13 @@ pub fn validate(
         // Rays start past the space the view's own depth vouches free, as
         // `label` renders every frame: a held-out camera can stand in
         // density no training view constrained.
-        let free_z = view.depth.as_deref().map_or(0.0, vouched_free_distance);
+        let depth = view.depth.as_deref();
+        let free_z = depth.map_or(0.0, vouched_free_distance);
         let near: Vec<f32> = pixels
             .iter()
             .map(|&(u, v)| {
-                let measured = view
-                    .depth
-                    .as_deref()
-                    .is_some_and(|d| d[v as usize * cam.width as usize + u as usize] > 0.0);
-                if measured {
-                    free_z * cam.ray(u, v).1
-                } else {
-                    0.0
-                }
+                let measured = depth.map_or(0.0, |d| d[v as usize * cam.width as usize + u as usize]);
+                vouched_start(measured, free_z, cam.ray(u, v).1)
             })
             .collect();
         let out = render_pixels_past(field, grid, opts, cam, &pixels, &near);

@@ -1,7 +1,7 @@
-//! Optional mask clean-up: fill small holes enclosed by one instance and
-//! drop small specks detached from an instance's main part. Both are
-//! bounded by a size relative to the instance, so real openings and small
-//! objects survive.
+//! Optional mask clean-up: fill small holes enclosed by one instance, drop
+//! small specks detached from an instance's main part, and drop instances
+//! that are only a sliver. Holes and specks are bounded by a size relative
+//! to the instance, so real openings and small objects survive.
 
 use crate::mask::components;
 
@@ -71,6 +71,32 @@ pub fn clean_mask(mask: &mut [u16], width: u32, height: u32, fraction: f64) -> u
             changed += 1;
         }
     }
+    changed + drop_slivers(mask, w, h)
+}
+
+/// Remove every instance without an interior pixel (one whose four
+/// neighbours, all inside the image, hold the same instance): a line one or
+/// two pixels wide, all of it silhouette. Such a sliver is where an object
+/// hidden behind its neighbours shows between their silhouettes, and no
+/// depth or colour edge places it to the pixel; a detector learns nothing
+/// from it. Chosen on seed 2's realistic scenes (mean of three scenes, snug
+/// and loose boxes, 0.9577 -> 0.9582). Returns pixels changed.
+fn drop_slivers(mask: &mut [u16], w: usize, h: usize) -> usize {
+    let mut has_interior = vec![false; usize::from(mask.iter().copied().max().unwrap_or(0)) + 1];
+    for y in 1..h.saturating_sub(1) {
+        for x in 1..w - 1 {
+            let i = y * w + x;
+            let v = mask[i];
+            if v != 0 && mask[i - 1] == v && mask[i + 1] == v && mask[i - w] == v && mask[i + w] == v {
+                has_interior[usize::from(v)] = true;
+            }
+        }
+    }
+    let mut changed = 0;
+    for m in mask.iter_mut().filter(|m| **m != 0 && !has_interior[usize::from(**m)]) {
+        *m = 0;
+        changed += 1;
+    }
     changed
 }
 
@@ -95,16 +121,49 @@ mod tests {
             }
         }
         mask[10 * w + 15] = 1;
-        // Instance 2 touching the border with a hole on the border: stays.
-        mask[w - 1] = 2;
-        mask[w + w - 1] = 2;
+        // Instance 2, a 3x3 block alone in the top-right corner: stays.
+        for y in 0..3 {
+            for x in w - 3..w {
+                mask[y * w + x] = 2;
+            }
+        }
         let before = mask.clone();
         let changed = clean_mask(&mut mask, w as u32, h as u32, 0.05);
         assert_eq!(mask[3 * w + 3], 1, "1-pixel hole filled (1 < 5 % of 54)");
         assert_eq!(mask[6 * w + 6], 0, "9-pixel opening kept (9 > 5 % of 54)");
         assert_eq!(mask[10 * w + 15], 0, "speck removed");
         assert_eq!(mask[w - 1], 2, "a lone instance is its own largest part");
+        assert_eq!(mask[2 * w + w - 3], 2);
         assert_eq!(changed, 2);
         assert_eq!(before.iter().zip(&mask).filter(|(a, b)| a != b).count(), 2);
+    }
+
+    /// A hidden object's line between its neighbours' silhouettes is
+    /// dropped, one or two pixels wide; a strip three pixels wide, or a
+    /// sliver attached to an instance with an interior, stays.
+    #[test]
+    fn slivers_without_an_interior_pixel_are_dropped() {
+        let (w, h) = (16usize, 10usize);
+        let mut mask = vec![0u16; w * h];
+        let mut fill = |id: u16, xs: std::ops::Range<usize>, ys: std::ops::Range<usize>| {
+            for y in ys {
+                for x in xs.clone() {
+                    mask[y * w + x] = id;
+                }
+            }
+        };
+        fill(1, 1..2, 1..9); // one pixel wide
+        fill(2, 3..5, 1..9); // two pixels wide
+        fill(3, 6..9, 1..9); // three pixels wide: one interior column
+        fill(4, 10..13, 1..4); // a block with a one-pixel tail
+        fill(4, 11..12, 4..9);
+        let mut cleaned = mask.clone();
+        let changed = clean_mask(&mut cleaned, w as u32, h as u32, 0.0);
+        assert!(cleaned.iter().all(|&v| v != 1 && v != 2), "slivers dropped");
+        assert_eq!(changed, 8 + 16);
+        for id in [3u16, 4] {
+            let count = |m: &[u16]| m.iter().filter(|&&v| v == id).count();
+            assert_eq!(count(&cleaned), count(&mask), "instance {id} kept whole");
+        }
     }
 }

@@ -32,12 +32,14 @@ pub fn instance_colour(id: u32) -> [u8; 3] {
 
 /// The frame's labels under `boxes` drawn over its colour image: pixels
 /// tinted by instance, 2D boxes outlined. `support_points` are the scan's
-/// surface points (world metres) the support planes are found among.
+/// surface points (world metres) the support planes are found among, seen
+/// from the camera centres `cameras`.
 pub fn render_preview(
     frame: &Frame,
     boxes: &BoxSet,
     model: Option<&Model>,
     support_points: &[Point3<f64>],
+    cameras: &[Point3<f64>],
 ) -> Result<image::RgbImage, LabelError> {
     let mut img = frame.rgb.clone();
     if boxes.boxes.is_empty() {
@@ -54,7 +56,7 @@ pub fn render_preview(
         ..LabelOptions::default()
     };
     let mut labeler = Labeler::new(boxes, model, options)?;
-    labeler.exclude_supports_among(support_points);
+    labeler.exclude_supports_among(support_points, cameras);
     let label = labeler.label_frame(frame);
     if (label.width, label.height) != img.dimensions() {
         return Ok(img);

@@ -189,17 +189,18 @@ impl<'a> Labeler<'a> {
         }
         let samples = sample_depth_points(scan, SUPPORT_POINTS)
             .map_err(|e| LabelError::Option(format!("cannot sample the scan's depth to find support planes: {e}")))?;
-        Ok(self.exclude_supports_among(&samples.points))
+        let cameras: Vec<Point3<f64>> = scan.frames.iter().map(Frame::camera_center).collect();
+        Ok(self.exclude_supports_among(&samples.points, &cameras))
     }
 
     /// [`Self::exclude_supports`] with the scan's surface points (world
     /// metres) sampled once by the caller (the annotation server labels
-    /// one frame per edit).
-    pub fn exclude_supports_among(&mut self, points: &[Point3<f64>]) -> usize {
+    /// one frame per edit), and the camera centres they were seen from.
+    pub fn exclude_supports_among(&mut self, points: &[Point3<f64>], cameras: &[Point3<f64>]) -> usize {
         if self.options.exact_boxes {
             return 0;
         }
-        self.excluded = excluded_planes(self.boxes, points, 0, self.box_tolerance_m);
+        self.excluded = excluded_planes(self.boxes, points, cameras, 0, self.box_tolerance_m);
         self.excluded.iter().map(Vec::len).sum()
     }
 

@@ -21,7 +21,9 @@
 //! of the box (a table around an object, a wall beside and above it): the
 //! object's own face, or the faces of neighbours lined up with it, do not.
 //! And it counts only when the box's points off it lie on one side (the
-//! object stands on a support or in front of a wall, never on both sides).
+//! object stands on a support or in front of a wall, never on both sides),
+//! and the cameras are on that side too (a row of neighbouring faces in
+//! the middle of a scene is walked around; a table or a wall is not).
 //!
 //! Limits: an object at a table's corner has the table on two sides only,
 //! so a loose box there keeps the table; an object flat on its support (a sheet of paper) has no point
@@ -58,6 +60,11 @@ const BAND_SIGMAS: f64 = 3.0;
 /// neighbours around a taller object). A share of all the box's points, as
 /// the object may be seen by few of them (glass) and edge noise falls on both sides.
 const MAX_FAR_SIDE_SHARE: f64 = 0.1;
+/// A support or wall is seen from the object's side: a plane with more than
+/// this share of the scan's cameras behind it is walked around (a row of
+/// neighbouring faces mid-scene), not a wall. A share, not none: a camera
+/// may stand beyond the plane of a wall past its end.
+const MAX_CAMERAS_BEHIND: f64 = 0.1;
 
 /// A plane excluded from one box: `normal . p + offset` is the signed
 /// distance, positive on the object's side.
@@ -83,15 +90,28 @@ impl ExcludedPlane {
 
 /// The planes excluded from each box of `boxes` (indexed like `boxes.boxes`),
 /// found among `points`, surface points of the scan in world metres.
-/// `tolerance`: how far outside a box the labeller still gives surface
-/// points to it; a plane that near the box is excluded as well.
-pub fn excluded_planes(boxes: &BoxSet, points: &[Point3<f64>], seed: u64, tolerance: f64) -> Vec<Vec<ExcludedPlane>> {
+/// `cameras`: where the points were seen from (camera centres; empty when
+/// unknown). `tolerance`: how far outside a box the labeller still gives
+/// surface points to it; a plane that near the box is excluded as well.
+pub fn excluded_planes(
+    boxes: &BoxSet,
+    points: &[Point3<f64>],
+    cameras: &[Point3<f64>],
+    seed: u64,
+    tolerance: f64,
+) -> Vec<Vec<ExcludedPlane>> {
     (boxes.boxes.iter().enumerate())
-        .map(|(i, b)| planes_of_box(b, points, seed.wrapping_add(i as u64), tolerance))
+        .map(|(i, b)| planes_of_box(b, points, cameras, seed.wrapping_add(i as u64), tolerance))
         .collect()
 }
 
-fn planes_of_box(b: &Box3, points: &[Point3<f64>], seed: u64, tolerance: f64) -> Vec<ExcludedPlane> {
+fn planes_of_box(
+    b: &Box3,
+    points: &[Point3<f64>],
+    cameras: &[Point3<f64>],
+    seed: u64,
+    tolerance: f64,
+) -> Vec<ExcludedPlane> {
     let half = b.size * 0.5;
     let grown = half + b.size * SHELL_GROWTH;
     let (mut shell, mut inner) = (Vec::new(), Vec::new());
@@ -145,7 +165,7 @@ fn planes_of_box(b: &Box3, points: &[Point3<f64>], seed: u64, tolerance: f64) ->
     for candidate in &candidates {
         let needed = ((counted as f64 * MIN_SHELL_SHARE) as usize).max(MIN_SHELL_POINTS);
         let excluded = (candidate.on_plane.len() >= needed)
-            .then(|| support_or_wall(b, candidate, &inner, &seen, tolerance))
+            .then(|| support_or_wall(b, candidate, &inner, &seen, cameras, tolerance))
             .flatten();
         match excluded {
             Some(plane) => planes.push(plane),
@@ -168,12 +188,16 @@ struct Candidate {
 
 /// The candidate as a plane excluded from the box, if it is a support or a
 /// wall: it surrounds the box, runs through it or within the tolerance of
-/// it, and the box holds something off it, on one side only (the object's).
+/// it, the box holds something off it, on one side only (the object's), and
+/// the cameras are on that side too: a table or a wall is seen from the
+/// side the object stands on, where a row of neighbouring faces in the
+/// middle of a scene is walked around.
 fn support_or_wall(
     b: &Box3,
     candidate: &Candidate,
     inner: &[Point3<f64>],
     seen: &[Point3<f64>],
+    cameras: &[Point3<f64>],
     tolerance: f64,
 ) -> Option<ExcludedPlane> {
     let Candidate {
@@ -203,6 +227,13 @@ fn support_or_wall(
         return None;
     }
     let sign = if 2 * above >= off.len() { 1.0 } else { -1.0 };
+    let behind = cameras
+        .iter()
+        .filter(|c| sign * (normal.dot(&c.coords) + offset) < 0.0)
+        .count();
+    if behind as f64 > MAX_CAMERAS_BEHIND * cameras.len() as f64 {
+        return None;
+    }
     Some(ExcludedPlane {
         normal: normal * sign,
         offset: offset * sign,
@@ -379,7 +410,7 @@ mod tests {
         let points = scene(&mut rng);
         // 3 cm margins, bottom 2 cm into the table, back 1 cm into the wall.
         let loose = box3(Point3::new(0.0, 0.03, 0.045), Vector3::new(0.16, 0.16, 0.17));
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, &[], 1, 0.0).remove(0);
         assert_eq!(planes.len(), 2, "{planes:?}");
         let kept: Vec<&Point3<f64>> = points
             .iter()
@@ -412,6 +443,30 @@ mod tests {
         }
     }
 
+    /// A support or wall is seen from the object's side. Cameras in front of
+    /// the wall and above the table keep both planes excluded; cameras
+    /// walking around the "wall" (as around a row of neighbouring faces in
+    /// the middle of a table) leave it alone, and the table is still excluded.
+    #[test]
+    fn a_plane_the_cameras_walk_around_is_no_wall() {
+        let mut rng = Rng::new(3, 0);
+        let points = scene(&mut rng);
+        let loose = box3(Point3::new(0.0, 0.03, 0.045), Vector3::new(0.16, 0.16, 0.17));
+        let boxes = BoxSet::from_boxes(vec![loose]);
+        let ring = |from: f64, to: f64| -> Vec<Point3<f64>> {
+            (0..20)
+                .map(|i| from + (to - from) * i as f64 / 19.0)
+                .map(|a: f64| Point3::new(0.6 * a.cos(), 0.6 * a.sin(), 0.5))
+                .collect()
+        };
+        let pi = std::f64::consts::PI;
+        let in_front = excluded_planes(&boxes, &points, &ring(-0.9 * pi, -0.1 * pi), 1, 0.0).remove(0);
+        assert_eq!(in_front.len(), 2, "table and wall: {in_front:?}");
+        let around = excluded_planes(&boxes, &points, &ring(-pi, pi), 1, 0.0).remove(0);
+        assert_eq!(around.len(), 1, "the table only: {around:?}");
+        assert!(around[0].normal.z > 0.99, "{around:?}");
+    }
+
     /// Found on an unseen room scene: a ball on a shelf's middle board, seen
     /// at a grazing angle, has the shelf's side and back panels around its
     /// box too, each holding more of the shell's points than the board.
@@ -439,7 +494,7 @@ mod tests {
             points.push(Point3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
         }
         let loose = box3(Point3::new(0.0, 0.0, 0.045), Vector3::new(0.16, 0.16, 0.17));
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, &[], 1, 0.0).remove(0);
         assert_eq!(planes.len(), 1, "{planes:?}");
         assert!(planes[0].normal.z > 0.99, "the board, object side up: {:?}", planes[0]);
         let board_in_box = points.iter().filter(|p| loose.contains(p) && p.z.abs() < 0.003);
@@ -492,7 +547,7 @@ mod tests {
             points.push(Point3::new(u, -0.05, v));
             points.push(Point3::new(u, rng.f64() * 0.1 - 0.05, 0.1));
         }
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, 1, 0.0).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose.clone()]), &points, &[], 1, 0.0).remove(0);
         assert_eq!(planes.len(), 1, "{planes:?}");
         assert!(planes[0].normal.z > 0.99, "the board, object side up: {:?}", planes[0]);
         assert!(
@@ -512,7 +567,7 @@ mod tests {
         // 1 cm margins, bottom 1 mm above the table; the wall is 5 cm behind the cube.
         let snug = box3(Point3::new(0.0, 0.0, 0.0555), Vector3::new(0.12, 0.12, 0.109));
         let tolerance = 0.008;
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug.clone()]), &points, 1, tolerance).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug.clone()]), &points, &[], 1, tolerance).remove(0);
         assert_eq!(planes.len(), 1, "{planes:?}");
         assert!(planes[0].normal.z > 0.99, "the table, object side up: {:?}", planes[0]);
         // Table points just in front of the box, which the tolerance would give it, are excluded.
@@ -522,7 +577,7 @@ mod tests {
         assert!(!planes[0].excludes(&cube_top));
         // A box ending 3 cm above the table is beyond the tolerance: nothing is excluded.
         let high = box3(Point3::new(0.0, 0.0, 0.085), Vector3::new(0.12, 0.12, 0.11));
-        let found = excluded_planes(&BoxSet::from_boxes(vec![high]), &points, 1, tolerance).remove(0);
+        let found = excluded_planes(&BoxSet::from_boxes(vec![high]), &points, &[], 1, tolerance).remove(0);
         assert!(found.is_empty(), "{found:?}");
     }
 
@@ -556,7 +611,7 @@ mod tests {
             points.push(Point3::new(u * hx, (rng.f64() * 2.0 - 1.0) * hy, height));
         }
         let snug = box3(Point3::new(0.0, 0.0, 0.0755), Vector3::new(0.14, 0.08, 0.149));
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug]), &points, 1, 0.008).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![snug]), &points, &[], 1, 0.008).remove(0);
         assert!(planes.len() <= 1, "{planes:?}");
         for plane in &planes {
             assert!(plane.offset.abs() < 0.003, "only the table: {plane:?}");
@@ -591,7 +646,7 @@ mod tests {
         }
         // 2.5 cm margins, bottom 2.5 cm into the table.
         let loose = box3(Point3::new(0.0, 0.0, 0.03), Vector3::new(0.11, 0.11, 0.11));
-        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose]), &points, 1, 0.0).remove(0);
+        let planes = excluded_planes(&BoxSet::from_boxes(vec![loose]), &points, &[], 1, 0.0).remove(0);
         assert_eq!(planes.len(), 1, "the table: {planes:?}");
         assert!(
             planes[0].excludes(&Point3::new(0.045, 0.045, 0.0)),
@@ -611,13 +666,13 @@ mod tests {
             .map(|_| Point3::new(rng.f64() - 0.5, rng.f64() - 0.5, 0.0))
             .collect();
         let sheet = box3(Point3::new(0.0, 0.0, 0.0), Vector3::new(0.2, 0.3, 0.02));
-        assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, 1, 0.0)[0].is_empty());
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![sheet]), &points, &[], 1, 0.0)[0].is_empty());
     }
 
     #[test]
     fn a_box_with_no_surface_around_it_excludes_nothing() {
         let points = vec![Point3::new(5.0, 5.0, 5.0); 100];
         let b = box3(Point3::origin(), Vector3::repeat(0.1));
-        assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, 1, 0.0)[0].is_empty());
+        assert!(excluded_planes(&BoxSet::from_boxes(vec![b]), &points, &[], 1, 0.0)[0].is_empty());
     }
 }

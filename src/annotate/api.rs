@@ -242,8 +242,7 @@ pub fn preview(session: &Session, stem: &str, body: Option<&[u8]>) -> Reply {
             Err(e) => return Reply::error(500, e.to_string()),
         },
     };
-    let cameras: Vec<_> = session.scan.frames.iter().map(|f| f.camera_center()).collect();
-    let image = match render_preview(frame, &set, session.model.as_ref(), &session.surface, &cameras) {
+    let image = match render_preview(frame, &set, session.model.as_ref(), &session.surface, &session.cameras) {
         Ok(img) => img,
         Err(e) => return Reply::error(500, format!("frame {stem}: {e}")),
     };

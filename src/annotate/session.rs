@@ -45,8 +45,10 @@ pub struct Session {
     /// The fitted model previews render depth from; `None`: sensor depth.
     pub model: Option<Model>,
     pub fit: FitPoints,
-    /// Surface points (world metres) for the previews' support planes.
+    /// Surface points (world metres) for the previews' support planes, and
+    /// the camera centres they were seen from.
     pub surface: Vec<Point3<f64>>,
+    pub cameras: Vec<Point3<f64>>,
     /// `GET /api/cloud.bin`.
     pub cloud_bin: Vec<u8>,
     /// Serialises writes of the boxes file.
@@ -104,6 +106,7 @@ impl Session {
             None => (FitPoints::new(ground, &points, cell), fuse_cloud(&scan, &options)?),
         };
         let cloud_bin = cloud_bin::encode(&cloud, &ground.up, CLOUD_POINTS);
+        let cameras = scan.frames.iter().map(|f| f.camera_center()).collect();
         Ok(Session {
             scan,
             scan_dir,
@@ -111,6 +114,7 @@ impl Session {
             model,
             fit,
             surface: points,
+            cameras,
             cloud_bin,
             writing: Mutex::new(()),
         })

@@ -86,7 +86,6 @@ impl NearestColours {
 /// mean colour, when clearly nearer than its own label's mean.
 fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    assert_eq!(mask.len(), w * h, "mask and image sizes differ");
     let band = distance_to_change(mask, w, h, MEAN_BAND + 1);
     let mut out = mask.to_vec();
     let pixel = |i: usize| colour_at(rgb, i);
@@ -205,17 +204,13 @@ pub fn edge_width(rgb: &RgbImage) -> f32 {
         .pixels()
         .map(|p| (299 * i32::from(p[0]) + 587 * i32::from(p[1]) + 114 * i32::from(p[2])) / 1000)
         .collect();
-    // Differences along rows (stride 1) and columns (stride w), with the
-    // number of positions along each line.
-    let lines = [(1usize, w, h), (w, h, w)];
+    // Every row and every column as (first pixel, stride, length).
+    let lines: Vec<(usize, usize, usize)> = (0..h).map(|y| (y * w, 1, w)).chain((0..w).map(|x| (x, w, h))).collect();
     let mut histogram = [0u64; 256];
-    for &(stride, len, count) in &lines {
-        for line in 0..count {
-            let start = if stride == 1 { line * w } else { line };
-            for k in 0..len.saturating_sub(1) {
-                let i = start + k * stride;
-                histogram[(luma[i + stride] - luma[i]).unsigned_abs() as usize] += 1;
-            }
+    for &(start, stride, len) in &lines {
+        for k in 0..len.saturating_sub(1) {
+            let i = start + k * stride;
+            histogram[(luma[i + stride] - luma[i]).unsigned_abs() as usize] += 1;
         }
     }
     let total: u64 = histogram.iter().sum();
@@ -225,20 +220,18 @@ pub fn edge_width(rgb: &RgbImage) -> f32 {
         strong -= 1;
     }
     let mut widths = Vec::new();
-    for &(stride, len, count) in &lines {
-        for line in 0..count {
-            let start = if stride == 1 { line * w } else { line };
-            let diff = |k: usize| (luma[start + (k + 1) * stride] - luma[start + k * stride]).abs();
-            // Difference k spans pixels k and k + 1; the step spans k - 3 to k + 4.
-            for k in 4..len.saturating_sub(5) {
-                let d = diff(k);
-                if (d as usize) < strong || d < diff(k - 1) || d < diff(k + 1) {
-                    continue;
-                }
-                let step = (luma[start + (k + 4) * stride] - luma[start + (k - 3) * stride]).abs();
-                if step >= d {
-                    widths.push(step as f32 / d as f32);
-                }
+    for &(start, stride, len) in &lines {
+        let at = |k: usize| luma[start + k * stride];
+        let diff = |k: usize| (at(k + 1) - at(k)).abs();
+        // Difference k spans pixels k and k + 1; the step spans k - 3 to k + 4.
+        for k in 4..len.saturating_sub(5) {
+            let d = diff(k);
+            if (d as usize) < strong || d < diff(k - 1) || d < diff(k + 1) {
+                continue;
+            }
+            let step = (at(k + 4) - at(k - 3)).abs();
+            if step >= d {
+                widths.push(step as f32 / d as f32);
             }
         }
     }

@@ -4,7 +4,8 @@
 //! and that grid refined to twice the resolution (`refined`, what `label
 //! --depth` and `synth` use). For each: set-up time, then per frame the
 //! depth-only surface search of `label --depth` (first crossing of opacity
-//! 0.5) and the colour + depth render of `synth`, with samples per ray, and
+//! 0.5) and the colour + depth render of `synth`, with samples per ray and
+//! colour PSNR against the frames' images, and
 //! how far each grid's depth lies from the grid before it.
 //!
 //! Run: `cargo run --release --example bench_render -- SCAN_DIR MODEL [--frames N]`
@@ -14,7 +15,7 @@ use nerflabel::evaluate::read_gray16;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined};
 use nerflabel::nerf::occupancy::OccupancyGrid;
-use nerflabel::nerf::render::rays::{render_image, RenderRay, PACKET};
+use nerflabel::nerf::render::rays::{render_image, RayOutput, RenderRay, PACKET};
 use nerflabel::nerf::render::view::ViewRenderer;
 use nerflabel::scan::{load, LoadOptions};
 use rayon::prelude::*;
@@ -83,8 +84,8 @@ fn main() -> Result<(), Error> {
             Some(units.into_iter().map(|d| f32::from(d) * gt_unit).collect())
         })
         .collect();
-    println!("| grid | res | occupied | set-up s | depth s/frame | samples/ray | colour+depth s/frame | samples/ray | depth vs the grid above: mean / p99 mm, changed > 1 mm | depth vs exact: mean / p99 mm |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("| grid | res | occupied | set-up s | depth s/frame | samples/ray | colour+depth s/frame | samples/ray | colour PSNR vs the frames (dB) | depth vs the grid above: mean / p99 mm, changed > 1 mm | depth vs exact: mean / p99 mm |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for (name, build) in grids {
         let t = Instant::now();
         let grid = build();
@@ -138,13 +139,16 @@ fn main() -> Result<(), Error> {
         let colour_opts = model.render_options(true);
         let t = Instant::now();
         let (mut colour_samples, mut colour_rays) = (0u64, 0u64);
+        let mut renders = Vec::new();
         for f in &views {
             let camera = renderer.local_camera(&f.camera_to_world, &f.intrinsics, w, h);
             let out = render_image(&model.field, grid, &colour_opts, &camera);
             colour_samples += out.iter().map(|o| o.samples as u64).sum::<u64>();
             colour_rays += out.len() as u64;
+            renders.push(out);
         }
         let colour_s = t.elapsed().as_secs_f64() / views.len() as f64;
+        let psnr = colour_psnr(&views, &renders);
         let comparison = previous_depths.as_ref().map_or("-".to_string(), |before| {
             let (mean, p99, changed) = compare(before, &depths);
             format!("{mean:.3} / {p99:.2}, {:.3} %", 100.0 * changed)
@@ -155,7 +159,7 @@ fn main() -> Result<(), Error> {
         });
         previous_depths = Some(depths);
         println!(
-            "| {name} | {} | {:.2} % | {setup:.2} | {depth_s:.3} | {:.1} | {colour_s:.3} | {:.1} | {comparison} | {exact} |",
+            "| {name} | {} | {:.2} % | {setup:.2} | {depth_s:.3} | {:.1} | {colour_s:.3} | {:.1} | {psnr:.2} | {comparison} | {exact} |",
             grid.resolution(),
             100.0 * grid.occupied_fraction(),
             depth_samples as f64 / depth_rays.max(1) as f64,
@@ -163,6 +167,22 @@ fn main() -> Result<(), Error> {
         );
     }
     Ok(())
+}
+
+/// PSNR of the colour renders against the frames' own images (no
+/// per-frame appearance applied: for comparing renderers, not models).
+fn colour_psnr(views: &[&nerflabel::scan::Frame], renders: &[Vec<RayOutput>]) -> f64 {
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for (f, out) in views.iter().zip(renders) {
+        for (p, o) in f.rgb.pixels().zip(out) {
+            for c in 0..3 {
+                let d = f64::from(p.0[c]) / 255.0 - f64::from(o.rgb[c]);
+                sum += d * d;
+                count += 1;
+            }
+        }
+    }
+    -10.0 * (sum / count.max(1) as f64).max(1e-12).log10()
 }
 
 /// Mean and 99th percentile of |z - reference| over pixels both have a

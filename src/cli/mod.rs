@@ -334,10 +334,12 @@ pub struct LabelArgs {
     #[arg(long, value_enum, default_value_t = Overlap::Smallest)]
     pub overlap: Overlap,
     /// Keep silhouettes exactly where depth and poses put them. By default
-    /// each pixel within 2 px of a silhouette takes the label whose nearby
-    /// pixels match its colour clearly better: the frame's own image shows
-    /// where the object is, while a pose error of a millimetre moves the
-    /// depth-based silhouette by about a pixel.
+    /// pixels next to a silhouette take the label whose nearby pixels match
+    /// their colour clearly better, pass after pass, so a contour moves up
+    /// to 4 px onto the frame's edges (on soft, blurred frames a first pass
+    /// looks 2 px either side): the frame's own image shows where the
+    /// object is, while a pose error of a millimetre moves the depth-based
+    /// silhouette by about a pixel.
     #[arg(long)]
     pub no_colour_snap: bool,
 }

@@ -265,14 +265,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     })
 }
 
-/// Shares of the budget at which the training frames' images are aligned
-/// to the field. Alternating alignment and training approaches a joint
-/// optimisation of poses and field: each pass aligns to a field trained on
-/// better poses, so it is sharper. The first comes once the field is sharp
-/// enough to align to; each costs about 3 s on 108 frames of 640x480. On the
-/// SLAM-like tabletop (seed 2, 900 steps) four passes instead of one at
-/// 0.45 raise labels from 0.843 to 0.883.
-const POSE_ALIGN_AT: [f64; 4] = [0.25, 0.45, 0.65, 0.85];
+/// Share of the budget trained before the frames' images are aligned to the
+/// field: sharp enough by then to align to, with time left to train on the
+/// corrected poses.
+const POSE_ALIGN_AT: f64 = 0.45;
 
 /// Align the images of `frames` to the field (`train::photometric`), move
 /// the scan's poses and the views' cameras to the result, and record the
@@ -567,15 +563,8 @@ fn run(
         // Training frames only: the held-out ones must not learn from
         // their own images before they are scored. After the warm-up at
         // least: an untrained field has nothing to align to.
-        // Passes due but not yet run are run one at a time, with half a
-        // warm-up of training between them (a short budget skips some).
         let field_ready = trainer.counters.steps >= trainer.config.warmup_steps;
-        let passes_due = POSE_ALIGN_AT.iter().filter(|&&at| progress >= at).count();
-        let trained_since_pass = state
-            .pose_alignment
-            .last()
-            .is_none_or(|pass| trainer.counters.steps >= pass.at_step + trainer.config.warmup_steps / 2);
-        if opts.settings.refine_poses && state.pose_alignment.len() < passes_due && field_ready && trained_since_pass {
+        if opts.settings.refine_poses && state.pose_alignment.is_empty() && progress >= POSE_ALIGN_AT && field_ready {
             let frames = data.train_frames.clone();
             let before = state.timings.pose_align_s;
             align_poses_to_field(

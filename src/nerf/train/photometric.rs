@@ -1,9 +1,8 @@
-//! Pose refinement against the field being fitted: a few times during a
-//! fit, each frame's colour image is aligned to what the field renders from the
+//! Pose refinement against the field being fitted: part-way through a fit,
+//! each frame's colour image is aligned to what the field renders from the
 //! frame's pose (direct image alignment). The field is the consensus of all
 //! frames, so a frame whose pose disagrees with it is pulled back in line;
-//! training then goes on with the corrected poses, and the next pass aligns
-//! to a sharper field.
+//! training then goes on with the corrected poses.
 //!
 //! One frame: the field's colour and depth at a few thousand pixels where
 //! the frame's image has texture give points on the surface; a 6-dof

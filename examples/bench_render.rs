@@ -17,6 +17,7 @@ use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined};
 use nerflabel::nerf::occupancy::OccupancyGrid;
 use nerflabel::nerf::render::rays::{render_image, RayOutput, RenderRay, PACKET};
 use nerflabel::nerf::render::view::ViewRenderer;
+use nerflabel::nerf::train::metrics::psnr;
 use nerflabel::scan::{load, LoadOptions};
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -169,20 +170,17 @@ fn main() -> Result<(), Error> {
     Ok(())
 }
 
-/// PSNR of the colour renders against the frames' own images (no
-/// per-frame appearance applied: for comparing renderers, not models).
+/// PSNR of the colour renders against the frames' own images, all frames
+/// pooled, as held-out evaluation scores (8-bit colour; no per-frame
+/// appearance applied: for comparing renderers, not models).
 fn colour_psnr(views: &[&nerflabel::scan::Frame], renders: &[Vec<RayOutput>]) -> f64 {
-    let (mut sum, mut count) = (0.0f64, 0usize);
-    for (f, out) in views.iter().zip(renders) {
-        for (p, o) in f.rgb.pixels().zip(out) {
-            for c in 0..3 {
-                let d = f64::from(p.0[c]) / 255.0 - f64::from(o.rgb[c]);
-                sum += d * d;
-                count += 1;
-            }
-        }
-    }
-    -10.0 * (sum / count.max(1) as f64).max(1e-12).log10()
+    let frames: Vec<u8> = views.iter().flat_map(|f| f.rgb.as_raw().iter().copied()).collect();
+    let rendered: Vec<u8> = renders
+        .iter()
+        .flatten()
+        .flat_map(|o| o.rgb.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8))
+        .collect();
+    psnr(&frames, &rendered)
 }
 
 /// Mean and 99th percentile of |z - reference| over pixels both have a

@@ -4,6 +4,7 @@
 
 mod aabb;
 mod bounds;
+pub(crate) use bounds::depth_intrinsics;
 mod cloud;
 mod error;
 mod normalize;

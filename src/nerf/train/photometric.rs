@@ -1,17 +1,23 @@
-//! Pose refinement against the field being fitted: part-way through a fit,
-//! each frame's colour image is aligned to what the field renders from the
-//! frame's pose (direct image alignment). The field is the consensus of all
-//! frames, so a frame whose pose disagrees with it is pulled back in line;
-//! training then goes on with the corrected poses.
+//! Pose refinement against the field being fitted: part-way through a fit
+//! (once, or a few times while the poses still move), each frame's colour
+//! image is aligned to what the field renders from the frame's pose (direct
+//! image alignment). The field is the consensus of all frames, so a frame
+//! whose pose disagrees with it is pulled back in line; training then goes
+//! on with the corrected poses.
 //!
 //! One frame: the field's colour and depth at a few thousand pixels where
 //! the frame's image has texture give points on the surface; a 6-dof
 //! correction of the camera moves their projections until the frame's own
 //! image (blurred coarse to fine, so that a few pixels of error are within
-//! reach) shows the colours the field gave them. Gauss-Newton with a Huber
-//! loss whose scale is the residuals' own spread. A correction is kept only
-//! when it lowers that cost and stays within the reach of the coarsest
-//! blur; the corrected trajectory is then moved back onto the one before as
+//! reach) shows the colours the field gave them. Where the frame has sensor
+//! depth, the same points must also lie on the surface it measured (point
+//! to plane, as depth-camera ICP): colour alone barely tells how far along
+//! the view a camera is, and a field trained on imperfect poses can paint
+//! its colours a little off its surface. Gauss-Newton with Huber losses whose
+//! scales are each term's own residual spread. A correction is kept only
+//! when it lowers that cost, stays within the reach of the coarsest blur
+//! and moves the camera no further than the scan's poses can be off; the
+//! corrected trajectory is then moved back onto the one before as
 //! a whole, so the scene does not drift.
 
 use crate::nerf::appearance::{apply, Affine};
@@ -34,6 +40,10 @@ pub struct PhotometricOptions {
     pub sigmas: Vec<f32>,
     /// Gauss-Newton iterations per level.
     pub iterations: usize,
+    /// Largest camera displacement a kept correction may make, metres (a
+    /// correction far beyond the scan's pose error is a field not yet
+    /// sharp enough to align to, not a pose error).
+    pub max_translation_m: f64,
 }
 
 impl Default for PhotometricOptions {
@@ -42,6 +52,7 @@ impl Default for PhotometricOptions {
             points_per_frame: 500,
             sigmas: vec![8.0, 4.0, 2.0, 1.0],
             iterations: 8,
+            max_translation_m: f64::INFINITY,
         }
     }
 }
@@ -283,6 +294,7 @@ fn align_frame(
     let mut finest = None;
     let focal = 0.5 * (k.fx + k.fy);
     let depth = median(points.iter().map(|p| p.camera.z).collect());
+    let sensor = SensorDepth::new(frame);
     for &sigma in &opts.sigmas {
         let (bw, bh, factor) = blur_planes(ws, w as usize, h as usize, sigma);
         let image = Image {
@@ -291,11 +303,18 @@ fn align_frame(
             h: bh,
             factor,
         };
-        // The Huber scale of this level: the residuals' spread where it starts.
+        // The Huber scales of this level: the residuals' spread where it starts.
         let scale = robust_scale(&image, points, &k, &correction)?;
-        let mut current = cost(&image, points, &k, &correction, scale);
+        let depth_term = sensor
+            .as_ref()
+            .and_then(|s| DepthTerm::new(s, points, &correction, depth));
+        let joint = |candidate: &IsometryMatrix3<f64>| {
+            let colour = cost(&image, points, &k, candidate, scale) / (scale * scale);
+            colour + depth_term.as_ref().map_or(0.0, |d| d.cost(points, candidate))
+        };
+        let mut current = joint(&correction);
         for _ in 0..opts.iterations {
-            let Some(step) = gauss_newton_step(&image, points, &k, &correction, scale) else {
+            let Some(step) = gauss_newton_step(&image, points, &k, &correction, scale, depth_term.as_ref()) else {
                 break;
             };
             // Halve a step that does not lower the cost.
@@ -303,7 +322,7 @@ fn align_frame(
             let mut improved = false;
             for _ in 0..4 {
                 let candidate = correction * exp(&trial);
-                let c = cost(&image, points, &k, &candidate, scale);
+                let c = joint(&candidate);
                 if c < current {
                     (correction, current) = (candidate, c);
                     improved = true;
@@ -348,7 +367,9 @@ fn align_frame(
         Some((before, after)) => after <= MAX_DEPTH_MISFIT_GROWTH * before,
         None => true,
     };
-    let kept = explained && depth_ok && cost_after < cost_before && shift_px.is_finite() && shift_px <= reach;
+    let plausible = correction.translation.vector.norm() <= opts.max_translation_m;
+    let kept =
+        explained && depth_ok && plausible && cost_after < cost_before && shift_px.is_finite() && shift_px <= reach;
     Some(FrameOutcome {
         correction,
         kept,
@@ -513,41 +534,191 @@ fn gauss_newton_step(
     k: &crate::scan::Intrinsics,
     correction: &IsometryMatrix3<f64>,
     scale: f64,
+    depth_term: Option<&DepthTerm>,
 ) -> Option<Vector6<f64>> {
     let threshold = HUBER_K * scale;
     let mut hessian = Matrix6::<f64>::zeros();
     let mut gradient = Vector6::<f64>::zeros();
+    // Both terms in units of their own robust spread.
+    let colour_weight = 1.0 / (scale * scale);
     for_each_residual(image, points, k, correction, |q, s, r| {
         let (x, y, z) = (q.x, q.y, q.z);
         let iz = 1.0 / z;
         // d(u, v)/dq
         let du = [k.fx * iz, 0.0, -k.fx * x * iz * iz];
         let dv = [0.0, k.fy * iz, -k.fy * y * iz * iz];
-        // dq/d(increment): q' = q - v - w x q = q - v + q x w.
-        let skew = [[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]];
         for c in 0..3 {
             let g = [s[1][c], s[2][c]];
-            let dq = [
+            let dq = Vector3::new(
                 g[0] * du[0] + g[1] * dv[0],
                 g[0] * du[1] + g[1] * dv[1],
                 g[0] * du[2] + g[1] * dv[2],
-            ];
-            let mut j = Vector6::<f64>::zeros();
-            for a in 0..3 {
-                j[a] = -dq[a];
-                j[3 + a] = dq[0] * skew[0][a] + dq[1] * skew[1][a] + dq[2] * skew[2][a];
-            }
-            let weight = if r[c].abs() <= threshold {
-                1.0
-            } else {
-                threshold / r[c].abs()
-            };
+            );
+            let j = increment_jacobian(q, &dq);
+            let weight = colour_weight * huber_weight(r[c], threshold);
             hessian += j * j.transpose() * weight;
             gradient += j * (weight * r[c]);
         }
     });
+    if let Some(d) = depth_term {
+        d.accumulate(points, correction, &mut hessian, &mut gradient);
+    }
     // Directions the image cannot tell are left alone.
     gauss_newton_solve(&hessian, &gradient, WEAK_DIRECTION)
+}
+
+/// Derivative with respect to the increment (translation, then rotation)
+/// of a residual whose derivative with respect to the point q (corrected
+/// camera frame) is `dq`: q' = q - v - w x q = q - v + q x w.
+fn increment_jacobian(q: &Point3<f64>, dq: &Vector3<f64>) -> Vector6<f64> {
+    let rotation = dq.cross(&q.coords);
+    Vector6::new(-dq.x, -dq.y, -dq.z, rotation.x, rotation.y, rotation.z)
+}
+
+/// Iteratively reweighted least squares weight of the Huber loss.
+fn huber_weight(r: f64, threshold: f64) -> f64 {
+    if r.abs() <= threshold {
+        1.0
+    } else {
+        threshold / r.abs()
+    }
+}
+
+/// The frame's sensor depth, looked up where a surface point projects
+/// (projective association, as depth-camera ICP does): the measured point
+/// and the normal of the measured surface there, in the camera frame.
+struct SensorDepth<'a> {
+    depth: &'a crate::scan::DepthMap,
+    k: crate::scan::Intrinsics,
+    /// Pixels between neighbours the normal is taken from: one stored
+    /// pixel of depth stored coarser than the colour.
+    reach: u32,
+}
+
+impl<'a> SensorDepth<'a> {
+    fn new(frame: &'a Frame) -> Option<SensorDepth<'a>> {
+        let depth = frame.depth.as_ref()?;
+        let k = crate::poses::depth_intrinsics(frame).ok()??;
+        let stored = frame.depth_size.unwrap_or((depth.width, depth.height));
+        let reach = (f64::from(depth.width) / f64::from(stored.0.max(1))).ceil().max(1.0) as u32;
+        Some(SensorDepth { depth, k, reach })
+    }
+
+    /// Measured point and unit normal (facing the camera) at the pixel
+    /// nearest to where `q` projects; `None` off the depth, in a hole or
+    /// beside a depth edge (mixed returns, no one surface).
+    fn surface_at(&self, q: &Point3<f64>) -> Option<(Point3<f64>, Vector3<f64>)> {
+        let (u, v) = project(&self.k, q)?;
+        let (u, v) = (u.round(), v.round());
+        let r = f64::from(self.reach);
+        let (w, h) = (f64::from(self.depth.width), f64::from(self.depth.height));
+        if !(u >= r && v >= r && u + r < w && v + r < h) {
+            return None;
+        }
+        let centre = f64::from(self.depth.get(u as u32, v as u32));
+        let at = |du: f64, dv: f64| -> Option<Point3<f64>> {
+            let z = f64::from(self.depth.get((u + du) as u32, (v + dv) as u32));
+            let same_surface = z > 0.0
+                && z.is_finite()
+                && (z - centre).abs() <= f64::from(crate::scan::EDGE_RELATIVE_GAP) * z.min(centre);
+            same_surface.then(|| Point3::from(self.k.unproject(u + du, v + dv) * z))
+        };
+        if !(centre > 0.0 && centre.is_finite()) {
+            return None;
+        }
+        let point = Point3::from(self.k.unproject(u, v) * centre);
+        let across = at(r, 0.0)? - at(-r, 0.0)?;
+        let down = at(0.0, r)? - at(0.0, -r)?;
+        let normal = across.cross(&down).try_normalize(1e-12)?;
+        Some((
+            point,
+            if normal.dot(&point.coords) > 0.0 {
+                -normal
+            } else {
+                normal
+            },
+        ))
+    }
+}
+
+/// The depth term of an alignment: the field's surface points, moved by
+/// the correction, against the sensor's surface where they project
+/// (point to plane), with a Huber scale from their spread at the start of
+/// a level.
+struct DepthTerm<'a> {
+    sensor: &'a SensorDepth<'a>,
+    scale: f64,
+}
+
+impl<'a> DepthTerm<'a> {
+    /// `None` when too few points meet measured depth.
+    fn new(
+        sensor: &'a SensorDepth<'a>,
+        points: &[SurfacePoint],
+        correction: &IsometryMatrix3<f64>,
+        median_depth: f64,
+    ) -> Option<DepthTerm<'a>> {
+        let mut abs = Vec::with_capacity(points.len());
+        sensor.for_each_residual(points, correction, |_, _, r| abs.push(r.abs()));
+        if abs.len() < MIN_POINTS {
+            return None;
+        }
+        // Floor: a tenth of a millimetre at a metre, so a perfect match
+        // does not divide by zero.
+        let scale = (1.4826 * median(abs)).max(1e-4 * median_depth);
+        Some(DepthTerm { sensor, scale })
+    }
+
+    /// Huber cost in units of the scale, summed and divided by the colour
+    /// residuals' count (as the colour cost is), so that a point weighs
+    /// the same in both terms.
+    fn cost(&self, points: &[SurfacePoint], correction: &IsometryMatrix3<f64>) -> f64 {
+        let (threshold, mut total, mut seen) = (HUBER_K * self.scale, 0.0, 0usize);
+        self.sensor.for_each_residual(points, correction, |_, _, r| {
+            total += huber(r, threshold);
+            seen += 1;
+        });
+        // Points that lose their measured depth count at the mean, so that a
+        // correction cannot lower the cost by looking into a hole.
+        let mean = if seen > 0 { total / seen as f64 } else { 0.0 };
+        mean * points.len() as f64 / (3 * points.len()).max(1) as f64 / (self.scale * self.scale)
+    }
+
+    fn accumulate(
+        &self,
+        points: &[SurfacePoint],
+        correction: &IsometryMatrix3<f64>,
+        hessian: &mut Matrix6<f64>,
+        gradient: &mut Vector6<f64>,
+    ) {
+        let threshold = HUBER_K * self.scale;
+        let unit = 1.0 / (self.scale * self.scale);
+        self.sensor.for_each_residual(points, correction, |q, normal, r| {
+            let j = increment_jacobian(q, normal);
+            let weight = unit * huber_weight(r, threshold);
+            *hessian += j * j.transpose() * weight;
+            *gradient += j * (weight * r);
+        });
+    }
+}
+
+impl SensorDepth<'_> {
+    /// Point-to-plane residual of every point that meets measured depth
+    /// through `correction`, passed to `each` with the point in the
+    /// corrected camera and the measured normal.
+    fn for_each_residual(
+        &self,
+        points: &[SurfacePoint],
+        correction: &IsometryMatrix3<f64>,
+        mut each: impl FnMut(&Point3<f64>, &Vector3<f64>, f64),
+    ) {
+        for p in points {
+            let q = correction.inverse_transform_point(&p.camera);
+            if let Some((measured, normal)) = self.surface_at(&q) {
+                each(&q, &normal, normal.dot(&(q - measured)));
+            }
+        }
+    }
 }
 
 /// The camera-to-camera motion of an increment: points q become
@@ -709,6 +880,15 @@ mod tests {
         let corrected = error * outcome.correction;
         let (t, r) = pose_difference(&IsometryMatrix3::identity(), &corrected);
         assert!(t < 0.0005 && r < 0.03, "left {:.2} mm, {:.3} deg", t * 1e3, r);
+        // The same correction is refused where the scan's poses are known
+        // to be off by far less than it moves the camera.
+        let strict = PhotometricOptions {
+            max_translation_m: 0.5 * outcome.correction.translation.vector.norm(),
+            ..PhotometricOptions::default()
+        };
+        let refused = align_frame(&frame, &points, &strict, &mut Workspace::default()).unwrap();
+        assert!(!refused.kept);
+        assert!(refused.cost_after < refused.cost_before);
     }
 
     #[test]
@@ -730,6 +910,80 @@ mod tests {
             .collect();
         let outcome = align_frame(&flat, &grey, &PhotometricOptions::default(), &mut Workspace::default());
         assert!(outcome.is_none_or(|o| !o.kept || o.shift_px < 1e-6));
+    }
+
+    /// Depth of the plane through (0, 0, 1) with normal `n` (camera frame)
+    /// at every pixel of the test camera.
+    fn plane_depth(n: Vector3<f64>) -> crate::scan::DepthMap {
+        let k = intrinsics();
+        let metres = (0..240u32)
+            .flat_map(|v| (0..320u32).map(move |u| (u, v)))
+            .map(|(u, v)| {
+                let ray = k.unproject(f64::from(u), f64::from(v));
+                (n.z / n.dot(&ray)) as f32
+            })
+            .collect();
+        crate::scan::DepthMap {
+            width: 320,
+            height: 240,
+            metres,
+        }
+    }
+
+    #[test]
+    fn sensor_depth_gives_the_measured_point_and_its_normal() {
+        let normal = Vector3::new(0.3, -0.2, -1.0).normalize();
+        let mut frame = frame();
+        let mut depth = plane_depth(normal);
+        // A hole, and a step of 10 cm (an object's edge) from column 250 on.
+        depth.metres[100 * 320 + 100] = 0.0;
+        for v in 0..240 {
+            for u in 250..320 {
+                depth.metres[v * 320 + u] -= 0.1;
+            }
+        }
+        frame.depth = Some(depth);
+        let sensor = SensorDepth::new(&frame).unwrap();
+        let (point, n) = sensor.surface_at(&Point3::new(-0.1, 0.05, 2.0)).unwrap();
+        // The pixel the query projects to, on the plane, facing the camera.
+        let (u, v) = project(&intrinsics(), &point).unwrap();
+        assert!((u - 144.5).abs() < 0.51 && (v - 127.0).abs() < 0.51, "({u}, {v})");
+        assert!((point.coords.dot(&normal) - normal.z).abs() < 1e-5);
+        assert!((n - normal).norm() < 1e-4, "{n}");
+        // No surface at or beside the hole, across the step or off the image.
+        let at = |u: f64, v: f64| sensor.surface_at(&Point3::from(intrinsics().unproject(u, v)));
+        assert!(at(100.0, 100.0).is_none() && at(101.0, 100.0).is_none());
+        assert!(at(250.0, 120.0).is_none() && at(249.0, 120.0).is_none());
+        assert!(at(251.0, 120.0).is_some() && at(248.0, 120.0).is_some());
+        assert!(at(-5.0, 120.0).is_none() && at(319.0, 120.0).is_none());
+    }
+
+    #[test]
+    fn depth_pins_the_distance_the_colours_barely_tell() {
+        // 12 mm along the view at 1 m moves the image by at most 2 px (a
+        // zoom); the field's colours carry noise, as a field trained on
+        // slightly wrong poses does.
+        let error = IsometryMatrix3::from_parts(
+            Translation3::new(0.001, 0.0, 0.012),
+            Rotation3::new(Vector3::new(0.002, 0.0, -0.001)),
+        );
+        let mut rng = crate::rng::Rng::new(7, 0);
+        let points: Vec<SurfacePoint> = points_seen_from(&error)
+            .into_iter()
+            .map(|p| SurfacePoint {
+                colour: p.colour.map(|c| c + 0.05 * rng.normal() as f32),
+                ..p
+            })
+            .collect();
+        let mut frame = frame();
+        frame.depth = Some(plane_depth(Vector3::new(0.0, 0.0, -1.0)));
+        let outcome = align(&frame, &points).unwrap();
+        assert!(outcome.kept, "cost {} -> {}", outcome.cost_before, outcome.cost_after);
+        let corrected = error * outcome.correction;
+        let left = corrected.translation.vector;
+        assert!(left.z.abs() < 0.0003, "left {:.2} mm along the view", left.z * 1e3);
+        let (t, r) = pose_difference(&IsometryMatrix3::identity(), &corrected);
+        assert!(t < 0.001 && r < 0.05, "left {:.2} mm, {:.3} deg", t * 1e3, r);
     }
 
     #[test]

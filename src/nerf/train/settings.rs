@@ -100,9 +100,11 @@ pub struct FitSettings {
     /// clearly not; see --pose-scale). By default every frame's
     /// pose is first aligned to the depth the other frames measured (frames
     /// whose depth fits better with the aligned pose take it; the scene as a
-    /// whole does not move), so that masks line up with the images; the
-    /// model keeps the aligned poses for `label` and `synth`, and the report
-    /// lists each frame's correction.
+    /// whole does not move), and during the fit each frame's image and depth
+    /// are aligned to the field (at 45 % of the budget, again while frames
+    /// still move, and at the end), so that masks line up with the images;
+    /// the model keeps the aligned poses for `label` and `synth`, and the
+    /// report lists each frame's correction.
     #[arg(long = "no-pose-refine", action = clap::ArgAction::SetFalse)]
     #[serde(default)]
     pub refine_poses: bool,

@@ -22,6 +22,7 @@ pub use cloud::{fuse_cloud, fuse_depth_maps, write_ply, CloudOptions, PointCloud
 pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
 pub(crate) use orient::symmetric_eigen;
+pub(crate) use refine::{away_from_edges, stored_pixel_reach};
 pub use refine::{
     gauss_newton_solve, median, pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement,
     RefineOptions,

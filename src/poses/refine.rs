@@ -283,10 +283,7 @@ pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Re
         return Ok(Vec::new());
     };
     let (w, h) = (depth.width, depth.height);
-    // Depth stored coarser than colour is repeated on the colour grid: a
-    // neighbour one stored pixel away is this many grid pixels away.
-    let stored = frame.depth_size.unwrap_or((w, h));
-    let reach = (w as f64 / stored.0.max(1) as f64).ceil().max(1.0) as u32;
+    let reach = stored_pixel_reach(frame, depth);
     let stride = ((f64::from(w) * f64::from(h) / wanted.max(1) as f64).sqrt().floor() as u32)
         .max(reach)
         .max(1);
@@ -307,7 +304,16 @@ pub(super) fn camera_points(frame: &Frame, wanted: usize, phase_seed: u64) -> Re
     Ok(points)
 }
 
-fn away_from_edges(depth: &crate::scan::DepthMap, x: u32, y: u32, z: f32, reach: u32) -> bool {
+/// Depth stored coarser than colour is repeated on the colour grid: a
+/// neighbour one stored pixel away is this many grid pixels away.
+pub(crate) fn stored_pixel_reach(frame: &Frame, depth: &crate::scan::DepthMap) -> u32 {
+    let stored = frame.depth_size.unwrap_or((depth.width, depth.height));
+    (f64::from(depth.width) / f64::from(stored.0.max(1))).ceil().max(1.0) as u32
+}
+
+/// Whether the four neighbours `reach` pixels from (x, y), of depth `z`,
+/// were measured on the same surface (none missing, none across an edge).
+pub(crate) fn away_from_edges(depth: &crate::scan::DepthMap, x: u32, y: u32, z: f32, reach: u32) -> bool {
     let neighbours = [
         (x.checked_sub(reach), Some(y)),
         (x.checked_add(reach), Some(y)),

@@ -599,8 +599,7 @@ impl<'a> SensorDepth<'a> {
     fn new(frame: &'a Frame) -> Option<SensorDepth<'a>> {
         let depth = frame.depth.as_ref()?;
         let k = crate::poses::depth_intrinsics(frame).ok()??;
-        let stored = frame.depth_size.unwrap_or((depth.width, depth.height));
-        let reach = (f64::from(depth.width) / f64::from(stored.0.max(1))).ceil().max(1.0) as u32;
+        let reach = crate::poses::stored_pixel_reach(frame, depth);
         Some(SensorDepth { depth, k, reach })
     }
 
@@ -615,20 +614,18 @@ impl<'a> SensorDepth<'a> {
         if !(u >= r && v >= r && u + r < w && v + r < h) {
             return None;
         }
-        let centre = f64::from(self.depth.get(u as u32, v as u32));
-        let at = |du: f64, dv: f64| -> Option<Point3<f64>> {
-            let z = f64::from(self.depth.get((u + du) as u32, (v + dv) as u32));
-            let same_surface = z > 0.0
-                && z.is_finite()
-                && (z - centre).abs() <= f64::from(crate::scan::EDGE_RELATIVE_GAP) * z.min(centre);
-            same_surface.then(|| Point3::from(self.k.unproject(u + du, v + dv) * z))
-        };
-        if !(centre > 0.0 && centre.is_finite()) {
+        let centre = self.depth.get(u as u32, v as u32);
+        let measured = centre > 0.0 && centre.is_finite();
+        if !(measured && crate::poses::away_from_edges(self.depth, u as u32, v as u32, centre, self.reach)) {
             return None;
         }
-        let point = Point3::from(self.k.unproject(u, v) * centre);
-        let across = at(r, 0.0)? - at(-r, 0.0)?;
-        let down = at(0.0, r)? - at(0.0, -r)?;
+        let at = |du: f64, dv: f64| {
+            let z = f64::from(self.depth.get((u + du) as u32, (v + dv) as u32));
+            Point3::from(self.k.unproject(u + du, v + dv) * z)
+        };
+        let point = at(0.0, 0.0);
+        let across = at(r, 0.0) - at(-r, 0.0);
+        let down = at(0.0, r) - at(0.0, -r);
         let normal = across.cross(&down).try_normalize(1e-12)?;
         Some((
             point,

@@ -97,6 +97,13 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             r.largest_translation_m * 1e3,
             r.largest_rotation_deg
         )),
+        FitEvent::PosesLearnt(r) => bar.suspend(|| note!(
+            "learnt {} training frames' poses with the field: median correction {:.1} mm; largest {:.1} mm, {:.2} deg",
+            r.frames.len(),
+            r.median_translation_m * 1e3,
+            r.largest_translation_m * 1e3,
+            r.largest_rotation_deg
+        )),
         FitEvent::Prepared {
             train_views,
             holdout_views,

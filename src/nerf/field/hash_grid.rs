@@ -16,6 +16,7 @@
 mod backward;
 mod grad;
 mod sizing;
+mod spatial;
 #[cfg(test)]
 mod tests;
 

@@ -356,6 +356,32 @@ impl Field {
             .backward(positions, &ws.d_encoded[..enc_dim * n], &mut grad.grid);
         ws.seconds.grid += mlp_done.elapsed().as_secs_f64();
     }
+
+    /// After [`Field::backward`]: adds to `out[b]` the loss gradient with
+    /// respect to position `b` for the samples listed in `only`, through the
+    /// `levels` coarsest grid levels (see [`HashGrid::position_gradient`]).
+    /// The direction's part is left out (a camera's small turn barely
+    /// changes a view direction's colour).
+    pub fn position_gradient(
+        &self,
+        positions: &[[f32; 3]],
+        ws: &mut FieldWorkspace,
+        levels: usize,
+        only: &[usize],
+        out: &mut [[f32; 3]],
+    ) {
+        let n = ws.n;
+        let enc_dim = self.grid.config.output_dim();
+        let started = Instant::now();
+        self.grid.position_gradient(
+            &positions[..n],
+            &ws.d_encoded[..enc_dim * n],
+            levels,
+            only,
+            &mut out[..n],
+        );
+        ws.seconds.grid += started.elapsed().as_secs_f64();
+    }
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@ use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::fit::FitOptions;
+use crate::nerf::train::pose_learning::{PoseLearner, PoseLearnerState};
 use crate::nerf::train::report::{CurvePoint, PoseAlignmentReport, Timings};
 use crate::nerf::train::settings::{FitSettings, NerfSettings};
 use crate::nerf::train::step::{TrainCounters, Trainer};
@@ -137,6 +138,9 @@ pub struct CheckpointHeader {
     /// The appearance maps and their optimiser, when learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub appearance: Option<AppearanceState>,
+    /// The pose learner's optimiser, when poses are learnt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_learning: Option<PoseLearnerState>,
 }
 
 /// Appearance maps and Adam state as f32 bit patterns (exact round trip
@@ -241,6 +245,7 @@ pub fn save(
         loss_ema_bits: loss_ema.to_bits(),
         sections: sections.map(|s| s.count()),
         appearance: trainer.appearance.as_ref().map(AppearanceState::of),
+        pose_learning: trainer.poses.as_ref().map(PoseLearner::state),
     };
     let write_error = |source| CheckpointError::Write {
         path: path.to_path_buf(),
@@ -372,6 +377,17 @@ impl Checkpoint {
             return Err(damaged(
                 &path,
                 "appearance maps do not match this fit's training frames",
+            ));
+        }
+        let poses_restored = match (&h.pose_learning, &mut trainer.poses) {
+            (Some(saved), Some(learner)) => learner.restore(saved),
+            (None, None) => true,
+            _ => false,
+        };
+        if !poses_restored {
+            return Err(damaged(
+                &path,
+                "pose learning does not match this fit's training frames",
             ));
         }
         let (adams, lr_scale, loss_ema) = trainer.optimiser_mut();

@@ -13,8 +13,10 @@ use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
 use crate::nerf::train::dataset::{self, Dataset};
 use crate::nerf::train::photometric::{align_to_field, PhotometricOptions};
+use crate::nerf::train::pose_learning::PoseLearner;
 use crate::nerf::train::report::{
-    AppearanceReport, CurvePoint, FitReport, PoseAlignmentReport, PoseRefinementReport, PoseScaleReport, Timings,
+    AppearanceReport, CurvePoint, FitReport, PoseAlignmentReport, PoseLearningReport, PoseRefinementReport,
+    PoseScaleReport, Timings,
 };
 use crate::nerf::train::settings::{settings_for_scene, FitSettings, NerfSettings, SettingError};
 use crate::nerf::train::step::{StepStats, Trainer};
@@ -25,7 +27,7 @@ use crate::poses::{
 };
 use crate::rng::Rng;
 use crate::scan::Scan;
-use nalgebra::IsometryMatrix3;
+use nalgebra::{IsometryMatrix3, Rotation3, Translation3, Vector3};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -121,6 +123,8 @@ pub enum FitEvent<'a> {
     /// The frames' images were aligned to the field (part-way through
     /// training, and at its end).
     PosesAligned(&'a PoseAlignmentReport),
+    /// What learning the poses with the field moved the training frames by.
+    PosesLearnt(&'a PoseLearningReport),
     /// Set-up done; training starts.
     Prepared {
         train_views: usize,
@@ -166,12 +170,7 @@ pub enum FitError {
 /// sensor depth, or without depth the median camera distance to the scene
 /// centre, over the mean focal length.
 pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
-    let focal = scan
-        .frames
-        .iter()
-        .map(|f| 0.5 * (f.intrinsics.fx + f.intrinsics.fy))
-        .sum::<f64>()
-        / scan.frames.len().max(1) as f64;
+    let focal = mean_focal(scan);
     let distance = if bounds.stats.depth_median > 0.0 {
         bounds.stats.depth_median
     } else {
@@ -182,6 +181,21 @@ pub fn pixel_footprint(scan: &Scan, bounds: &crate::poses::SceneBounds) -> f64 {
     };
     distance / focal.max(1e-9)
 }
+
+/// Mean focal length of the frames, in pixels.
+fn mean_focal(scan: &Scan) -> f64 {
+    let sum: f64 = scan
+        .frames
+        .iter()
+        .map(|f| 0.5 * (f.intrinsics.fx + f.intrinsics.fy))
+        .sum();
+    sum / scan.frames.len().max(1) as f64
+}
+
+/// Largest step of a camera learnt with the field per training step, in
+/// pixels it moves the scene at the typical viewing distance (rotation
+/// about the camera centre or translation).
+const POSE_STEP_PX: f64 = 0.05;
 
 /// Everything a fit sets up before training: views, settings and a trainer at step 0.
 pub struct Prepared {
@@ -233,6 +247,15 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
 
     let footprint = pixel_footprint(scan, &bounds);
     let settings = settings_for_scene(metres_per_unit, footprint, &opts.settings);
+    let pose_learner = (opts.settings.refine_poses && opts.settings.learn_poses).then(|| {
+        PoseLearner::new(
+            data.train.len(),
+            POSE_STEP_PX / mean_focal(scan),
+            POSE_STEP_PX * footprint * transform.scale(),
+            settings.field.grid.levels,
+            settings.train.warmup_steps,
+        )
+    });
     let t = Instant::now();
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     if seed_occupancy {
@@ -247,6 +270,9 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let mut trainer = Trainer::new(field, occupancy, settings.train.clone(), data.background);
     if opts.settings.per_frame_appearance {
         trainer.learn_appearance(data.train.len());
+    }
+    if let Some(learner) = pose_learner {
+        trainer.learn_poses(learner);
     }
     if opts.settings.unseen_objects {
         let measured = dataset::depth_rays(&data.train, 2);
@@ -297,6 +323,27 @@ fn plausible_correction_m(refinement: Option<&PoseRefinement>) -> f64 {
     moved.sort_by(f64::total_cmp);
     2.0 * moved[(moved.len() - 1) * 9 / 10]
 }
+
+/// What aligning to the depth moved nine frames in ten by, in rotation
+/// (radians) and translation (metres); `None` when it corrected no frame.
+fn typical_correction(refinement: Option<&PoseRefinement>) -> Option<(f64, f64)> {
+    let refined: Vec<_> = refinement?.frames.iter().filter(|f| f.refined).collect();
+    if refined.is_empty() {
+        return None;
+    }
+    let p90 = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[(v.len() - 1) * 9 / 10]
+    };
+    Some((
+        p90(refined.iter().map(|f| f.rotation_deg.to_radians()).collect()),
+        p90(refined.iter().map(|f| f.translation_m).collect()),
+    ))
+}
+
+/// Steps in which a camera learnt with the field may move by the scan's
+/// typical pose error at the full learning rate.
+const POSE_ERROR_STEPS: f64 = 100.0;
 
 /// Whether the training frames are to be aligned to the field now, after
 /// the passes `done`: a pass is due at `progress`, the field has trained
@@ -369,6 +416,25 @@ fn set_view_cameras(scan: &Scan, data: &mut Dataset, transform: &SceneTransform)
     let train = data.train.iter_mut().zip(&data.train_frames);
     for (view, &i) in train.chain(data.holdout.iter_mut().zip(&data.holdout_frames)) {
         view.camera = dataset::local_camera(&scan.frames[i], transform);
+    }
+}
+
+/// Moves each training view's camera by its learnt step (rotation about
+/// the camera centre, translation; local units), in the scan and the view.
+fn move_training_cameras(scan: &mut Scan, data: &mut Dataset, transform: &SceneTransform, steps: &[[f64; 6]]) {
+    for ((view, &i), s) in data.train.iter_mut().zip(&data.train_frames).zip(steps) {
+        if s.iter().all(|&x| x == 0.0) {
+            continue;
+        }
+        let frame = &mut scan.frames[i];
+        let local = transform.world_to_local_pose(&frame.camera_to_world);
+        let turn = Rotation3::new(Vector3::new(s[0], s[1], s[2]));
+        let moved = IsometryMatrix3::from_parts(
+            Translation3::from(local.translation.vector + Vector3::new(s[3], s[4], s[5])),
+            turn * local.rotation,
+        );
+        frame.camera_to_world = transform.local_to_world_pose(&moved);
+        view.camera = dataset::local_camera(frame, transform);
     }
 }
 
@@ -468,6 +534,16 @@ fn run(
         mut timings,
     } = prepare_with(scan, opts, from.is_none())?;
     timings.pose_refine_s = pose_refine_s;
+    // With depth, the cameras learn at a pace set by the scan's own pose
+    // error, as aligning to the depth measured it.
+    if let (Some(learner), Some((rotation_rad, translation_m))) =
+        (trainer.poses.as_mut(), typical_correction(refinement.as_ref()))
+    {
+        learner.set_rates(
+            rotation_rad / POSE_ERROR_STEPS,
+            translation_m * transform.scale() / POSE_ERROR_STEPS,
+        );
+    }
     let mut identity = FitIdentity::new(scan, opts, &settings);
     identity.scan_fingerprint = captured_fingerprint;
     let mut state = match from {
@@ -642,6 +718,10 @@ fn run(
         }
         let t = Instant::now();
         let stats = trainer.step(&data.train, progress as f32);
+        if let Some(steps) = trainer.take_pose_steps() {
+            move_training_cameras(scan, &mut data, &transform, &steps);
+            state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
+        }
         state.train_seconds += t.elapsed().as_secs_f64();
         on_event(FitEvent::Step {
             step: trainer.counters.steps,
@@ -734,6 +814,13 @@ fn run(
         Some((step, grid)) if step == trainer.counters.steps => grid,
         _ => trainer.rendering_occupancy(),
     };
+    let pose_learning = trainer.poses.as_ref().map(|learner| {
+        let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
+        PoseLearningReport::new(&learner.moved, &names, metres_per_unit)
+    });
+    if let Some(r) = &pose_learning {
+        on_event(FitEvent::PosesLearnt(r));
+    }
     let report = FitReport {
         nerflabel_version: header.nerflabel_version.clone(),
         scan: header.scan.clone(),
@@ -759,6 +846,7 @@ fn run(
         pose_scale: scale_report,
         pose_refinement: refinement_report,
         pose_alignment: state.pose_alignment.clone(),
+        pose_learning,
         appearance: trainer.appearance.as_ref().and_then(|learner| {
             let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
             AppearanceReport::new(&learner.maps(), &names)

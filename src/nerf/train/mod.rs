@@ -9,6 +9,7 @@ pub mod dataset;
 pub mod fit;
 pub mod metrics;
 pub mod photometric;
+pub mod pose_learning;
 pub mod report;
 pub mod settings;
 pub mod step;

@@ -96,6 +96,10 @@ pub struct FitReport {
     /// pose refinement was off or the fit ended before it.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub pose_alignment: Vec<PoseAlignmentReport>,
+    /// What learning the training frames' poses with the field moved them
+    /// by; `None` when pose refinement was off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_learning: Option<PoseLearningReport>,
     /// How far the learnt per-frame appearance strays from neutral; `None`
     /// when it was not learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -205,6 +209,50 @@ impl PoseAlignmentReport {
             largest_translation_m: alignment.frames.iter().map(|f| f.translation_m).fold(0.0, f64::max),
             largest_rotation_deg: alignment.frames.iter().map(|f| f.rotation_deg).fold(0.0, f64::max),
             frames: alignment.frames.clone(),
+        }
+    }
+}
+
+/// The report's account of the poses learnt with the field
+/// (`train::pose_learning`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PoseLearningReport {
+    /// Median and largest change of a camera centre (m), largest change of
+    /// an orientation (degrees), over the training frames.
+    pub median_translation_m: f64,
+    pub largest_translation_m: f64,
+    pub largest_rotation_deg: f64,
+    pub frames: Vec<LearntCorrection>,
+}
+
+/// One training frame's learnt correction.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LearntCorrection {
+    pub frame: String,
+    pub translation_m: f64,
+    pub rotation_deg: f64,
+}
+
+impl PoseLearningReport {
+    /// From each training frame's summed steps (rotation radians,
+    /// translation local units), named by `names`.
+    pub fn new(moved: &[[f64; 6]], names: &[String], metres_per_unit: f64) -> PoseLearningReport {
+        let frames: Vec<LearntCorrection> = moved
+            .iter()
+            .zip(names)
+            .map(|(m, name)| LearntCorrection {
+                frame: name.clone(),
+                translation_m: (m[3] * m[3] + m[4] * m[4] + m[5] * m[5]).sqrt() * metres_per_unit,
+                rotation_deg: (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt().to_degrees(),
+            })
+            .collect();
+        let mut translations: Vec<f64> = frames.iter().map(|f| f.translation_m).collect();
+        translations.sort_by(f64::total_cmp);
+        PoseLearningReport {
+            median_translation_m: translations.get(translations.len() / 2).copied().unwrap_or(0.0),
+            largest_translation_m: translations.last().copied().unwrap_or(0.0),
+            largest_rotation_deg: frames.iter().map(|f| f.rotation_deg).fold(0.0, f64::max),
+            frames,
         }
     }
 }

@@ -108,6 +108,16 @@ pub struct FitSettings {
     #[arg(long = "no-pose-refine", action = clap::ArgAction::SetFalse)]
     #[serde(default)]
     pub refine_poses: bool,
+    /// Also learn each training frame's pose with the field, from the same
+    /// losses (pose gradients through the hash grid, as BARF), at a pace set
+    /// by the scan's pose error as the depth measured it. For scans with
+    /// centimetre pose error (SLAM drift): measured labels +0.004 to +0.005
+    /// mIoU on SLAM-like scenes, unchanged on well-posed ones; held-out
+    /// frames are not learnt, so their PSNR can drop (real cabinet scan
+    /// -2.4 dB). Needs pose refinement (ignored with --no-pose-refine).
+    #[arg(long = "learn-poses")]
+    #[serde(default)]
+    pub learn_poses: bool,
     /// Multiply every camera position by this factor before fitting, for
     /// poses known only up to scale (structure from motion). By default the
     /// scale is estimated from the depth and applied, with a warning, when

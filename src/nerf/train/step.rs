@@ -14,6 +14,7 @@ use crate::nerf::render::march::{march, march_until, ray_interval, Segment, Step
 use crate::nerf::train::adam::Adam;
 use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::dataset::View;
+use crate::nerf::train::pose_learning::{self, PoseGradient, PoseLearner};
 use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
 use rayon::prelude::*;
@@ -79,6 +80,10 @@ const RENDERING_GRID_STREAM: u64 = u64::MAX / 2;
 /// The first occupancy refresh after warm-up visits every cell: this many
 /// passes of the random subset a later refresh covers.
 const FIRST_REFRESH_PASSES: usize = 8;
+/// Samples that take part in the cameras' gradient: those carrying at least
+/// this share of their ray's light (the others move the losses too little
+/// to steer a camera, and skipping them keeps the pass cheap).
+const POSE_SAMPLE_MIN_WEIGHT: f32 = 1e-3;
 
 /// What one step did.
 #[derive(Clone, Copy, Debug, Default)]
@@ -191,6 +196,12 @@ struct Chunk {
     d_rgb: Vec<f32>,
     /// Gradient of the training views' appearance maps (12 per view).
     grad_appearance: Vec<f32>,
+    /// Gradient of the training views' pose corrections, when learnt.
+    grad_pose: Vec<PoseGradient>,
+    /// Loss gradient with respect to each sample's position, and the
+    /// samples it is taken at.
+    d_position: Vec<[f32; 3]>,
+    pose_samples: Vec<usize>,
 }
 
 /// Trains a [`Field`] on a set of views.
@@ -217,6 +228,11 @@ pub struct Trainer {
     measured: Option<MeasuredSurfaces>,
     /// Per-frame appearance maps, when learnt.
     pub appearance: Option<AppearanceLearner>,
+    /// Per-frame pose corrections, when learnt.
+    pub poses: Option<PoseLearner>,
+    /// The pose steps of the last training step, one per training view
+    /// (empty when none were taken), for the caller to apply.
+    pose_steps: Vec<[f64; 6]>,
 }
 
 impl Trainer {
@@ -240,6 +256,9 @@ impl Trainer {
                 d_sigma: Vec::new(),
                 d_rgb: Vec::new(),
                 grad_appearance: Vec::new(),
+                grad_pose: Vec::new(),
+                d_position: Vec::new(),
+                pose_samples: Vec::new(),
             })
             .collect();
         let mlp_scale = [rms(&field.density.params), rms(&field.color.params)];
@@ -261,7 +280,21 @@ impl Trainer {
             depth_coverage: None,
             measured: None,
             appearance: None,
+            poses: None,
+            pose_steps: Vec::new(),
         }
+    }
+
+    /// Learn each training view's pose with the field (`pose_learning`).
+    pub fn learn_poses(&mut self, learner: PoseLearner) {
+        self.poses = Some(learner);
+    }
+
+    /// The pose steps the last training step took (rotation about the camera
+    /// centre and translation, local units, per training view), once: the
+    /// caller moves the views' cameras by them.
+    pub fn take_pose_steps(&mut self) -> Option<Vec<[f64; 6]>> {
+        (!self.pose_steps.is_empty()).then(|| std::mem::take(&mut self.pose_steps))
     }
 
     /// Learn an appearance map per training view (`nerf::appearance`).
@@ -315,8 +348,14 @@ impl Trainer {
             background: self.background,
             measured: self.measured.as_ref().filter(|_| self.config.lambda_no_return > 0.0),
             appearance: self.appearance.as_ref(),
+            pose_levels: self
+                .poses
+                .as_ref()
+                .filter(|p| step_index >= p.start_step && p.views() == views.len())
+                .map(|p| p.levels),
         };
         let appearance_len = self.appearance.as_ref().map_or(0, |a| a.deltas.len());
+        let pose_len = if ctx.pose_levels.is_some() { views.len() } else { 0 };
         let seed = self.config.seed;
         let stats: Vec<ChunkStats> = self
             .chunks
@@ -327,6 +366,8 @@ impl Trainer {
                 chunk.grad.clear();
                 chunk.grad_appearance.clear();
                 chunk.grad_appearance.resize(appearance_len, 0.0);
+                chunk.grad_pose.clear();
+                chunk.grad_pose.resize(pose_len, [0.0; 6]);
                 chunk.ws.seconds = FieldSeconds::default();
                 run_chunk(&ctx, chunk, &mut rng, budget)
             })
@@ -338,6 +379,11 @@ impl Trainer {
             first[0].grad.merge_from(&other.grad);
             for (g, o) in first[0].grad_appearance.iter_mut().zip(&other.grad_appearance) {
                 *g += o;
+            }
+            for (g, o) in first[0].grad_pose.iter_mut().zip(&other.grad_pose) {
+                for k in 0..6 {
+                    g[k] += o[k];
+                }
             }
         }
         let mut total = StepStats::default();
@@ -426,6 +472,11 @@ impl Trainer {
             .filter(|_| step_index >= self.config.warmup_steps)
         {
             appearance.step(grad_appearance, lr);
+        }
+        if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
+            let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();
+            let rate = (schedule * self.lr_scale) as f64;
+            self.pose_steps = learner.step(&first[0].grad_pose, rate, &centres, [0.5; 3]);
         }
         total.phases.update = update_started.elapsed().as_secs_f64() * threads as f64;
         total
@@ -528,6 +579,8 @@ struct StepContext<'a> {
     background: [f32; 3],
     measured: Option<&'a MeasuredSurfaces>,
     appearance: Option<&'a AppearanceLearner>,
+    /// Grid levels of the cameras' gradient, when poses are learnt this step.
+    pose_levels: Option<usize>,
 }
 
 /// Fraction of the pixels of `views` with measured depth.
@@ -686,6 +739,7 @@ fn sized<T: Copy + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
 #[allow(clippy::needless_range_loop)]
 fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usize>, stats: &mut ChunkStats) {
     let cfg = ctx.config;
+    let ray_range = rays.clone();
     let base = chunk.rays[rays.start].first;
     let last = &chunk.rays[rays.end - 1];
     let n = last.first + last.count - base;
@@ -820,7 +874,43 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
         &chunk.d_rgb[..3 * n],
         &mut chunk.grad,
     );
+    if let Some(levels) = ctx.pose_levels {
+        pose_gradient(ctx, chunk, ray_range, levels);
+    }
     let _ = stats;
+}
+
+/// Adds the sub-batch's gradient with respect to each ray's camera pose to
+/// its view's entry (after the field's backward).
+fn pose_gradient(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usize>, levels: usize) {
+    let base = chunk.rays[rays.start].first;
+    let n = chunk.sample_positions.len();
+    chunk.pose_samples.clear();
+    chunk
+        .pose_samples
+        .extend((0..n).filter(|&j| chunk.weights[j] >= POSE_SAMPLE_MIN_WEIGHT));
+    let d_position = sized(&mut chunk.d_position, n);
+    for &j in &chunk.pose_samples {
+        d_position[j] = [0.0; 3];
+    }
+    ctx.field.position_gradient(
+        &chunk.sample_positions,
+        &mut chunk.ws,
+        levels,
+        &chunk.pose_samples,
+        d_position,
+    );
+    for r in rays {
+        let rec = &chunk.rays[r];
+        let origin = chunk.ray_origins[r];
+        let grad = &mut chunk.grad_pose[rec.view];
+        let o = rec.first - base;
+        for j in o..o + rec.count {
+            if chunk.weights[j] >= POSE_SAMPLE_MIN_WEIGHT {
+                pose_learning::accumulate(grad, origin, chunk.sample_positions[j], chunk.d_position[j]);
+            }
+        }
+    }
 }
 
 /// No-return term of one ray without sensor depth: `lambda` times the light
@@ -1075,6 +1165,65 @@ pub(crate) mod tests {
         let median = err[err.len() / 2];
         // The patch is 0.15 in front of the plane behind it; measured 0.0097.
         assert!(median < 0.02, "median depth error {median} (local units)");
+    }
+
+    /// Where the centre pixel of `camera` meets the plane z = 0.6.
+    fn centre_on_plane(camera: &LocalCamera) -> [f32; 3] {
+        let (ray, _) = camera.ray(camera.cx, camera.cy);
+        ray.at((0.6 - ray.origin[2]) / ray.dir[2])
+    }
+
+    #[test]
+    fn a_camera_placed_wrongly_is_moved_back_while_the_field_trains() {
+        let mut views = plane_views(8, 48, true);
+        let truth: Vec<[f32; 3]> = views.iter().map(|v| centre_on_plane(&v.camera)).collect();
+        // View 3 is told it stands 0.02 (about 1.7 px) off along x.
+        views[3].camera.origin[0] += 0.02;
+        let (field_cfg, train_cfg) = small_config(7);
+        let mut rng = Rng::new(7, 0);
+        let mut trainer = Trainer::new(
+            Field::new(field_cfg.clone(), &mut rng),
+            OccupancyGrid::full(64),
+            train_cfg.clone(),
+            [0.5; 3],
+        );
+        let levels = crate::nerf::field::hash_grid::HashGridConfig::from(field_cfg.grid).levels;
+        trainer.learn_poses(PoseLearner::new(
+            views.len(),
+            1e-3,
+            2e-4,
+            levels,
+            train_cfg.warmup_steps,
+        ));
+        let off = |views: &[View], i: usize| {
+            let p = centre_on_plane(&views[i].camera);
+            ((p[0] - truth[i][0]).powi(2) + (p[1] - truth[i][1]).powi(2)).sqrt()
+        };
+        let before = off(&views, 3);
+        for s in 0..300 {
+            trainer.step(&views, s as f32 / 300.0);
+            if let Some(steps) = trainer.take_pose_steps() {
+                for (view, st) in views.iter_mut().zip(&steps) {
+                    let turn = nalgebra::Rotation3::new(nalgebra::Vector3::new(st[0], st[1], st[2]));
+                    let r = nalgebra::Matrix3::from_fn(|i, j| view.camera.rotation[i][j] as f64);
+                    let turned = turn.matrix() * r;
+                    for i in 0..3 {
+                        view.camera.origin[i] += st[3 + i] as f32;
+                        for j in 0..3 {
+                            view.camera.rotation[i][j] = turned[(i, j)] as f32;
+                        }
+                    }
+                }
+            }
+        }
+        let after = off(&views, 3);
+        let others = (0..views.len())
+            .filter(|&i| i != 3)
+            .map(|i| off(&views, i))
+            .fold(0.0, f32::max);
+        eprintln!("view 3 off by {before} -> {after}; others at most {others}");
+        assert!(after < 0.4 * before, "view 3 off by {before} -> {after}");
+        assert!(others < 0.25 * before, "other views moved by up to {others}");
     }
 
     #[test]

@@ -665,3 +665,73 @@ fn buffers_shorter_than_a_word_work() {
     sum.clear();
     assert!(sum.values.iter().all(|v| *v == 0.0) && sum.touched_count() == 0);
 }
+
+#[test]
+fn position_gradient_matches_central_differences_of_the_reference() {
+    for fpl in [1, 2, 4] {
+        let config = small_mixed(fpl);
+        let g = grid(config, 21);
+        // Inside the cube, away from its faces (the encoding is clamped there).
+        let pos: Vec<[f32; 3]> = positions(64, 22)
+            .into_iter()
+            .map(|p| p.map(|x| 0.05 + 0.9 * x))
+            .collect();
+        let mut rng = Rng::new(23, 4);
+        let d_out: Vec<f32> = (0..pos.len() * config.output_dim())
+            .map(|_| rng.f32() * 2.0 - 1.0)
+            .collect();
+        let every: Vec<usize> = (0..pos.len()).collect();
+        let mut analytic = vec![[0f32; 3]; pos.len()];
+        g.position_gradient(&pos, &d_out, config.levels, &every, &mut analytic);
+        let loss = |p: [f32; 3], b: usize| -> f64 {
+            let enc = reference_encode(&config, &g.params, &[p]);
+            (0..config.output_dim())
+                .map(|k| enc[k] * d_out[k * pos.len() + b] as f64)
+                .sum()
+        };
+        let h = 1e-4f32;
+        let resolutions = config.resolutions();
+        // An interval across a cell face bends the slope: skipped.
+        let crosses = |lo: f32, hi: f32| {
+            resolutions
+                .iter()
+                .any(|&r| (lo * r as f32).floor() != (hi * r as f32).floor())
+        };
+        let (mut worst, mut checked) = (0f64, 0);
+        for (b, p) in pos.iter().enumerate() {
+            for a in 0..3 {
+                let (mut lo, mut hi) = (*p, *p);
+                lo[a] -= h;
+                hi[a] += h;
+                if crosses(lo[a], hi[a]) {
+                    continue;
+                }
+                let numeric = (loss(hi, b) - loss(lo, b)) / (hi[a] - lo[a]) as f64;
+                worst = worst.max((analytic[b][a] as f64 - numeric).abs() / (1.0 + numeric.abs()));
+                checked += 1;
+            }
+        }
+        assert!(checked > 150, "features {fpl}: only {checked} components checked");
+        assert!(worst < 1e-3, "features {fpl}: worst relative error {worst}");
+    }
+}
+
+#[test]
+fn position_gradient_over_the_coarse_levels_only_ignores_the_fine_ones() {
+    let config = small_mixed(2);
+    let g = grid(config, 31);
+    let pos = positions(16, 32);
+    let n = pos.len();
+    let mut d_out = vec![0f32; n * config.output_dim()];
+    // Gradient only on the last (finest) level.
+    let last = (config.levels - 1) * 2 * n;
+    d_out[last..].iter_mut().for_each(|d| *d = 1.0);
+    let every: Vec<usize> = (0..n).collect();
+    let mut coarse = vec![[0f32; 3]; n];
+    g.position_gradient(&pos, &d_out, config.levels - 1, &every, &mut coarse);
+    assert!(coarse.iter().all(|v| *v == [0.0; 3]));
+    let mut all = vec![[0f32; 3]; n];
+    g.position_gradient(&pos, &d_out, config.levels, &[3], &mut all);
+    assert!(all[3] != [0.0; 3]);
+    assert!(all.iter().enumerate().all(|(b, v)| b == 3 || *v == [0.0; 3]));
+}

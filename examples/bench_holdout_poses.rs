@@ -8,7 +8,6 @@
 //! Run: `cargo run --release --example bench_holdout_poses -- SCAN MODEL [HOLDOUT_EVERY]`
 
 use nerflabel::nerf::model_file::Model;
-use nerflabel::nerf::render::rays::RenderOptions;
 use nerflabel::nerf::train::dataset;
 use nerflabel::nerf::train::validation::validate;
 use nerflabel::poses::{refine_poses, RefineOptions};
@@ -46,12 +45,7 @@ fn main() -> Result<(), Error> {
 fn score(model: &Model, scan: &Scan, every: usize) -> Result<(f64, f64, f64), Error> {
     let transform = model.scene_transform()?;
     let data = dataset::build(scan, &transform, every);
-    let render = RenderOptions {
-        color: true,
-        rule: model.header.render_step,
-        max_samples_per_ray: 4096,
-        background: model.header.background,
-    };
+    let render = model.render_options(true);
     let maps = model
         .header
         .appearance

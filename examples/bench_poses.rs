@@ -111,14 +111,8 @@ fn main() -> Result<(), Error> {
 /// The poses of `scan` aligned once more to the model's final field, as the
 /// fit's last pass does (a second pass shows what is left to gain).
 fn align_again(model: &Model, scan: &Scan) -> Result<Vec<IsometryMatrix3<f64>>, Error> {
-    use nerflabel::nerf::render::rays::RenderOptions;
     use nerflabel::nerf::train::photometric::{align_to_field, PhotometricOptions};
-    let render = RenderOptions {
-        color: true,
-        rule: model.header.render_step,
-        max_samples_per_ray: 4096,
-        background: model.header.background,
-    };
+    let render = model.render_options(true);
     let maps = model
         .header
         .appearance

@@ -314,14 +314,7 @@ const MOVED_PX: f64 = 1.0;
 /// realistic tabletop (1.5 mm pose error) a field barely past its warm-up
 /// (`fit --time 60`) otherwise moved frames by up to 31 mm.
 fn plausible_correction_m(refinement: Option<&PoseRefinement>) -> f64 {
-    let mut moved: Vec<f64> = refinement
-        .map(|r| r.frames.iter().filter(|f| f.refined).map(|f| f.translation_m).collect())
-        .unwrap_or_default();
-    if moved.is_empty() {
-        return f64::INFINITY;
-    }
-    moved.sort_by(f64::total_cmp);
-    2.0 * moved[(moved.len() - 1) * 9 / 10]
+    typical_correction(refinement).map_or(f64::INFINITY, |(_, translation_m)| 2.0 * translation_m)
 }
 
 /// What aligning to the depth moved nine frames in ten by, in rotation

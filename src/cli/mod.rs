@@ -498,6 +498,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             .build_global()
             .map_err(|e| anyhow::anyhow!("cannot start {threads} worker threads (--threads): {e}"))?;
     }
+    // Tiny late-training gradients must not take x86's slow path.
+    nerflabel::nerf::field::simd::flush_subnormals_on_all_threads();
     match cli.command {
         Command::Info(args) => info::run(&args),
         Command::Cloud(args) => cloud::run(&args),

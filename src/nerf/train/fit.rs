@@ -493,6 +493,7 @@ fn run(
     on_event: &mut dyn FnMut(FitEvent),
 ) -> Result<FitOutcome, FitError> {
     let started = opts.started.unwrap_or_else(Instant::now);
+    crate::nerf::field::simd::flush_subnormals_on_all_threads();
     // Models and checkpoints name the scan as captured.
     let captured_fingerprint = crate::scan::fingerprint::scan_fingerprint(scan);
     let t = Instant::now();

@@ -13,6 +13,35 @@ pub mod mlp_tile;
 
 use std::time::Instant;
 
+/// Treat subnormal floats as zero on the calling thread (threads it starts
+/// afterwards inherit the setting). Tiny gradients late in training
+/// are subnormal, and x86 handles each through a microcode assist about a
+/// hundred times slower than a normal FMA: measured on the cabinet scan,
+/// training fell from 690 k to 85 k samples/s once they appeared. Values
+/// that small carry nothing a 32-bit step could use.
+pub fn flush_subnormals() {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // Flush-to-zero (results) and denormals-are-zero (inputs).
+        const FTZ_DAZ: u32 = 0x8040;
+        let mut csr: u32 = 0;
+        // SAFETY: SSE is part of x86_64; the control register is read into
+        // and loaded from a local, and only the two flags above change.
+        unsafe {
+            std::arch::asm!("stmxcsr [{}]", in(reg) &mut csr as *mut u32, options(nostack, preserves_flags));
+            csr |= FTZ_DAZ;
+            std::arch::asm!("ldmxcsr [{}]", in(reg) &csr as *const u32, options(nostack, preserves_flags, readonly));
+        }
+    }
+}
+
+/// [`flush_subnormals`] on the calling thread and on every worker of the
+/// current rayon pool (already started threads do not see a later change).
+pub fn flush_subnormals_on_all_threads() {
+    flush_subnormals();
+    rayon::broadcast(|_| flush_subnormals());
+}
+
 /// True when this CPU supports AVX2 and FMA (checked once, then cached by std).
 #[inline]
 pub fn avx2_fma_available() -> bool {
@@ -187,6 +216,20 @@ mod avx2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn subnormal_results_are_flushed_to_zero_on_every_worker() {
+        let tiny = || std::hint::black_box(1e-30f32) * std::hint::black_box(1e-10f32);
+        // Without the flag the product is subnormal, not zero.
+        let plain = std::thread::spawn(tiny).join().unwrap();
+        assert!(plain > 0.0 && !plain.is_normal(), "{plain}");
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let products = pool.install(|| {
+            flush_subnormals_on_all_threads();
+            rayon::broadcast(|_| tiny())
+        });
+        assert_eq!(products, vec![0.0; 3]);
+    }
     use crate::rng::Rng;
 
     fn random(n: usize, rng: &mut Rng) -> Vec<f32> {

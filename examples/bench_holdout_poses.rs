@@ -3,7 +3,12 @@
 //! to the field) and as the model stores them (the fit's last pass aligns
 //! every frame, held-out ones too, to the final field, as BARF aligns test
 //! poses before scoring). The gap tells how much of a held-out PSNR is the
-//! held-out poses rather than the field.
+//! held-out poses rather than the field. It also prints how the stored
+//! poses differ from the depth-aligned ones in each camera's own frame
+//! (x right, y down, z forward): a mean far from zero is a motion all
+//! cameras share in their own frame, which no rigid move of the scene
+//! explains (a colour image registered off its depth turns every camera
+//! the same way).
 //!
 //! Run: `cargo run --release --example bench_holdout_poses -- SCAN MODEL [HOLDOUT_EVERY]`
 
@@ -30,6 +35,7 @@ fn main() -> Result<(), Error> {
     }
     let mut stored = captured.clone();
     model.apply_fitted_poses(&mut stored);
+    print_camera_frame_motion(&depth_aligned, &stored);
     println!("| held-out poses | PSNR dB | SSIM | depth MAE mm |");
     println!("|---|---|---|---|");
     for (name, scan) in [
@@ -40,6 +46,46 @@ fn main() -> Result<(), Error> {
         println!("| {name} | {psnr:.2} | {ssim:.3} | {mae:.1} |");
     }
     Ok(())
+}
+
+/// Mean and RMS over frames of each stored pose's motion from the
+/// depth-aligned one, in the depth-aligned camera's frame.
+fn print_camera_frame_motion(depth_aligned: &Scan, stored: &Scan) {
+    let motions: Vec<[f64; 6]> = depth_aligned
+        .poses()
+        .iter()
+        .zip(stored.poses())
+        .map(|(d, s)| {
+            let relative = d.inverse() * s;
+            let (t, r) = (relative.translation.vector * 1e3, relative.rotation.scaled_axis());
+            [t.x, t.y, t.z, r.x.to_degrees(), r.y.to_degrees(), r.z.to_degrees()]
+        })
+        .collect();
+    let n = motions.len().max(1) as f64;
+    let mean = |k: usize| motions.iter().map(|m| m[k]).sum::<f64>() / n;
+    let rms = |k: usize| (motions.iter().map(|m| m[k] * m[k]).sum::<f64>() / n).sqrt();
+    println!(
+        "stored poses against the depth-aligned ones, camera frame (x right, y down, z forward), mean / RMS over {} frames:",
+        motions.len()
+    );
+    println!(
+        "  translation mm: x {:.2} / {:.2}, y {:.2} / {:.2}, z {:.2} / {:.2}",
+        mean(0),
+        rms(0),
+        mean(1),
+        rms(1),
+        mean(2),
+        rms(2)
+    );
+    println!(
+        "  rotation deg about: x {:.3} / {:.3}, y {:.3} / {:.3}, z {:.3} / {:.3}",
+        mean(3),
+        rms(3),
+        mean(4),
+        rms(4),
+        mean(5),
+        rms(5)
+    );
 }
 
 fn score(model: &Model, scan: &Scan, every: usize) -> Result<(f64, f64, f64), Error> {

@@ -7,9 +7,12 @@
 //! translation, in the field's local frame. Moving every camera by one rigid
 //! motion (and the field with them) leaves the losses unchanged, so the
 //! common rigid part of each step is removed: the scene stays in the frame
-//! the boxes were drawn in.
+//! the boxes were drawn in. So is what every camera's step shares in its own
+//! frame: no motion of the scene looks like that, only something all images
+//! share (colour registered a few pixels off the depth); followed, it bends
+//! the scene away from the depth.
 
-use nalgebra::{Matrix6, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 const BETA1: f64 = 0.9;
@@ -71,8 +74,17 @@ impl PoseLearner {
     /// One Adam step from `grads` (one per view, any common scale) with the
     /// learning rate multiplied by `rate`; returns each view's step with the
     /// common rigid motion of all cameras (centres `centres`, rotation about
-    /// `pivot`) removed. Views whose gradient is zero (no ray drawn) stay.
-    pub fn step(&mut self, grads: &[PoseGradient], rate: f64, centres: &[[f64; 3]], pivot: [f64; 3]) -> Vec<[f64; 6]> {
+    /// `pivot`) and the motion they share in their own frames (`rotations`,
+    /// camera-to-local) removed. Views whose gradient is zero (no ray drawn)
+    /// stay.
+    pub fn step(
+        &mut self,
+        grads: &[PoseGradient],
+        rate: f64,
+        centres: &[[f64; 3]],
+        rotations: &[Matrix3<f64>],
+        pivot: [f64; 3],
+    ) -> Vec<[f64; 6]> {
         assert_eq!(grads.len(), self.views(), "PoseLearner::step: one gradient per view");
         self.steps += 1;
         let (c1, c2) = (1.0 - BETA1.powi(self.steps as i32), 1.0 - BETA2.powi(self.steps as i32));
@@ -89,12 +101,13 @@ impl PoseLearner {
                 out[i][k] = -rate * lr * m / (v.sqrt() + EPS);
             }
         }
-        remove_common_motion(
-            &mut out,
-            centres,
-            pivot,
-            self.translation_lr / self.rotation_lr.max(1e-30),
-        );
+        let lever = self.translation_lr / self.rotation_lr.max(1e-30);
+        // The two motions overlap a little: twice over leaves no measurable
+        // rest, and the scene's own motion goes last.
+        for _ in 0..2 {
+            remove_shared_camera_motion(&mut out, rotations);
+            remove_common_motion(&mut out, centres, pivot, lever);
+        }
         for (moved, s) in self.moved.iter_mut().zip(&out) {
             for k in 0..6 {
                 moved[k] += s[k];
@@ -179,6 +192,39 @@ pub fn remove_common_motion(steps: &mut [[f64; 6]], centres: &[[f64; 3]], pivot:
     }
 }
 
+/// Removes from per-camera steps the motion they share in their own frames
+/// (the mean over the moved cameras of each step seen from its camera,
+/// `rotations` camera-to-local): every camera turning or moving the same
+/// way in its own frame is no motion of the scene, only of what all images
+/// share (a colour image registered off its depth, a principal point), and
+/// following it bends the scene away from the depth.
+pub fn remove_shared_camera_motion(steps: &mut [[f64; 6]], rotations: &[Matrix3<f64>]) {
+    let mut shared = [Vector3::zeros(), Vector3::zeros()];
+    let mut used = 0;
+    for (s, r) in steps.iter().zip(rotations) {
+        if s.iter().all(|&x| x == 0.0) {
+            continue;
+        }
+        used += 1;
+        shared[0] += r.transpose() * Vector3::new(s[0], s[1], s[2]);
+        shared[1] += r.transpose() * Vector3::new(s[3], s[4], s[5]);
+    }
+    if used < 2 {
+        return;
+    }
+    let shared = shared.map(|v| v / used as f64);
+    for (s, r) in steps.iter_mut().zip(rotations) {
+        if s.iter().all(|&x| x == 0.0) {
+            continue;
+        }
+        let (turn, shift) = (r * shared[0], r * shared[1]);
+        for k in 0..3 {
+            s[k] -= turn[k];
+            s[k + 3] -= shift[k];
+        }
+    }
+}
+
 /// Rows: the camera's rotation (times `lever`) and translation caused by a
 /// scene rotation `w` about `pivot` and translation `u` (columns w, u).
 fn jacobian(c: &[f64; 3], pivot: [f64; 3], lever: f64) -> Matrix6<f64> {
@@ -252,16 +298,45 @@ mod tests {
     }
 
     #[test]
+    fn a_turn_every_camera_shares_in_its_own_frame_is_removed() {
+        // Eight cameras looking in different directions.
+        let rotations: Vec<Matrix3<f64>> = (0..8)
+            .map(|i| {
+                let axis = Vector3::new(0.3, 1.0, 0.2 * i as f64).normalize();
+                *nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), 0.7 * i as f64).matrix()
+            })
+            .collect();
+        // Each tilts down 0.006 rad and steps 0.002 forward in its own frame.
+        let (tilt, forward) = (Vector3::new(0.006, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.002));
+        let mut steps: Vec<[f64; 6]> = rotations
+            .iter()
+            .map(|r| {
+                let (w, t) = (r * tilt, r * forward);
+                [w.x, w.y, w.z, t.x, t.y, t.z]
+            })
+            .collect();
+        // Plus one camera's own turn.
+        steps[5][2] += 0.004;
+        remove_shared_camera_motion(&mut steps, &rotations);
+        let size = |s: &[f64; 6]| s.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let others = (0..8).filter(|&i| i != 5).map(|i| size(&steps[i])).fold(0.0, f64::max);
+        // The shared part (0.006 rad, 0.002) is gone; the own turn is kept
+        // but for its share of the mean (an eighth).
+        assert!(others < 0.001, "others {others}");
+        assert!((steps[5][2] - 0.0035).abs() < 0.0006, "own {:?}", steps[5]);
+    }
+
+    #[test]
     fn the_state_round_trips_exactly() {
         let mut learner = PoseLearner::new(2, 1e-3, 2e-3, 4, 0);
         let centres = [[0.2, 0.5, 0.5], [0.8, 0.5, 0.5]];
         let grads = [[0.3, -0.1, 0.0, 1.0, 2.0, -0.5], [0.0, 0.2, 0.0, 0.0, -1.0, 0.1]];
-        learner.step(&grads, 1.0, &centres, [0.5; 3]);
+        learner.step(&grads, 1.0, &centres, &[Matrix3::identity(); 2], [0.5; 3]);
         let mut copy = PoseLearner::new(2, 1e-3, 2e-3, 4, 0);
         assert!(copy.restore(&learner.state()));
         assert_eq!(
-            copy.step(&grads, 0.5, &centres, [0.5; 3]),
-            learner.step(&grads, 0.5, &centres, [0.5; 3])
+            copy.step(&grads, 0.5, &centres, &[Matrix3::identity(); 2], [0.5; 3]),
+            learner.step(&grads, 0.5, &centres, &[Matrix3::identity(); 2], [0.5; 3])
         );
         assert!(!PoseLearner::new(3, 1e-3, 2e-3, 4, 0).restore(&learner.state()));
     }
@@ -275,7 +350,7 @@ mod tests {
             [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
         ];
         let centres = [[0.2, 0.5, 0.5], [0.8, 0.5, 0.5], [0.5, 0.5, 0.9]];
-        let steps = learner.step(&grads, 1.0, &centres, [0.5, 0.5, 0.5]);
+        let steps = learner.step(&grads, 1.0, &centres, &[Matrix3::identity(); 3], [0.5, 0.5, 0.5]);
         // One view only: nothing common to remove.
         assert!((steps[0][0] + 1e-3).abs() < 1e-9, "{:?}", steps[0]);
         assert!((steps[0][5] - 2e-3).abs() < 1e-9, "{:?}", steps[0]);

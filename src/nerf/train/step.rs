@@ -17,6 +17,7 @@ use crate::nerf::train::dataset::View;
 use crate::nerf::train::pose_learning::{self, PoseGradient, PoseLearner};
 use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
+use nalgebra::Matrix3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -475,8 +476,12 @@ impl Trainer {
         }
         if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
             let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();
+            let rotations: Vec<Matrix3<f64>> = views
+                .iter()
+                .map(|v| Matrix3::from_fn(|r, c| v.camera.rotation[r][c] as f64))
+                .collect();
             let rate = (schedule * self.lr_scale) as f64;
-            self.pose_steps = learner.step(&first[0].grad_pose, rate, &centres, [0.5; 3]);
+            self.pose_steps = learner.step(&first[0].grad_pose, rate, &centres, &rotations, [0.5; 3]);
         }
         total.phases.update = update_started.elapsed().as_secs_f64() * threads as f64;
         total

@@ -102,6 +102,11 @@ fn quiet_silences_progress_and_summaries_and_verbose_adds_evaluations() {
     let (stdout, stderr) = fit(None);
     assert!(stdout.contains("trained 3 steps"), "{stdout}");
     assert!(stderr.contains("fitting"), "{stderr}");
+    // Three steps end inside the warm-up: the model is not one to label from.
+    assert!(
+        stderr.contains("warning: training stopped after 3 steps, inside the"),
+        "{stderr}"
+    );
     assert!(
         !stderr.contains("held-out PSNR") || !stderr.contains("step 3, "),
         "{stderr}"

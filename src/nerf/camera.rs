@@ -3,7 +3,7 @@
 
 use crate::poses::Aabb;
 use crate::scan::Intrinsics;
-use nalgebra::{IsometryMatrix3, Point3, Vector3};
+use nalgebra::{IsometryMatrix3, Matrix3, Point3, Vector3};
 
 /// A pinhole camera in local coordinates (OpenCV axes).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -61,6 +61,11 @@ impl LocalCamera {
             },
             norm,
         )
+    }
+
+    /// The camera-to-local rotation as an f64 matrix.
+    pub fn rotation_matrix(&self) -> Matrix3<f64> {
+        Matrix3::from_fn(|r, c| self.rotation[r][c] as f64)
     }
 
     /// Number of pixels.

@@ -165,7 +165,7 @@ pub fn remove_common_motion(steps: &mut [[f64; 6]], centres: &[[f64; 3]], pivot:
     let mut rhs = Vector6::<f64>::zeros();
     let mut used = 0;
     for (s, c) in steps.iter().zip(centres) {
-        if s.iter().all(|&x| x == 0.0) {
+        if is_still(s) {
             continue;
         }
         used += 1;
@@ -181,7 +181,7 @@ pub fn remove_common_motion(steps: &mut [[f64; 6]], centres: &[[f64; 3]], pivot:
         return;
     };
     for (s, c) in steps.iter_mut().zip(centres) {
-        if s.iter().all(|&x| x == 0.0) {
+        if is_still(s) {
             continue;
         }
         let common = jacobian(c, pivot, lever) * motion;
@@ -202,7 +202,7 @@ pub fn remove_shared_camera_motion(steps: &mut [[f64; 6]], rotations: &[Matrix3<
     let mut shared = [Vector3::zeros(), Vector3::zeros()];
     let mut used = 0;
     for (s, r) in steps.iter().zip(rotations) {
-        if s.iter().all(|&x| x == 0.0) {
+        if is_still(s) {
             continue;
         }
         used += 1;
@@ -214,7 +214,7 @@ pub fn remove_shared_camera_motion(steps: &mut [[f64; 6]], rotations: &[Matrix3<
     }
     let shared = shared.map(|v| v / used as f64);
     for (s, r) in steps.iter_mut().zip(rotations) {
-        if s.iter().all(|&x| x == 0.0) {
+        if is_still(s) {
             continue;
         }
         let (turn, shift) = (r * shared[0], r * shared[1]);
@@ -223,6 +223,12 @@ pub fn remove_shared_camera_motion(steps: &mut [[f64; 6]], rotations: &[Matrix3<
             s[k + 3] -= shift[k];
         }
     }
+}
+
+/// A view that took no step (no ray of it was drawn) is left out of the
+/// motions removed and keeps its zero step.
+fn is_still(step: &[f64; 6]) -> bool {
+    step.iter().all(|&x| x == 0.0)
 }
 
 /// Rows: the camera's rotation (times `lever`) and translation caused by a

@@ -476,10 +476,7 @@ impl Trainer {
         }
         if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
             let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();
-            let rotations: Vec<Matrix3<f64>> = views
-                .iter()
-                .map(|v| Matrix3::from_fn(|r, c| v.camera.rotation[r][c] as f64))
-                .collect();
+            let rotations: Vec<Matrix3<f64>> = views.iter().map(|v| v.camera.rotation_matrix()).collect();
             let rate = (schedule * self.lr_scale) as f64;
             self.pose_steps = learner.step(&first[0].grad_pose, rate, &centres, &rotations, [0.5; 3]);
         }
@@ -1210,8 +1207,7 @@ pub(crate) mod tests {
             if let Some(steps) = trainer.take_pose_steps() {
                 for (view, st) in views.iter_mut().zip(&steps) {
                     let turn = nalgebra::Rotation3::new(nalgebra::Vector3::new(st[0], st[1], st[2]));
-                    let r = nalgebra::Matrix3::from_fn(|i, j| view.camera.rotation[i][j] as f64);
-                    let turned = turn.matrix() * r;
+                    let turned = turn.matrix() * view.camera.rotation_matrix();
                     for i in 0..3 {
                         view.camera.origin[i] += st[3 + i] as f32;
                         for j in 0..3 {

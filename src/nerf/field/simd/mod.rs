@@ -216,6 +216,7 @@ mod avx2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::Rng;
 
     #[test]
     fn subnormal_results_are_flushed_to_zero_on_every_worker() {
@@ -230,7 +231,6 @@ mod tests {
         });
         assert_eq!(products, vec![0.0; 3]);
     }
-    use crate::rng::Rng;
 
     fn random(n: usize, rng: &mut Rng) -> Vec<f32> {
         (0..n).map(|_| rng.f32() * 2.0 - 1.0).collect()

@@ -111,10 +111,10 @@ pub struct FitSettings {
     /// Also learn each training frame's pose with the field, from the same
     /// losses (pose gradients through the hash grid, as BARF), at a pace set
     /// by the scan's pose error as the depth measured it. For scans with
-    /// centimetre pose error (SLAM drift): measured labels +0.004 to +0.005
+    /// centimetre pose error (SLAM drift): measured labels +0.007 to +0.06
     /// mIoU on SLAM-like scenes, unchanged on well-posed ones; held-out
     /// frames are not learnt, so their PSNR can drop (real cabinet scan
-    /// -2.4 dB). Needs pose refinement (ignored with --no-pose-refine).
+    /// -0.45 dB). Needs pose refinement (ignored with --no-pose-refine).
     #[arg(long = "learn-poses")]
     #[serde(default)]
     pub learn_poses: bool,

@@ -111,7 +111,7 @@ pub struct FitSettings {
     /// Also learn each training frame's pose with the field, from the same
     /// losses (pose gradients through the hash grid, as BARF), at a pace set
     /// by the scan's pose error as the depth measured it. For scans with
-    /// centimetre pose error (SLAM drift): measured labels +0.007 to +0.06
+    /// centimetre pose error (SLAM drift): measured labels +0.003 to +0.06
     /// mIoU on SLAM-like scenes, unchanged on well-posed ones; held-out
     /// frames are not learnt, so their PSNR can drop (real cabinet scan
     /// -0.45 dB). Needs pose refinement (ignored with --no-pose-refine).

@@ -9,7 +9,7 @@
 //!
 //! The level loop is outermost, so one level's table (at most a few MiB) stays
 //! in cache while all positions visit it, in blocks of 256 SIMD-friendly columns. With
-//! AVX2+FMA, 2-feature levels use the gather kernels of
+//! AVX2+FMA, 2-feature levels use the AVX2 kernels of
 //! [`crate::nerf::field::simd::grid`]; their results are bit-identical to the scalar
 //! path, so outputs do not depend on the CPU.
 

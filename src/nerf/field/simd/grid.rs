@@ -1,5 +1,5 @@
 //! AVX2 kernels for the hash grid, 8 positions at a time: the forward pass of
-//! a 2-feature level (each corner's feature pair gathered as one 64-bit
+//! a 2-feature level (each corner's feature pair loaded as one 64-bit
 //! element), and the backward's corner entries and weighted gradients,
 //! transposed sample-major for the scalar scatter. Plus a prefetch hint.
 //!
@@ -35,7 +35,7 @@ pub fn prefetch(data: &[f32], i: usize) {
 }
 
 /// Table entries a level's indices can reach, if its geometry is consistent
-/// and small enough for 32-bit gather offsets.
+/// and small enough for 32-bit offsets.
 fn entries_reachable(level: &GridLevel) -> Option<usize> {
     let res = level.resolution as u64;
     if res == 0 {
@@ -263,6 +263,25 @@ mod avx2 {
         )
     }
 
+    /// The feature pairs of 8 entries (as 64-bit elements): entries 0-3 and
+    /// 4-7. Eight scalar loads, not two gathers: on the AMD cores this runs
+    /// on they encode 25-35 % faster (`bench_grid`); the values are the same.
+    ///
+    /// # Safety
+    /// Every lane of `idx` is an entry whose 8 bytes lie inside the table at `base`.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn load_pairs(base: *const f64, idx: __m256i) -> (__m256d, __m256d) {
+        let mut e = [0u32; 8];
+        _mm256_storeu_si256(e.as_mut_ptr().cast(), idx);
+        // SAFETY: the caller vouches for every entry; the table is f32, so reads are unaligned.
+        let at = |k: usize| unsafe { base.add(e[k] as usize).read_unaligned() };
+        (
+            _mm256_setr_pd(at(0), at(1), at(2), at(3)),
+            _mm256_setr_pd(at(4), at(5), at(6), at(7)),
+        )
+    }
+
     /// See [`super::encode_level_f2`].
     ///
     /// # Safety
@@ -296,7 +315,7 @@ mod avx2 {
         let mut next = corners(level, x, y, z);
         let mut s = 0;
         while s < n {
-            // The next group's corners are computed before this group's gathers
+            // The next group's corners are computed before this group's loads
             // complete, overlapping arithmetic with the loads (measured ~5%).
             let (idx, w) = next;
             if s + 8 < n {
@@ -309,12 +328,7 @@ mod avx2 {
             for c in 0..8 {
                 // SAFETY: idx[c] lanes are entry indices below the reachable
                 // count, and entry e occupies table[2e..2e+2] (8 bytes at base + 8e).
-                let (vl, vh) = unsafe {
-                    (
-                        _mm256_i32gather_pd::<8>(base, _mm256_castsi256_si128(idx[c])),
-                        _mm256_i32gather_pd::<8>(base, _mm256_extracti128_si256::<1>(idx[c])),
-                    )
-                };
+                let (vl, vh) = unsafe { load_pairs(base, idx[c]) };
                 let wl = _mm256_permutevar8x32_ps(w[c], dup_lo);
                 let wh = _mm256_permutevar8x32_ps(w[c], dup_hi);
                 lo = _mm256_add_ps(lo, _mm256_mul_ps(wl, _mm256_castpd_ps(vl)));

@@ -60,6 +60,10 @@ pub struct OccupancyGrid {
     blocks: Vec<u64>,
     /// The same for groups of GROUP^3 cells, the level between cells and blocks.
     groups: Vec<u64>,
+    /// Per block, its Chebyshev distance in blocks to the nearest occupied
+    /// one (0 = occupied): rendering crosses the empty cube of blocks around
+    /// an empty one in a single step.
+    block_distance: Vec<u8>,
     /// Cells the sensor saw as free space; they stay empty.
     carved: Vec<u64>,
     occupied: usize,
@@ -99,6 +103,7 @@ impl OccupancyGrid {
             bits: vec![0; words],
             blocks: Vec::new(),
             groups: Vec::new(),
+            block_distance: Vec::new(),
             occupied: 0,
             refresh_phase: 0,
         };
@@ -140,6 +145,15 @@ impl OccupancyGrid {
         coarse_bit(&self.blocks, self.block_resolution(), block)
     }
 
+    /// How many blocks from this one (block coordinates) the nearest
+    /// occupied block lies, per axis at most (0: this one is occupied): the
+    /// blocks within one less than that on every axis are all empty.
+    #[inline]
+    pub fn empty_block_reach(&self, block: [usize; 3]) -> usize {
+        let br = self.block_resolution();
+        self.block_distance[(block[2] * br + block[1]) * br + block[0]] as usize
+    }
+
     /// Groups per axis of the middle level (the last may be partial).
     #[inline]
     pub fn group_resolution(&self) -> usize {
@@ -157,6 +171,11 @@ impl OccupancyGrid {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
         self.blocks = coarse_bits(&self.bits, self.res, BLOCK, std::mem::take(&mut self.blocks));
         self.groups = coarse_bits(&self.bits, self.res, GROUP, std::mem::take(&mut self.groups));
+        self.block_distance = chebyshev_distances(
+            &self.blocks,
+            self.block_resolution(),
+            std::mem::take(&mut self.block_distance),
+        );
     }
 
     /// The density estimate of a cell (local units; 0 in a rendering grid,
@@ -536,6 +555,7 @@ impl OccupancyGrid {
             bits,
             blocks: Vec::new(),
             groups: Vec::new(),
+            block_distance: Vec::new(),
             carved: vec![0; words],
             occupied: 0,
             refresh_phase: 0,
@@ -584,6 +604,54 @@ fn coarse_bits(bits: &[u64], res: usize, size: usize, mut buf: Vec<u64>) -> Vec<
             // The next cells along x up to the coarse cell's edge are in the same one.
             let run = (size - x % size).min(res - x);
             rest &= if bit + run >= 64 { 0 } else { !0u64 << (bit + run) };
+        }
+    }
+    buf
+}
+
+/// Per coarse cell of a level of `cr` cells per axis (bits as built by
+/// [`coarse_bits`]), the Chebyshev distance to the nearest set one (0 when
+/// set, saturating at 255; `cr` when none is set), reusing `buf`. Two
+/// chamfer passes over the 26 neighbours, each at distance 1, are exact for
+/// this metric.
+fn chebyshev_distances(words: &[u64], cr: usize, mut buf: Vec<u8>) -> Vec<u8> {
+    let far = cr.min(255) as u8;
+    buf.clear();
+    buf.extend((0..cr * cr * cr).map(|i| if (words[i >> 6] >> (i & 63)) & 1 == 1 { 0 } else { far }));
+    let index = |x: usize, y: usize, z: usize| (z * cr + y) * cr + x;
+    // Forward: neighbours already visited (lower z, or same z and lower y, or same row and lower x).
+    let mut relax = |x: usize, y: usize, z: usize, forward: bool| {
+        let here = index(x, y, z);
+        let mut best = buf[here];
+        for dz in -1i32..=1 {
+            for dy in -1i32..=1 {
+                for dx in -1i32..=1 {
+                    let before = (dz, dy, dx) < (0, 0, 0);
+                    if before != forward || (dz, dy, dx) == (0, 0, 0) {
+                        continue;
+                    }
+                    let (nx, ny, nz) = (x as i32 + dx, y as i32 + dy, z as i32 + dz);
+                    let inside = |v: i32| (0..cr as i32).contains(&v);
+                    if inside(nx) && inside(ny) && inside(nz) {
+                        best = best.min(buf[index(nx as usize, ny as usize, nz as usize)].saturating_add(1));
+                    }
+                }
+            }
+        }
+        buf[here] = best;
+    };
+    for z in 0..cr {
+        for y in 0..cr {
+            for x in 0..cr {
+                relax(x, y, z, true);
+            }
+        }
+    }
+    for z in (0..cr).rev() {
+        for y in (0..cr).rev() {
+            for x in (0..cr).rev() {
+                relax(x, y, z, false);
+            }
         }
     }
     buf
@@ -680,6 +748,29 @@ mod tests {
             }
         }
         rays
+    }
+
+    #[test]
+    fn block_distances_are_the_chebyshev_distance_to_the_nearest_set_block() {
+        let mut rng = crate::rng::Rng::new(5, 0);
+        let cr = 11;
+        for density in [0.0, 0.002, 0.02, 0.3] {
+            let set: Vec<bool> = (0..cr * cr * cr).map(|_| rng.f32() < density).collect();
+            let mut words = vec![0u64; set.len().div_ceil(64)];
+            for (i, _) in set.iter().enumerate().filter(|(_, s)| **s) {
+                words[i >> 6] |= 1 << (i & 63);
+            }
+            let dist = chebyshev_distances(&words, cr, Vec::new());
+            let at = |i: usize| [i % cr, (i / cr) % cr, i / (cr * cr)];
+            for i in 0..set.len() {
+                let brute = (0..set.len())
+                    .filter(|&j| set[j])
+                    .map(|j| (0..3).map(|a| at(i)[a].abs_diff(at(j)[a])).max().unwrap())
+                    .min()
+                    .unwrap_or(cr);
+                assert_eq!(dist[i] as usize, brute, "density {density}, block {:?}", at(i));
+            }
+        }
     }
 
     #[test]

@@ -133,8 +133,8 @@ fn march_impl<const BOUNDED: bool>(
 /// March for rendering: the samples [`march`] takes in occupied cells, but a
 /// run of empty cells is crossed in one jump. From an empty cell the cells
 /// along the ray are walked (a few multiplications per step, where
-/// [`march`] pays a division and a libm call per cell), empty blocks of
-/// [`BLOCK`]^3 cells and groups of [`GROUP`]^3 in one step each, and
+/// [`march`] pays a division and a libm call per cell), a cube of empty
+/// blocks of [`BLOCK`]^3 cells or a group of [`GROUP`]^3 in one step, and
 /// marching resumes at the first step whose middle lies past the run, so at
 /// most one step of an occupied cell is passed over, as with [`march`].
 /// Landing points follow the current step size, so with growing steps they
@@ -186,10 +186,11 @@ fn cell_index_of(i: [i32; 3], res: usize) -> usize {
 
 /// Distance from `p` (in the empty cell `idx`) along `dir` to the first
 /// occupied cell, the grid's edge, or `limit`, whichever comes first. Each
-/// step crosses the largest empty cell of the three levels holding the
-/// current one: a block of [`BLOCK`]^3 cells, a group of [`GROUP`]^3, or
-/// the cell itself, so empty space costs a step per block and the space in
-/// front of a surface a step per group.
+/// step crosses the largest empty region holding the current cell: the
+/// cube of blocks of [`BLOCK`]^3 cells around its block that holds no
+/// occupied one (as wide as the grid's block distances allow), a group of
+/// [`GROUP`]^3 cells, or the cell itself, so wide empty space costs a few
+/// steps and the space in front of a surface a step per group.
 #[inline(always)]
 fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [i32; 3], limit: f32) -> f32 {
     let res = grid.resolution();
@@ -214,18 +215,25 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
     // across the grid takes under 3 res steps; stopping early is safe (the
     // march resumes there).
     for _ in 0..4 * res {
-        let shift = if !grid.is_occupied_block(idx.map(|i| (i >> BLOCK_SHIFT) as usize)) {
-            BLOCK_SHIFT
-        } else if !grid.is_occupied_group(idx.map(|i| (i >> GROUP_SHIFT) as usize)) {
-            GROUP_SHIFT
-        } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
-            0
+        let block = idx.map(|i| i >> BLOCK_SHIFT);
+        let reach = grid.empty_block_reach(block.map(|b| b as usize)) as i32;
+        // The empty region to leave: cells `lo..lo + size` per axis.
+        let (lo, size) = if reach > 0 {
+            // The cube of blocks within `reach - 1` of this one is empty.
+            (
+                block.map(|b| (b - (reach - 1)) << BLOCK_SHIFT),
+                (2 * reach - 1) << BLOCK_SHIFT,
+            )
         } else {
-            return d;
+            let shift = if !grid.is_occupied_group(idx.map(|i| (i >> GROUP_SHIFT) as usize)) {
+                GROUP_SHIFT
+            } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
+                0
+            } else {
+                return d;
+            };
+            (idx.map(|i| (i >> shift) << shift), 1i32 << shift)
         };
-        // Leave the empty cell of that level (cells `lo..lo + size` per axis).
-        let size = 1i32 << shift;
-        let lo = idx.map(|i| (i >> shift) << shift);
         let (mut exit, mut axis) = (f32::INFINITY, 0);
         for a in 0..3 {
             let face = match step[a] {

@@ -169,19 +169,18 @@ impl Adam {
                 for (first, bits) in touched(start, len) {
                     let k0 = first - start;
                     if bits.count_ones() >= WHOLE_WORD_MIN_TOUCHED && k0 + 64 <= params.len() {
-                        fn word(s: &mut [f32], k0: usize) -> &mut [f32; 64] {
+                        fn slice_of_64(s: &mut [f32], k0: usize) -> &mut [f32; 64] {
                             (&mut s[k0..k0 + 64]).try_into().expect("64 entries")
                         }
                         let g: &[f32; 64] = grads[start + k0..start + k0 + 64].try_into().expect("64 entries");
-                        update_word(
-                            &rule,
-                            weight_decay,
-                            bits,
-                            word(params, k0),
-                            word(ms, k0),
-                            word(vs, k0),
-                            g,
-                        );
+                        let word = Word {
+                            params: slice_of_64(params, k0),
+                            m: slice_of_64(ms, k0),
+                            v: slice_of_64(vs, k0),
+                            grads: g,
+                            touched: bits,
+                        };
+                        update_word(&rule, weight_decay, word);
                     } else {
                         let mut rest = bits;
                         while rest != 0 {
@@ -199,53 +198,46 @@ impl Adam {
 /// computed, the untouched ones left as they were) rather than bit by bit.
 const WHOLE_WORD_MIN_TOUCHED: u32 = 8;
 
-/// Adam on the entries of one word of 64 whose bit is set: every lane is
-/// computed in SIMD and only the touched lanes are written back (the same
-/// arithmetic per entry as [`StepRule::apply`]).
+/// One word of 64 grid parameters: their values, moments and gradient, and
+/// which of them the step touched (bit k for entry k).
+struct Word<'a> {
+    params: &'a mut [f32; 64],
+    m: &'a mut [f32; 64],
+    v: &'a mut [f32; 64],
+    grads: &'a [f32; 64],
+    touched: u64,
+}
+
+/// Adam on the touched entries of `word`: every lane is computed in SIMD
+/// and only the touched lanes are written back (the same arithmetic per
+/// entry as [`StepRule::apply`]).
 #[inline]
-fn update_word(
-    rule: &StepRule,
-    weight_decay: f32,
-    bits: u64,
-    p: &mut [f32; 64],
-    m: &mut [f32; 64],
-    v: &mut [f32; 64],
-    g: &[f32; 64],
-) {
+fn update_word(rule: &StepRule, weight_decay: f32, word: Word) {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: AVX2 was detected just above.
-        return unsafe { update_word_avx2(rule, weight_decay, bits, p, m, v, g) };
+        return unsafe { update_word_avx2(rule, weight_decay, word) };
     }
-    update_word_lanes(rule, weight_decay, bits, p, m, v, g)
+    update_word_lanes(rule, weight_decay, word)
 }
 
 /// [`update_word_lanes`] compiled for AVX2 (8 lanes per instruction).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn update_word_avx2(
-    rule: &StepRule,
-    weight_decay: f32,
-    bits: u64,
-    p: &mut [f32; 64],
-    m: &mut [f32; 64],
-    v: &mut [f32; 64],
-    g: &[f32; 64],
-) {
-    update_word_lanes(rule, weight_decay, bits, p, m, v, g)
+fn update_word_avx2(rule: &StepRule, weight_decay: f32, word: Word) {
+    update_word_lanes(rule, weight_decay, word)
 }
 
 /// The lane loop, written without branches so that it vectorises.
 #[inline(always)]
-fn update_word_lanes(
-    rule: &StepRule,
-    weight_decay: f32,
-    bits: u64,
-    p: &mut [f32; 64],
-    m: &mut [f32; 64],
-    v: &mut [f32; 64],
-    g: &[f32; 64],
-) {
+fn update_word_lanes(rule: &StepRule, weight_decay: f32, word: Word) {
+    let Word {
+        params: p,
+        m,
+        v,
+        grads: g,
+        touched: bits,
+    } = word;
     for k in 0..64 {
         let (mut pk, mut mk, mut vk) = (p[k], m[k], v[k]);
         let gk = clamp_gradient(g[k] + weight_decay * pk);

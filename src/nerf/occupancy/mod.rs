@@ -60,10 +60,10 @@ pub struct OccupancyGrid {
     blocks: Vec<u64>,
     /// The same for groups of GROUP^3 cells, the level between cells and blocks.
     groups: Vec<u64>,
-    /// Per block, its Chebyshev distance in blocks to the nearest occupied
-    /// one (0 = occupied): rendering crosses the empty cube of blocks around
+    /// Per group, its Chebyshev distance in groups to the nearest occupied
+    /// one (0 = occupied): rendering crosses the empty cube of groups around
     /// an empty one in a single step.
-    block_distance: Vec<u8>,
+    group_distance: CoarseDistances,
     /// Cells the sensor saw as free space; they stay empty.
     carved: Vec<u64>,
     occupied: usize,
@@ -103,7 +103,7 @@ impl OccupancyGrid {
             bits: vec![0; words],
             blocks: Vec::new(),
             groups: Vec::new(),
-            block_distance: Vec::new(),
+            group_distance: CoarseDistances::default(),
             occupied: 0,
             refresh_phase: 0,
         };
@@ -145,15 +145,6 @@ impl OccupancyGrid {
         coarse_bit(&self.blocks, self.block_resolution(), block)
     }
 
-    /// How many blocks from this one (block coordinates) the nearest
-    /// occupied block lies, per axis at most (0: this one is occupied): the
-    /// blocks within one less than that on every axis are all empty.
-    #[inline]
-    pub fn empty_block_reach(&self, block: [usize; 3]) -> usize {
-        let br = self.block_resolution();
-        self.block_distance[(block[2] * br + block[1]) * br + block[0]] as usize
-    }
-
     /// Groups per axis of the middle level (the last may be partial).
     #[inline]
     pub fn group_resolution(&self) -> usize {
@@ -166,16 +157,20 @@ impl OccupancyGrid {
         coarse_bit(&self.groups, self.group_resolution(), group)
     }
 
+    /// How many groups from this one (group coordinates) the nearest
+    /// occupied group lies, per axis at most (0: this one is occupied): the
+    /// groups within one less than that on every axis are all empty.
+    #[inline]
+    pub fn empty_group_reach(&self, group: [usize; 3]) -> usize {
+        self.group_distance.at(group) as usize
+    }
+
     /// Count the occupied cells and mark the groups and blocks holding them.
     fn finish_bits(&mut self) {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
         self.blocks = coarse_bits(&self.bits, self.res, BLOCK, std::mem::take(&mut self.blocks));
         self.groups = coarse_bits(&self.bits, self.res, GROUP, std::mem::take(&mut self.groups));
-        self.block_distance = chebyshev_distances(
-            &self.blocks,
-            self.block_resolution(),
-            std::mem::take(&mut self.block_distance),
-        );
+        self.group_distance.compute(&self.groups, self.group_resolution());
     }
 
     /// The density estimate of a cell (local units; 0 in a rendering grid,
@@ -555,7 +550,7 @@ impl OccupancyGrid {
             bits,
             blocks: Vec::new(),
             groups: Vec::new(),
-            block_distance: Vec::new(),
+            group_distance: CoarseDistances::default(),
             carved: vec![0; words],
             occupied: 0,
             refresh_phase: 0,
@@ -609,52 +604,91 @@ fn coarse_bits(bits: &[u64], res: usize, size: usize, mut buf: Vec<u64>) -> Vec<
     buf
 }
 
-/// Per coarse cell of a level of `cr` cells per axis (bits as built by
-/// [`coarse_bits`]), the Chebyshev distance to the nearest set one (0 when
-/// set, saturating at 255; `cr` when none is set), reusing `buf`. Two
-/// chamfer passes over the 26 neighbours, each at distance 1, are exact for
-/// this metric.
-fn chebyshev_distances(words: &[u64], cr: usize, mut buf: Vec<u8>) -> Vec<u8> {
-    let far = cr.min(255) as u8;
-    buf.clear();
-    buf.extend((0..cr * cr * cr).map(|i| if (words[i >> 6] >> (i & 63)) & 1 == 1 { 0 } else { far }));
-    let index = |x: usize, y: usize, z: usize| (z * cr + y) * cr + x;
-    // Forward: neighbours already visited (lower z, or same z and lower y, or same row and lower x).
-    let mut relax = |x: usize, y: usize, z: usize, forward: bool| {
-        let here = index(x, y, z);
-        let mut best = buf[here];
-        for dz in -1i32..=1 {
-            for dy in -1i32..=1 {
-                for dx in -1i32..=1 {
-                    let before = (dz, dy, dx) < (0, 0, 0);
-                    if before != forward || (dz, dy, dx) == (0, 0, 0) {
-                        continue;
-                    }
-                    let (nx, ny, nz) = (x as i32 + dx, y as i32 + dy, z as i32 + dz);
-                    let inside = |v: i32| (0..cr as i32).contains(&v);
-                    if inside(nx) && inside(ny) && inside(nz) {
-                        best = best.min(buf[index(nx as usize, ny as usize, nz as usize)].saturating_add(1));
+/// Per coarse cell of a level of `cr` cells per axis, the Chebyshev
+/// distance to the nearest set one: 0 when set, saturating at 255, `cr`
+/// when none is set. Stored with one never-set cell of padding on every
+/// side, so the passes need no edge tests.
+#[derive(Clone, Debug, Default)]
+struct CoarseDistances {
+    side: usize,
+    values: Vec<u8>,
+}
+
+impl CoarseDistances {
+    /// Distance of coarse cell `at` (each coordinate below `cr`).
+    #[inline]
+    fn at(&self, at: [usize; 3]) -> u8 {
+        self.values[((at[2] + 1) * self.side + at[1] + 1) * self.side + at[0] + 1]
+    }
+
+    /// Recompute from the level's bits (as built by [`coarse_bits`]),
+    /// reusing the buffer. Two chamfer passes over the 26 neighbours, each
+    /// at distance 1, are exact for this metric.
+    fn compute(&mut self, words: &[u64], cr: usize) {
+        let far = cr.min(255) as u8;
+        let side = cr + 2;
+        self.side = side;
+        let values = &mut self.values;
+        values.clear();
+        values.resize(side * side * side, far);
+        for z in 0..cr {
+            for y in 0..cr {
+                let row = (z * cr + y) * cr;
+                let padded = ((z + 1) * side + y + 1) * side + 1;
+                for x in 0..cr {
+                    if (words[(row + x) >> 6] >> ((row + x) & 63)) & 1 == 1 {
+                        values[padded + x] = 0;
                     }
                 }
             }
         }
-        buf[here] = best;
-    };
-    for z in 0..cr {
-        for y in 0..cr {
-            for x in 0..cr {
-                relax(x, y, z, true);
+        // The neighbours met before a cell in x-fastest order, as index
+        // offsets: the 12 in earlier rows (vectorisable along the row), then
+        // the previous cell of the row (a running scan).
+        let mut earlier_rows = Vec::with_capacity(12);
+        for dz in -1isize..=0 {
+            for dy in -1isize..=1 {
+                if (dz, dy) < (0, 0) {
+                    for dx in -1isize..=1 {
+                        earlier_rows.push(((-dz * side as isize - dy) * side as isize - dx) as usize);
+                    }
+                }
+            }
+        }
+        let row_start = |z: usize, y: usize| (z * side + y) * side + 1;
+        for z in 1..=cr {
+            for y in 1..=cr {
+                let start = row_start(z, y);
+                let (before, row) = values.split_at_mut(start);
+                for &o in &earlier_rows {
+                    relax_row(&mut row[..cr], &before[start - o..start - o + cr]);
+                }
+                for i in start..start + cr {
+                    values[i] = values[i].min(values[i - 1].saturating_add(1));
+                }
+            }
+        }
+        for z in (1..=cr).rev() {
+            for y in (1..=cr).rev() {
+                let start = row_start(z, y);
+                let (row, after) = values.split_at_mut(start + cr);
+                for &o in &earlier_rows {
+                    relax_row(&mut row[start..], &after[o - cr..o]);
+                }
+                for i in (start..start + cr).rev() {
+                    values[i] = values[i].min(values[i + 1].saturating_add(1));
+                }
             }
         }
     }
-    for z in (0..cr).rev() {
-        for y in (0..cr).rev() {
-            for x in (0..cr).rev() {
-                relax(x, y, z, false);
-            }
-        }
+}
+
+/// `row[i] = min(row[i], from[i] + 1)`: one neighbour's offer to a row.
+#[inline]
+fn relax_row(row: &mut [u8], from: &[u8]) {
+    for (r, f) in row.iter_mut().zip(from) {
+        *r = (*r).min(f.saturating_add(1));
     }
-    buf
 }
 
 /// Whether `keep` holds for every cell of the 3x3x3 block around `cell`
@@ -751,7 +785,7 @@ mod tests {
     }
 
     #[test]
-    fn block_distances_are_the_chebyshev_distance_to_the_nearest_set_block() {
+    fn coarse_distances_are_the_chebyshev_distance_to_the_nearest_set_cell() {
         let mut rng = crate::rng::Rng::new(5, 0);
         let cr = 11;
         for density in [0.0, 0.002, 0.02, 0.3] {
@@ -760,9 +794,11 @@ mod tests {
             for (i, _) in set.iter().enumerate().filter(|(_, s)| **s) {
                 words[i >> 6] |= 1 << (i & 63);
             }
-            let dist = chebyshev_distances(&words, cr, Vec::new());
+            let mut dist = CoarseDistances::default();
+            dist.compute(&words, cr);
             let at = |i: usize| [i % cr, (i / cr) % cr, i / (cr * cr)];
-            for (i, &found) in dist.iter().enumerate() {
+            for i in 0..set.len() {
+                let found = dist.at(at(i));
                 let brute = (0..set.len())
                     .filter(|&j| set[j])
                     .map(|j| (0..3).map(|a| at(i)[a].abs_diff(at(j)[a])).max().unwrap())

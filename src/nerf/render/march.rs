@@ -2,7 +2,7 @@
 //! empty cells of the occupancy grid skipped whole.
 
 use crate::nerf::camera::{unit_cube_interval, LocalRay};
-use crate::nerf::occupancy::{OccupancyGrid, BLOCK, GROUP};
+use crate::nerf::occupancy::{OccupancyGrid, GROUP};
 
 /// One volume-rendering sample: interval [t, t + dt), evaluated at its middle.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -134,7 +134,7 @@ fn march_impl<const BOUNDED: bool>(
 /// run of empty cells is crossed in one jump. From an empty cell the cells
 /// along the ray are walked (a few multiplications per step, where
 /// [`march`] pays a division and a libm call per cell), a cube of empty
-/// blocks of [`BLOCK`]^3 cells or a group of [`GROUP`]^3 in one step, and
+/// groups of [`GROUP`]^3 cells in one step, and
 /// marching resumes at the first step whose middle lies past the run, so at
 /// most one step of an occupied cell is passed over, as with [`march`].
 /// Landing points follow the current step size, so with growing steps they
@@ -187,10 +187,10 @@ fn cell_index_of(i: [i32; 3], res: usize) -> usize {
 /// Distance from `p` (in the empty cell `idx`) along `dir` to the first
 /// occupied cell, the grid's edge, or `limit`, whichever comes first. Each
 /// step crosses the largest empty region holding the current cell: the
-/// cube of blocks of [`BLOCK`]^3 cells around its block that holds no
-/// occupied one (as wide as the grid's block distances allow), a group of
-/// [`GROUP`]^3 cells, or the cell itself, so wide empty space costs a few
-/// steps and the space in front of a surface a step per group.
+/// cube of groups of [`GROUP`]^3 cells around its group that holds no
+/// occupied one (as wide as the grid's group distances allow), or the cell
+/// itself, so wide empty space costs a few steps and so does the space
+/// near a surface, until the ray reaches a group beside an occupied one.
 #[inline(always)]
 fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [i32; 3], limit: f32) -> f32 {
     let res = grid.resolution();
@@ -206,33 +206,27 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
         }
     });
     let inv: [f32; 3] = dir.map(|d| 1.0 / d);
-    // Level sizes as shifts (indices are never negative inside the grid).
-    const BLOCK_SHIFT: u32 = BLOCK.trailing_zeros();
+    // The group size as a shift (indices are never negative inside the grid).
     const GROUP_SHIFT: u32 = GROUP.trailing_zeros();
-    const _: () = assert!(BLOCK.is_power_of_two() && GROUP.is_power_of_two());
+    const _: () = assert!(GROUP.is_power_of_two());
     let mut d = 0.0f32;
     // Every step leaves a cell for one further along an axis, so a walk
     // across the grid takes under 3 res steps; stopping early is safe (the
     // march resumes there).
     for _ in 0..4 * res {
-        let block = idx.map(|i| i >> BLOCK_SHIFT);
-        let reach = grid.empty_block_reach(block.map(|b| b as usize)) as i32;
+        let group = idx.map(|i| i >> GROUP_SHIFT);
+        let reach = grid.empty_group_reach(group.map(|g| g as usize)) as i32;
         // The empty region to leave: cells `lo..lo + size` per axis.
         let (lo, size) = if reach > 0 {
-            // The cube of blocks within `reach - 1` of this one is empty.
+            // The cube of groups within `reach - 1` of this one is empty.
             (
-                block.map(|b| (b - (reach - 1)) << BLOCK_SHIFT),
-                (2 * reach - 1) << BLOCK_SHIFT,
+                group.map(|g| (g - (reach - 1)) << GROUP_SHIFT),
+                (2 * reach - 1) << GROUP_SHIFT,
             )
+        } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
+            (idx, 1)
         } else {
-            let shift = if !grid.is_occupied_group(idx.map(|i| (i >> GROUP_SHIFT) as usize)) {
-                GROUP_SHIFT
-            } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
-                0
-            } else {
-                return d;
-            };
-            (idx.map(|i| (i >> shift) << shift), 1i32 << shift)
+            return d;
         };
         let (mut exit, mut axis) = (f32::INFINITY, 0);
         for a in 0..3 {

@@ -55,10 +55,8 @@ pub struct OccupancyGrid {
     res: usize,
     density: Vec<f32>,
     bits: Vec<u64>,
-    /// One bit per block of BLOCK^3 cells: set when any cell of the block
-    /// is occupied (rendering crosses empty blocks whole).
-    blocks: Vec<u64>,
-    /// The same for groups of GROUP^3 cells, the level between cells and blocks.
+    /// One bit per group of GROUP^3 cells: set when any cell of the group
+    /// is occupied.
     groups: Vec<u64>,
     /// Per group, its Chebyshev distance in groups to the nearest occupied
     /// one (0 = occupied): rendering crosses the empty cube of groups around
@@ -74,9 +72,7 @@ pub struct OccupancyGrid {
 /// Most cells per axis (the marchers' index arithmetic relies on it).
 pub const MAX_RESOLUTION: usize = 512;
 
-/// Cells per block edge of the coarse occupancy level.
-pub const BLOCK: usize = 8;
-/// Cells per group edge of the middle level (a block holds (BLOCK / GROUP)^3 groups).
+/// Cells per group edge of the coarse occupancy level.
 pub const GROUP: usize = 2;
 
 /// A refresh evaluates one of this many interleaved subsets of the cells.
@@ -101,7 +97,6 @@ impl OccupancyGrid {
             carved: vec![0; words],
             density: vec![initial; cells],
             bits: vec![0; words],
-            blocks: Vec::new(),
             groups: Vec::new(),
             group_distance: CoarseDistances::default(),
             occupied: 0,
@@ -133,19 +128,7 @@ impl OccupancyGrid {
         (self.bits[cell >> 6] >> (cell & 63)) & 1 == 1
     }
 
-    /// Blocks per axis of the coarse level (the last may be partial).
-    #[inline]
-    pub fn block_resolution(&self) -> usize {
-        self.res.div_ceil(BLOCK)
-    }
-
-    /// Whether the block with these block coordinates holds an occupied cell.
-    #[inline]
-    pub fn is_occupied_block(&self, block: [usize; 3]) -> bool {
-        coarse_bit(&self.blocks, self.block_resolution(), block)
-    }
-
-    /// Groups per axis of the middle level (the last may be partial).
+    /// Groups per axis of the coarse level (the last may be partial).
     #[inline]
     pub fn group_resolution(&self) -> usize {
         self.res.div_ceil(GROUP)
@@ -165,10 +148,9 @@ impl OccupancyGrid {
         self.group_distance.at(group) as usize
     }
 
-    /// Count the occupied cells and mark the groups and blocks holding them.
+    /// Count the occupied cells, mark the groups holding them and their distances.
     fn finish_bits(&mut self) {
         self.occupied = self.bits.iter().map(|w| w.count_ones() as usize).sum();
-        self.blocks = coarse_bits(&self.bits, self.res, BLOCK, std::mem::take(&mut self.blocks));
         self.groups = coarse_bits(&self.bits, self.res, GROUP, std::mem::take(&mut self.groups));
         self.group_distance.compute(&self.groups, self.group_resolution());
     }
@@ -548,7 +530,6 @@ impl OccupancyGrid {
             res,
             density: Vec::new(),
             bits,
-            blocks: Vec::new(),
             groups: Vec::new(),
             group_distance: CoarseDistances::default(),
             carved: vec![0; words],
@@ -633,10 +614,9 @@ impl CoarseDistances {
         values.resize(side * side * side, far);
         for z in 0..cr {
             for y in 0..cr {
-                let row = (z * cr + y) * cr;
                 let padded = ((z + 1) * side + y + 1) * side + 1;
                 for x in 0..cr {
-                    if (words[(row + x) >> 6] >> ((row + x) & 63)) & 1 == 1 {
+                    if coarse_bit(words, cr, [x, y, z]) {
                         values[padded + x] = 0;
                     }
                 }
@@ -804,7 +784,7 @@ mod tests {
                     .map(|j| (0..3).map(|a| at(i)[a].abs_diff(at(j)[a])).max().unwrap())
                     .min()
                     .unwrap_or(cr);
-                assert_eq!(found as usize, brute, "density {density}, block {:?}", at(i));
+                assert_eq!(found as usize, brute, "density {density}, group {:?}", at(i));
             }
         }
     }
@@ -898,13 +878,14 @@ mod tests {
         );
     }
 
-    /// Block bits against a cell-by-cell count, on a size that is neither
-    /// a multiple of the block edge nor of the 64-bit word.
+    /// Group bits against a cell-by-cell count, on an odd size (neither a
+    /// multiple of the group edge nor of the 64-bit word), sparse and dense.
     #[test]
-    fn a_block_or_group_is_occupied_exactly_when_one_of_its_cells_is() {
+    fn a_group_is_occupied_exactly_when_one_of_its_cells_is() {
         let mut rng = Rng::new(31, 0);
-        let res: usize = 44;
-        for (size, keep) in [(BLOCK, 0.005), (GROUP, 0.1)] {
+        let res: usize = 45;
+        let size = GROUP;
+        for keep in [0.02, 0.1] {
             let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
             for cell in 0..res * res * res {
                 if rng.f32() >= keep {
@@ -921,12 +902,7 @@ mod tests {
             let (mut occupied, mut empty) = (0, 0);
             for (i, &any) in want.iter().enumerate() {
                 let at = [i % cr, (i / cr) % cr, i / (cr * cr)];
-                let got = if size == BLOCK {
-                    grid.is_occupied_block(at)
-                } else {
-                    grid.is_occupied_group(at)
-                };
-                assert_eq!(got, any, "size {size}: {at:?}");
+                assert_eq!(grid.is_occupied_group(at), any, "keep {keep}: {at:?}");
                 (occupied, empty) = if any {
                     (occupied + 1, empty)
                 } else {
@@ -935,7 +911,7 @@ mod tests {
             }
             assert!(
                 occupied > 20 && empty > 20,
-                "size {size}: {occupied} occupied and {empty} empty"
+                "keep {keep}: {occupied} occupied and {empty} empty"
             );
         }
     }

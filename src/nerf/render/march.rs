@@ -557,7 +557,8 @@ mod tests {
     }
 
     /// A 64^3 grid empty but for a spherical shell and a few solid 3^3
-    /// clusters: most blocks are empty, so rays cross them whole.
+    /// clusters: most groups are far from occupied ones, so rays cross
+    /// cubes of them whole.
     fn shell_grid(rng: &mut crate::rng::Rng) -> OccupancyGrid {
         let res: usize = 64;
         let clusters: Vec<[f32; 3]> = (0..30).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
@@ -577,13 +578,17 @@ mod tests {
     }
 
     #[test]
-    fn crossing_empty_blocks_whole_takes_the_samples_of_the_cell_by_cell_march() {
+    fn crossing_empty_groups_whole_takes_the_samples_of_the_cell_by_cell_march() {
         let mut rng = crate::rng::Rng::new(29, 0);
         let grid = shell_grid(&mut rng);
-        let empty_blocks = (0..512)
-            .filter(|&i| !grid.is_occupied_block([i % 8, (i / 8) % 8, i / 64]))
+        let gr = grid.group_resolution();
+        let far_groups = (0..gr * gr * gr)
+            .filter(|&i| grid.empty_group_reach([i % gr, (i / gr) % gr, i / (gr * gr)]) >= 3)
             .count();
-        assert!(empty_blocks > 100, "the test needs empty blocks: {empty_blocks}");
+        assert!(
+            far_groups > 1000,
+            "the test needs wide empty space: {far_groups} groups"
+        );
         let rule = StepRule {
             min_step: 1.0 / 300.0,
             max_step: 1.0 / 20.0,

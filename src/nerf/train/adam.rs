@@ -153,6 +153,7 @@ impl Adam {
     {
         use rayon::prelude::*;
         let rule = self.next_step(lr);
+        let avx2 = has_avx2();
         let block = block.max(1);
         let len = params.len().div_ceil(parts.max(1)).div_ceil(block).max(1) * block;
         params
@@ -180,7 +181,7 @@ impl Adam {
                             grads: g,
                             touched: bits,
                         };
-                        update_word(&rule, weight_decay, word);
+                        update_word(&rule, weight_decay, word, avx2);
                     } else {
                         let mut rest = bits;
                         while rest != 0 {
@@ -210,15 +211,24 @@ struct Word<'a> {
 
 /// Adam on the touched entries of `word`: every lane is computed in SIMD
 /// and only the touched lanes are written back (the same arithmetic per
-/// entry as [`StepRule::apply`]).
+/// entry as [`StepRule::apply`]). `avx2` comes from [`has_avx2`].
 #[inline]
-fn update_word(rule: &StepRule, weight_decay: f32, word: Word) {
+fn update_word(rule: &StepRule, weight_decay: f32, word: Word, avx2: bool) {
     #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") {
-        // SAFETY: AVX2 was detected just above.
+    if avx2 {
+        // SAFETY: the caller detected AVX2 (has_avx2).
         return unsafe { update_word_avx2(rule, weight_decay, word) };
     }
+    let _ = avx2;
     update_word_lanes(rule, weight_decay, word)
+}
+
+/// Whether this CPU runs [`update_word_avx2`] (asked once per step, not per word).
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// [`update_word_lanes`] compiled for AVX2 (8 lanes per instruction).

@@ -11,6 +11,16 @@ use crate::nerf::render::rays::RenderRay;
 
 /// Samples evaluated per round across all active rays.
 const ROUND_SAMPLES: usize = 8192;
+/// Most samples a ray takes in one round. A round evaluates all of a ray's
+/// samples, also those past its crossing, and rays cross after a few (7.9
+/// on average in `label --depth`): larger rounds as the packet empties
+/// wasted a fifth of the evaluations.
+const MAX_RAY_ROUND_SAMPLES: usize = 8;
+/// Accumulated opacity from which a ray is at its surface: its next round
+/// takes the fewest samples.
+const NEAR_SURFACE_OPACITY: f32 = 0.05;
+/// Samples per ray and round at the least.
+const MIN_RAY_ROUND_SAMPLES: usize = 2;
 
 #[derive(Clone, Copy, Default)]
 struct State {
@@ -66,12 +76,17 @@ pub fn first_crossings(
         .extend((0..rays.len()).filter(|&i| rays[i].t_max > rays[i].t_min));
     let mut evaluated = 0;
     while !ws.active.is_empty() {
-        let per_ray = (ROUND_SAMPLES / ws.active.len()).clamp(2, 64);
+        let per_ray = (ROUND_SAMPLES / ws.active.len()).clamp(MIN_RAY_ROUND_SAMPLES, MAX_RAY_ROUND_SAMPLES);
         ws.segments.clear();
         ws.owner.clear();
         ws.positions.clear();
         for &r in &ws.active {
             let st = &mut ws.state[r];
+            let per_ray = if st.opacity >= NEAR_SURFACE_OPACITY {
+                MIN_RAY_ROUND_SAMPLES
+            } else {
+                per_ray
+            };
             let budget = per_ray.min(max_samples.saturating_sub(st.samples as usize));
             let first = ws.segments.len();
             st.t = march_skipping(&rays[r].ray, st.t, rays[r].t_max, grid, rule, budget, &mut ws.segments);
@@ -123,11 +138,9 @@ mod tests {
     use crate::nerf::render::rays::{render_rays, RayOutput, RenderOptions, RenderWorkspace};
     use crate::rng::Rng;
 
-    /// At opacity 0.5 the early-stopping renderer finds exactly the median
-    /// depth of the full renderer, on a random field and random rays.
-    #[test]
-    fn crossing_at_one_half_matches_the_full_renderers_median() {
-        let mut rng = Rng::new(4, 0);
+    /// A random field over a full occupancy grid and 3000 random rays through it.
+    fn random_scene(seed: u64) -> (Field, OccupancyGrid, StepRule, Vec<RenderRay>) {
+        let mut rng = Rng::new(seed, 0);
         let grid = HashGridConfig::for_scene(1.0, 1.0 / 64.0);
         let config = FieldConfig {
             grid: GridSpec::from(&grid),
@@ -157,6 +170,14 @@ mod tests {
                 ray_interval(&ray, rule.min_step).map(|(t_min, t_max)| RenderRay { ray, t_min, t_max })
             })
             .collect();
+        (field, occupancy, rule, rays)
+    }
+
+    /// At opacity 0.5 the early-stopping renderer finds exactly the median
+    /// depth of the full renderer, on a random field and random rays.
+    #[test]
+    fn crossing_at_one_half_matches_the_full_renderers_median() {
+        let (field, occupancy, rule, rays) = random_scene(4);
         let opts = RenderOptions {
             color: false,
             rule,
@@ -221,5 +242,59 @@ mod tests {
                 assert!(e.is_some_and(|e| e <= *f + 1e-6), "{e:?} after {f}");
             }
         }
+    }
+
+    /// How rays are grouped into rounds changes no crossing, and few
+    /// samples are evaluated past the crossings.
+    #[test]
+    fn rounds_change_no_crossing_and_waste_little() {
+        let (field, occupancy, rule, rays) = random_scene(5);
+        let crossing = CrossingOptions {
+            rule,
+            threshold: 0.5,
+            max_samples: 4096,
+        };
+        let mut ws = SurfaceWorkspace::default();
+        let mut together = vec![None; rays.len()];
+        let evaluated = first_crossings(&field, &occupancy, &rays, &crossing, &mut ws, &mut together);
+        let mut needed = 0;
+        let mut crossed = 0;
+        let mut field_ws = FieldWorkspace::default();
+        for (ray, found) in rays.iter().zip(&together) {
+            let mut alone = [None];
+            first_crossings(
+                &field,
+                &occupancy,
+                std::slice::from_ref(ray),
+                &crossing,
+                &mut ws,
+                &mut alone,
+            );
+            assert_eq!(alone[0].map(f32::to_bits), found.map(f32::to_bits));
+            // The samples up to and including the crossing, composited here.
+            let mut segments = Vec::new();
+            march_skipping(&ray.ray, ray.t_min, ray.t_max, &occupancy, &rule, 4096, &mut segments);
+            let positions: Vec<[f32; 3]> = segments.iter().map(|s| ray.ray.at(s.mid())).collect();
+            let mut sigma = vec![0.0; positions.len()];
+            field.density_only(&positions, &mut field_ws, &mut sigma);
+            let mut log_t = 0.0f32;
+            let mut taken = segments.len();
+            for (i, (seg, &d)) in segments.iter().zip(&sigma).enumerate() {
+                log_t -= sanitize_tau(d * seg.dt);
+                if 1.0 - log_t.exp() >= crossing.threshold {
+                    taken = i + 1;
+                    break;
+                }
+            }
+            needed += taken;
+            crossed += usize::from(found.is_some());
+        }
+        assert!(crossed > 300, "rays must cross: {crossed}");
+        // Rounds of up to 64 samples per ray as the packet emptied wasted
+        // 4.2 % here; 0.5 % now.
+        assert!(
+            evaluated as f64 <= 1.02 * needed as f64,
+            "{evaluated} samples evaluated for {needed} needed ({crossed} rays crossed)"
+        );
     }
 }

@@ -344,20 +344,33 @@ impl<'a> Labeler<'a> {
             DepthSource::Sensor => None,
             DepthSource::Nerf | DepthSource::Fused => Some(self.render_jobs(frame, &jobs)),
         };
-        let sensor = |j: &Job| match &self.sensor_fusion {
+        let sensor = |j: &Job| frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64);
+        // The fused source takes the sensor's surface only within its
+        // tolerance of the rendered one: only that stretch of the ray is
+        // searched in the fused sensor depth.
+        let fused = |j: &Job, rendered: f64| match &self.sensor_fusion {
+            _ if rendered <= 0.0 => rendered,
             Some(tsdf) => {
                 let ray = rot * k.unproject(j.x as f64, j.y as f64);
                 let len = ray.norm();
-                tsdf.depth_along(&origin, &(ray / len), 1.0 / len)
+                let tolerance = self.fused_tolerance_m;
+                let z = tsdf.depth_between(
+                    &origin,
+                    &(ray / len),
+                    1.0 / len,
+                    rendered - tolerance,
+                    rendered + tolerance,
+                );
+                self.fuse(z, rendered)
             }
-            None => frame.depth.as_ref().map_or(0.0, |d| d.get(j.x, j.y) as f64),
+            None => self.fuse(sensor(j), rendered),
         };
         let depths: Vec<f64> = jobs
             .iter()
             .enumerate()
             .map(|(i, j)| match (self.options.source, &rendered) {
                 (DepthSource::Nerf, Some(r)) => r[i],
-                (DepthSource::Fused, Some(r)) => self.fuse(sensor(j), r[i]),
+                (DepthSource::Fused, Some(r)) => fused(j, r[i]),
                 _ => sensor(j),
             })
             .collect();

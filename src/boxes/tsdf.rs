@@ -111,15 +111,39 @@ impl BoxTsdf {
     /// Depth (z, metres) of the first fused surface along the unit ray `dir`
     /// from `origin`, whose z grows by `z_per_t` per metre along it; 0 = none.
     pub fn depth_along(&self, origin: &Point3<f64>, dir: &Vector3<f64>, z_per_t: f64) -> f64 {
+        self.first_crossing(origin, dir, f64::NEG_INFINITY, f64::INFINITY)
+            .map_or(0.0, |t| t * z_per_t)
+    }
+
+    /// [`Self::depth_along`] searching only depths from `z_near` to `z_far`
+    /// (from half a voxel before, so that a surface right at `z_near` is
+    /// found): where only a surface near a known depth matters, the ray's
+    /// way through the rest of the block is skipped.
+    pub fn depth_between(
+        &self,
+        origin: &Point3<f64>,
+        dir: &Vector3<f64>,
+        z_per_t: f64,
+        z_near: f64,
+        z_far: f64,
+    ) -> f64 {
+        self.first_crossing(origin, dir, z_near / z_per_t, z_far / z_per_t)
+            .map_or(0.0, |t| t * z_per_t)
+    }
+
+    /// Ray parameter of the first zero crossing (outside to inside) of the
+    /// fused distance searched from `from` (less one search step) to `to`.
+    fn first_crossing(&self, origin: &Point3<f64>, dir: &Vector3<f64>, from: f64, to: f64) -> Option<f64> {
         let mut best = f64::INFINITY;
         for block in &self.blocks {
             let Some((t0, t1)) = block.interval(origin, dir) else {
                 continue;
             };
+            let step = 0.5 * block.voxel;
+            let (t0, t1) = (t0.max(from - step), t1.min(to));
             if t0 >= best {
                 continue;
             }
-            let step = 0.5 * block.voxel;
             let truncation = TRUNCATION_VOXELS * block.voxel;
             let mut t = t0;
             let mut previous: Option<(f64, f32)> = None;
@@ -142,11 +166,7 @@ impl BoxTsdf {
                 t += advance;
             }
         }
-        if best.is_finite() {
-            best * z_per_t
-        } else {
-            0.0
-        }
+        best.is_finite().then_some(best)
     }
 }
 
@@ -267,5 +287,48 @@ mod tests {
         // Outside every block, and along a ray that never meets the floor, nothing.
         assert_eq!(tsdf.depth_along(&Point3::new(2.0, 0.0, 1.0), &-Vector3::z(), 1.0), 0.0);
         assert_eq!(tsdf.depth_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::z(), 1.0), 0.0);
+    }
+
+    /// A thin slab 5 cm above a floor, in one block: the first surface along
+    /// a ray is the slab, the surface searched between two depths the one
+    /// there, and none where there is none.
+    #[test]
+    fn a_search_between_depths_finds_the_surface_there_only() {
+        let voxel = 0.005;
+        let truncation = TRUNCATION_VOXELS * voxel;
+        let dims = [20, 20, 40];
+        let origin = Point3::new(-0.05, -0.05, -0.05);
+        // Signed distance (outside positive) to the union of the floor z < 0
+        // and the slab 0.05 < z < 0.06.
+        let slab = |z: f64| (z - 0.06).max(0.05 - z);
+        let sdf = |z: f64| z.min(slab(z));
+        let mut tsdf = vec![0.0f32; dims[0] * dims[1] * dims[2]];
+        for (n, v) in tsdf.iter_mut().enumerate() {
+            let z = origin.z + ((n / (dims[0] * dims[1])) as f64 + 0.5) * voxel;
+            *v = (sdf(z) / truncation).clamp(-1.0, 1.0) as f32;
+        }
+        let weight = vec![1.0f32; tsdf.len()];
+        let fused = BoxTsdf {
+            blocks: vec![Block {
+                origin,
+                voxel,
+                dims,
+                tsdf,
+                weight,
+            }],
+        };
+        // From 1 m above the floor, looking down: z along the ray is the distance.
+        let (eye, down) = (Point3::new(0.0, 0.0, 1.0), -Vector3::z());
+        let first = fused.depth_along(&eye, &down, 1.0);
+        assert!((first - 0.94).abs() < 0.002, "slab top at 0.94 m, found {first}");
+        let near_floor = fused.depth_between(&eye, &down, 1.0, 0.98, 1.02);
+        assert!((near_floor - 1.0).abs() < 0.002, "floor at 1 m, found {near_floor}");
+        let near_slab = fused.depth_between(&eye, &down, 1.0, 0.93, 0.95);
+        // Its own samples, so not to the bit.
+        assert!((near_slab - first).abs() < 0.001, "{near_slab} against {first}");
+        assert_eq!(fused.depth_between(&eye, &down, 1.0, 0.6, 0.9), 0.0);
+        // Unbounded, it is the first surface to the bit.
+        let unbounded = fused.depth_between(&eye, &down, 1.0, f64::NEG_INFINITY, f64::INFINITY);
+        assert_eq!(unbounded.to_bits(), first.to_bits());
     }
 }

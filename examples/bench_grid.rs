@@ -164,10 +164,7 @@ fn main() {
 /// group bits and group distances) from a shell of surfaces filling about
 /// 1 % of the cells, as a scanned room does; fastest of 5.
 fn occupancy_build_times() {
-    println!(
-        "
-occupancy grid build (from_occupied_bits), fastest of 5:"
-    );
+    println!("\noccupancy grid build (from_occupied_bits), fastest of 5:");
     for res in [128usize, 256, 512] {
         let cells = res * res * res;
         let mut bits = vec![0u64; cells.div_ceil(64)];

@@ -55,8 +55,9 @@ pub struct OccupancyGrid {
     res: usize,
     density: Vec<f32>,
     bits: Vec<u64>,
-    /// One bit per group of GROUP^3 cells: set when any cell of the group
-    /// is occupied.
+    /// One bit per group of GROUP^3 cells, set when any cell of the group
+    /// is occupied: what the group distances are computed from (kept so a
+    /// refresh reuses the buffer).
     groups: Vec<u64>,
     /// Per group, its Chebyshev distance in groups to the nearest occupied
     /// one (0 = occupied): rendering crosses the empty cube of groups around
@@ -132,12 +133,6 @@ impl OccupancyGrid {
     #[inline]
     pub fn group_resolution(&self) -> usize {
         self.res.div_ceil(GROUP)
-    }
-
-    /// Whether the group with these group coordinates holds an occupied cell.
-    #[inline]
-    pub fn is_occupied_group(&self, group: [usize; 3]) -> bool {
-        coarse_bit(&self.groups, self.group_resolution(), group)
     }
 
     /// How many groups from this one (group coordinates) the nearest
@@ -878,8 +873,9 @@ mod tests {
         );
     }
 
-    /// Group bits against a cell-by-cell count, on an odd size (neither a
-    /// multiple of the group edge nor of the 64-bit word), sparse and dense.
+    /// Occupied groups (reach 0) against a cell-by-cell count, on an odd
+    /// size (neither a multiple of the group edge nor of the 64-bit word),
+    /// sparse and dense.
     #[test]
     fn a_group_is_occupied_exactly_when_one_of_its_cells_is() {
         let mut rng = Rng::new(31, 0);
@@ -902,7 +898,7 @@ mod tests {
             let (mut occupied, mut empty) = (0, 0);
             for (i, &any) in want.iter().enumerate() {
                 let at = [i % cr, (i / cr) % cr, i / (cr * cr)];
-                assert_eq!(grid.is_occupied_group(at), any, "keep {keep}: {at:?}");
+                assert_eq!(grid.empty_group_reach(at) == 0, any, "keep {keep}: {at:?}");
                 (occupied, empty) = if any {
                     (occupied + 1, empty)
                 } else {

@@ -216,30 +216,41 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
     for _ in 0..4 * res {
         let group = idx.map(|i| i >> GROUP_SHIFT);
         let reach = grid.empty_group_reach(group.map(|g| g as usize)) as i32;
-        // The empty region to leave: cells `lo..lo + size` per axis.
-        let (lo, size) = if reach > 0 {
-            // The cube of groups within `reach - 1` of this one is empty.
-            (
-                group.map(|g| (g - (reach - 1)) << GROUP_SHIFT),
-                (2 * reach - 1) << GROUP_SHIFT,
-            )
-        } else if !grid.is_occupied_cell(cell_index_of(idx, res)) {
-            (idx, 1)
-        } else {
+        // Read unconditionally (the cell is inside the grid) so that only
+        // the walk's end is a branch.
+        let occupied = grid.is_occupied_cell(cell_index_of(idx, res));
+        if (reach == 0) & occupied {
             return d;
-        };
-        let (mut exit, mut axis) = (f32::INFINITY, 0);
-        for a in 0..3 {
-            let face = match step[a] {
-                1 => (lo[a] + size) as f32 * cell_size,
-                -1 => lo[a] as f32 * cell_size,
-                _ => continue,
-            };
-            let t = (face - p[a]) * inv[a];
-            if t < exit {
-                (exit, axis) = (t, a);
-            }
         }
+        // The empty region to leave, cells `lo..lo + size` per axis: the
+        // cube of groups within `reach - 1` of this one, else the cell.
+        let in_group = reach > 0;
+        let size = if in_group { (2 * reach - 1) << GROUP_SHIFT } else { 1 };
+        let lo: [i32; 3] = std::array::from_fn(|a| {
+            if in_group {
+                (group[a] - (reach - 1)) << GROUP_SHIFT
+            } else {
+                idx[a]
+            }
+        });
+        // Distance to the exit face on each axis (none on an axis the ray
+        // runs parallel to), the nearest first on ties; written without
+        // branches, which the walk mispredicted.
+        let exits: [f32; 3] = std::array::from_fn(|a| {
+            let face = if step[a] > 0 { lo[a] + size } else { lo[a] } as f32 * cell_size;
+            if step[a] != 0 {
+                (face - p[a]) * inv[a]
+            } else {
+                f32::INFINITY
+            }
+        });
+        let (exit, axis) = if exits[0] <= exits[1] && exits[0] <= exits[2] {
+            (exits[0], 0)
+        } else if exits[1] <= exits[2] {
+            (exits[1], 1)
+        } else {
+            (exits[2], 2)
+        };
         d = exit.max(d);
         if d >= limit {
             return d;
@@ -247,18 +258,16 @@ fn empty_run_length(grid: &OccupancyGrid, p: [f32; 3], dir: [f32; 3], mut idx: [
         // The next cell: across the exit face on `axis`; on the other axes
         // where the ray is, kept inside the cell just left (the point lies
         // on its face, where rounding may fall either side).
-        for a in 0..3 {
-            idx[a] = if a == axis {
-                if step[a] > 0 {
-                    lo[a] + size
-                } else {
-                    lo[a] - 1
-                }
+        idx = std::array::from_fn(|a| {
+            let across = if step[a] > 0 { lo[a] + size } else { lo[a] - 1 };
+            let q = ((p[a] + d * dir[a]) * res as f32).max(0.0) as i32;
+            let along = q.clamp(lo[a], (lo[a] + size - 1).min(last));
+            if a == axis {
+                across
             } else {
-                let q = ((p[a] + d * dir[a]) * res as f32).max(0.0) as i32;
-                q.clamp(lo[a], (lo[a] + size - 1).min(last))
-            };
-        }
+                along
+            }
+        });
         if idx[axis] < 0 || idx[axis] > last {
             return d;
         }

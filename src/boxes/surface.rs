@@ -22,11 +22,13 @@ const NEAR_SURFACE_OPACITY: f32 = 0.05;
 /// Samples per ray and round at the least.
 const MIN_RAY_ROUND_SAMPLES: usize = 2;
 
-#[derive(Clone, Copy, Default)]
+#[derive(Clone, Copy)]
 struct State {
     t: f32,
     opacity: f32,
-    log_t: f32,
+    /// Transmittance, kept as a product: one `exp_m1` per sample, where
+    /// `exp` of a summed optical depth cost a second libm call.
+    transmittance: f32,
     samples: u32,
 }
 
@@ -69,7 +71,9 @@ pub fn first_crossings(
     ws.state.clear();
     ws.state.extend(rays.iter().map(|r| State {
         t: r.t_min,
-        ..State::default()
+        opacity: 0.0,
+        transmittance: 1.0,
+        samples: 0,
     }));
     ws.active.clear();
     ws.active
@@ -105,8 +109,9 @@ pub fn first_crossings(
             let mut done = count == 0;
             for i in first..first + count {
                 let seg = ws.segments[i];
-                let tau = sanitize_tau(ws.sigma[i] * seg.dt);
-                let w = st.log_t.exp() * -(-tau).exp_m1();
+                // exp(-tau) - 1: the sample's opacity, negated.
+                let absorbed = (-sanitize_tau(ws.sigma[i] * seg.dt)).exp_m1();
+                let w = st.transmittance * -absorbed;
                 if st.opacity + w >= threshold {
                     let frac = if w > 0.0 { (threshold - st.opacity) / w } else { 0.0 };
                     out[r] = Some(seg.t + frac.clamp(0.0, 1.0) * seg.dt);
@@ -114,10 +119,10 @@ pub fn first_crossings(
                     break;
                 }
                 st.opacity += w;
-                st.log_t -= tau;
+                st.transmittance += st.transmittance * absorbed;
             }
             done |= st.t >= rays[r].t_max
-                || st.log_t.exp() < TERMINATION_TRANSMITTANCE
+                || st.transmittance < TERMINATION_TRANSMITTANCE
                 || st.samples as usize >= max_samples;
             if !done {
                 keep.push(r);

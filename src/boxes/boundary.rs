@@ -64,15 +64,20 @@ struct NearestColours {
 
 impl NearestColours {
     fn insert(&mut self, d: f32) {
-        if self.count < NEAREST {
-            self.distances[self.count] = d;
+        // The slot `d` takes before moving down to its place in the order.
+        let mut i = if self.count < NEAREST {
             self.count += 1;
+            self.count - 1
         } else if d < self.distances[NEAREST - 1] {
-            self.distances[NEAREST - 1] = d;
+            NEAREST - 1
         } else {
             return;
+        };
+        while i > 0 && self.distances[i - 1].total_cmp(&d).is_gt() {
+            self.distances[i] = self.distances[i - 1];
+            i -= 1;
         }
-        self.distances[..self.count].sort_by(f32::total_cmp);
+        self.distances[i] = d;
     }
 
     /// Mean of the nearest distances plus the noise floor, once there are enough.
@@ -293,6 +298,26 @@ fn distance_to_change(mask: &[u16], w: usize, h: usize, cap: usize) -> Vec<usize
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The nearest colours kept are the smallest distances offered, in
+    /// ascending order, with ties and repeats.
+    #[test]
+    fn nearest_colours_keep_the_smallest_distances_in_order() {
+        let mut rng = crate::rng::Rng::new(7, 0);
+        for _ in 0..200 {
+            let offered: Vec<f32> = (0..rng.below(8)).map(|_| rng.below(6) as f32).collect();
+            let mut nearest = NearestColours {
+                label: 0,
+                distances: [0.0; NEAREST],
+                count: 0,
+            };
+            offered.iter().for_each(|&d| nearest.insert(d));
+            let mut sorted = offered.clone();
+            sorted.sort_by(f32::total_cmp);
+            sorted.truncate(NEAREST);
+            assert_eq!(&nearest.distances[..nearest.count], &sorted[..], "offered {offered:?}");
+        }
+    }
 
     /// A bright square on a dark floor, the mask shifted by a pixel: the
     /// snapped mask is the square.

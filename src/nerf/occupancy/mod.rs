@@ -677,12 +677,14 @@ fn all_neighbours(cell: usize, res: usize, keep: impl Fn(usize) -> bool) -> bool
 /// Half-width (in cells, per axis) of the core a free-space ray must cross.
 const CORE_RADIUS: f32 = 0.3;
 
-/// Whether `p` lies within `radius` cells of its cell's centre on every axis.
+/// Whether `p`, inside the cube, lies within `radius` cells of its cell's
+/// centre on every axis.
 #[inline]
 fn near_cell_centre(p: [f32; 3], res: usize, radius: f32) -> bool {
     p.iter().all(|&c| {
         let x = c * res as f32;
-        (x - x.floor() - 0.5).abs() <= radius
+        // `x` is in [0, res): truncation is its floor, without a libm call.
+        (x - x as u32 as f32 - 0.5).abs() <= radius
     })
 }
 

@@ -3,6 +3,7 @@
 //! accumulated opacity crosses a threshold (the surface point), so no sample
 //! behind the surface is ever evaluated.
 
+use crate::nerf::field::simd::exp::exp_m1;
 use crate::nerf::field::{Field, FieldWorkspace};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
@@ -27,7 +28,7 @@ struct State {
     t: f32,
     opacity: f32,
     /// Transmittance, kept as a product: one `exp_m1` per sample, where
-    /// `exp` of a summed optical depth cost a second libm call.
+    /// `exp` of a summed optical depth cost a second one.
     transmittance: f32,
     samples: u32,
 }
@@ -42,6 +43,7 @@ pub struct SurfaceWorkspace {
     owner: Vec<(usize, usize, usize)>,
     positions: Vec<[f32; 3]>,
     sigma: Vec<f32>,
+    absorbed: Vec<f32>,
 }
 
 /// How to find the surface along a ray.
@@ -102,15 +104,22 @@ pub fn first_crossings(
         }
         ws.sigma.resize(ws.positions.len(), 0.0);
         evaluated += ws.positions.len();
-        field.density_only(&ws.positions, &mut ws.field, &mut ws.sigma);
+        field.density_only_simd_exp(&ws.positions, &mut ws.field, &mut ws.sigma);
+        // exp(-tau) - 1 of every sample (its opacity, negated), all at once.
+        ws.absorbed.clear();
+        ws.absorbed.extend(
+            ws.sigma
+                .iter()
+                .zip(&ws.segments)
+                .map(|(&sigma, seg)| -sanitize_tau(sigma * seg.dt)),
+        );
+        exp_m1(&mut ws.absorbed);
         let mut keep = Vec::with_capacity(ws.owner.len());
         for &(r, first, count) in &ws.owner {
             let st = &mut ws.state[r];
             let mut done = count == 0;
             for i in first..first + count {
-                let seg = ws.segments[i];
-                // exp(-tau) - 1: the sample's opacity, negated.
-                let absorbed = (-sanitize_tau(ws.sigma[i] * seg.dt)).exp_m1();
+                let (seg, absorbed) = (ws.segments[i], ws.absorbed[i]);
                 let w = st.transmittance * -absorbed;
                 if st.opacity + w >= threshold {
                     let frac = if w > 0.0 { (threshold - st.opacity) / w } else { 0.0 };

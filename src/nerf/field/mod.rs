@@ -229,9 +229,35 @@ impl Field {
 
     /// Density only (no colour branch) for a batch of local points.
     pub fn density_only(&self, positions: &[[f32; 3]], ws: &mut FieldWorkspace, sigma: &mut [f32]) {
+        let raw = self.raw_density_only(positions, ws);
+        for (s, &raw) in sigma.iter_mut().zip(raw) {
+            *s = density_activation(raw);
+        }
+    }
+
+    /// [`Self::density_only`] with the activation's exponential taken eight
+    /// lanes at a time ([`simd::exp`]): within two ulps of it but not the
+    /// same bits, so renderers use it and training (whose models must not
+    /// change) does not.
+    pub fn density_only_simd_exp(&self, positions: &[[f32; 3]], ws: &mut FieldWorkspace, sigma: &mut [f32]) {
+        let raw = self.raw_density_only(positions, ws);
+        let n = raw.len().min(sigma.len());
+        for (s, &raw) in sigma.iter_mut().zip(raw) {
+            // As `density_activation`: NaN gives 0, the log clamped.
+            *s = if raw.is_nan() {
+                f32::NEG_INFINITY
+            } else {
+                raw.min(MAX_LOG_DENSITY)
+            };
+        }
+        simd::exp::exp(&mut sigma[..n]);
+    }
+
+    /// The density network's raw (log) density output for a batch.
+    fn raw_density_only<'w>(&self, positions: &[[f32; 3]], ws: &'w mut FieldWorkspace) -> &'w [f32] {
         let n = positions.len();
         if n == 0 {
-            return;
+            return &[];
         }
         let enc_dim = self.grid.config.output_dim();
         let encoded = sized(&mut ws.encoded, enc_dim * n);
@@ -241,9 +267,7 @@ impl Field {
         let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
         self.density
             .forward_leading(&ws.encoded[..enc_dim * n], n, 1, mlp_ws, out);
-        for (s, &raw) in sigma.iter_mut().zip(&out[..n]) {
-            *s = density_activation(raw);
-        }
+        &ws.density_out[..n]
     }
 
     /// Density and colour for a batch; `train` keeps activations for

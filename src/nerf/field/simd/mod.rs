@@ -5,6 +5,7 @@
 //! helpers ([`dot`], [`axpy`]), the run-time feature check
 //! [`avx2_fma_available`] and [`measure_fma_peak_gflops`] for benchmarks.
 
+pub mod exp;
 pub mod grid;
 #[cfg(target_arch = "x86_64")]
 mod mlp_avx2;

@@ -215,6 +215,24 @@ impl MaskScores {
         }
     }
 
+    /// Append the frames of `later` (scored after this one's): the same
+    /// totals as adding them here one by one.
+    pub fn merge(&mut self, later: MaskScores) {
+        for (id, (i, u)) in later.totals {
+            let e = self.totals.entry(id).or_default();
+            e.0 += i;
+            e.1 += u;
+        }
+        for (id, ious) in later.per_frame {
+            self.per_frame.entry(id).or_default().extend(ious);
+        }
+        self.frame_means.extend(later.frame_means);
+        self.box_ious.extend(later.box_ious);
+        for (id, c) in later.counts {
+            self.counts.entry(id).or_default().add(&c);
+        }
+    }
+
     /// IoU of each instance with intersections and unions summed over frames.
     pub fn per_object(&self) -> BTreeMap<u16, f64> {
         self.totals
@@ -265,6 +283,38 @@ impl MaskScores {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Frames scored apart and merged in order give the scores of adding
+    /// them one after the other, to the bit.
+    #[test]
+    fn merged_frames_score_as_frames_added_in_order() {
+        let mut rng = crate::rng::Rng::new(3, 0);
+        let (w, h) = (24, 16);
+        let mut mask = |ids: u64| -> Vec<u16> {
+            let (x0, y0) = (rng.below(12) as usize, rng.below(8) as usize);
+            let id = 1 + rng.below(ids) as u16;
+            (0..w * h)
+                .map(|i| {
+                    if i % w >= x0 && i / w >= y0 && i % w < x0 + 9 {
+                        id
+                    } else {
+                        0
+                    }
+                })
+                .collect()
+        };
+        let frames: Vec<(Vec<u16>, Vec<u16>)> = (0..7).map(|_| (mask(3), mask(3))).collect();
+        let mut sequential = MaskScores::default();
+        let mut merged = MaskScores::default();
+        for (predicted, truth) in &frames {
+            sequential.add(predicted, truth, w);
+            let mut one = MaskScores::default();
+            one.add(predicted, truth, w);
+            merged.merge(one);
+        }
+        assert!(sequential.mean_frame_iou() > 0.0);
+        assert_eq!(format!("{sequential:?}"), format!("{merged:?}"));
+    }
 
     #[test]
     fn scores_of_a_hand_made_pair() {

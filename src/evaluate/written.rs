@@ -5,6 +5,7 @@
 
 use super::labels::read_gray16;
 use crate::boxes::metrics::MaskScores;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -39,25 +40,36 @@ pub fn score_written_labels(labels: &Path, truth: &Path) -> Result<Option<(MaskS
         .filter(|n| Path::new(n).extension().is_some_and(|x| x == "png"))
         .collect();
     names.sort();
+    // Frames are read and scored in parallel, then merged in name order
+    // (the same scores as one after the other).
+    let per_frame: Vec<Option<MaskScores>> = names
+        .par_iter()
+        .map(|name| {
+            let true_path = truth.join(name);
+            if !true_path.is_file() {
+                return Ok(None);
+            }
+            let predicted = read_gray16(&masks.join(name))?;
+            let (width, _) =
+                image::image_dimensions(&true_path).map_err(|e| format!("{}: {e}", true_path.display()))?;
+            let exact = read_gray16(&true_path)?;
+            if exact.len() != predicted.len() {
+                return Err(format!(
+                    "{}: {} pixels where the labels have {}",
+                    true_path.display(),
+                    exact.len(),
+                    predicted.len()
+                ));
+            }
+            let mut frame = MaskScores::default();
+            frame.add(&predicted, &exact, width as usize);
+            Ok(Some(frame))
+        })
+        .collect::<Result<_, String>>()?;
     let mut scores = MaskScores::default();
     let mut frames = 0;
-    for name in names {
-        let true_path = truth.join(&name);
-        if !true_path.is_file() {
-            continue;
-        }
-        let predicted = read_gray16(&masks.join(&name))?;
-        let (width, _) = image::image_dimensions(&true_path).map_err(|e| format!("{}: {e}", true_path.display()))?;
-        let exact = read_gray16(&true_path)?;
-        if exact.len() != predicted.len() {
-            return Err(format!(
-                "{}: {} pixels where the labels have {}",
-                true_path.display(),
-                exact.len(),
-                predicted.len()
-            ));
-        }
-        scores.add(&predicted, &exact, width as usize);
+    for frame in per_frame.into_iter().flatten() {
+        scores.merge(frame);
         frames += 1;
     }
     Ok((frames > 0).then_some((scores, frames)))

@@ -33,7 +33,7 @@ pub fn lattice_pruned(field: &Field, grid: &OccupancyGrid) -> OccupancyGrid {
 
 /// [`lattice_pruned`] with a given lattice and density threshold.
 fn pruned_at(field: &Field, grid: &OccupancyGrid, steps: usize, min_density: f32) -> OccupancyGrid {
-    let peak = cell_peaks(field, grid.resolution(), steps);
+    let peak = cell_peaks(field, grid.resolution(), steps, &|c| grid.is_occupied_cell(c));
     let res = grid.resolution();
     let cells = res * res * res;
     let mut dropped = grid.carved_words().to_vec();
@@ -178,8 +178,10 @@ fn dense_children(
 }
 
 /// Largest density of every cell over its (steps + 1)^3 lattice points
-/// (corners and faces included), cells in x-fastest order.
-fn cell_peaks(field: &Field, res: usize, steps: usize) -> Vec<f32> {
+/// (corners and faces included), cells in x-fastest order. Only lattice
+/// points of cells that `wanted` accepts are evaluated: other cells' peaks
+/// may be too low.
+fn cell_peaks(field: &Field, res: usize, steps: usize, wanted: &(dyn Fn(usize) -> bool + Sync)) -> Vec<f32> {
     let n = steps * res + 1;
     let inv = 1.0 / (steps * res) as f32;
     // One lattice plane per work item, reduced at once to the largest value
@@ -187,18 +189,39 @@ fn cell_peaks(field: &Field, res: usize, steps: usize) -> Vec<f32> {
     let planes: Vec<Vec<f32>> = (0..n)
         .into_par_iter()
         .map_init(
-            || (FieldWorkspace::default(), Vec::new(), Vec::new()),
-            |(ws, positions, sigma), z| {
+            || (FieldWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
+            |(ws, needed, positions, sigma), z| {
+                // The plane's points on a wanted cell of a layer it bounds.
+                needed.clear();
+                needed.resize(n * n, false);
+                let layers = z.saturating_sub(1) / steps..=(z / steps).min(res - 1);
+                for cz in layers.filter(|&cz| cz * steps <= z && z <= cz * steps + steps) {
+                    for c in (0..res * res).filter(|&c| wanted(cz * res * res + c)) {
+                        let (x0, y0) = ((c % res) * steps, (c / res) * steps);
+                        for y in y0..=y0 + steps {
+                            needed[y * n + x0..=y * n + x0 + steps].fill(true);
+                        }
+                    }
+                }
                 positions.clear();
-                positions.extend((0..n * n).map(|i| [(i % n) as f32 * inv, (i / n) as f32 * inv, z as f32 * inv]));
+                positions.extend(
+                    (0..n * n)
+                        .filter(|&i| needed[i])
+                        .map(|i| [(i % n) as f32 * inv, (i / n) as f32 * inv, z as f32 * inv]),
+                );
                 sigma.clear();
                 sigma.resize(positions.len(), 0.0);
                 field.density_only(positions, ws, sigma);
+                let mut plane = vec![0.0f32; n * n];
+                let mut values = sigma.iter();
+                for (p, _) in plane.iter_mut().zip(needed.iter()).filter(|(_, &k)| k) {
+                    *p = values.next().copied().unwrap_or(0.0);
+                }
                 let mut block = vec![0.0f32; res * res];
                 for (c, b) in block.iter_mut().enumerate() {
                     let (cx, cy) = (c % res, c / res);
                     for y in cy * steps..=cy * steps + steps {
-                        let row = &sigma[y * n + cx * steps..=y * n + cx * steps + steps];
+                        let row = &plane[y * n + cx * steps..=y * n + cx * steps + steps];
                         *b = row.iter().fold(*b, |m, &s| m.max(s));
                     }
                 }
@@ -270,7 +293,7 @@ mod tests {
                 })
                 .collect();
             // Batches of other sizes round the MLP differently in the last bits.
-            let fast = cell_peaks(&field, res, steps);
+            let fast = cell_peaks(&field, res, steps, &|_| true);
             for (c, (a, b)) in fast.iter().zip(&peak).enumerate() {
                 assert!(
                     (a - b).abs() <= 1e-4 * b.abs().max(1.0),
@@ -315,7 +338,7 @@ mod tests {
         let grid = OccupancyGrid::from_saved(res, vec![1.0; cells], carved).unwrap();
         // Reference: each fine cell's peak over its own lattice points.
         let fine = 2 * res;
-        let peak = cell_peaks(&field, fine, LATTICE_STEPS);
+        let peak = cell_peaks(&field, fine, LATTICE_STEPS, &|_| true);
         let mut sorted = peak.clone();
         sorted.sort_by(f32::total_cmp);
         let threshold = sorted[sorted.len() / 2];

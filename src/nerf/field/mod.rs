@@ -166,10 +166,18 @@ fn sized(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {
 /// sigma = exp(raw), clamped so it never overflows.
 #[inline]
 pub fn density_activation(raw: f32) -> f32 {
+    clamped_log_density(raw).exp()
+}
+
+/// The log density the activation exponentiates: clamped so it never
+/// overflows, and -inf (a density of 0) for NaN.
+#[inline]
+fn clamped_log_density(raw: f32) -> f32 {
     if raw.is_nan() {
-        return 0.0;
+        f32::NEG_INFINITY
+    } else {
+        raw.min(MAX_LOG_DENSITY)
     }
-    raw.min(MAX_LOG_DENSITY).exp()
 }
 
 /// d sigma / d raw of the truncated exponential.
@@ -243,12 +251,7 @@ impl Field {
         let raw = self.raw_density_only(positions, ws);
         let n = raw.len().min(sigma.len());
         for (s, &raw) in sigma.iter_mut().zip(raw) {
-            // As `density_activation`: NaN gives 0, the log clamped.
-            *s = if raw.is_nan() {
-                f32::NEG_INFINITY
-            } else {
-                raw.min(MAX_LOG_DENSITY)
-            };
+            *s = clamped_log_density(raw);
         }
         simd::exp::exp(&mut sigma[..n]);
     }

@@ -189,8 +189,16 @@ fn cell_peaks(field: &Field, res: usize, steps: usize, wanted: &(dyn Fn(usize) -
     let planes: Vec<Vec<f32>> = (0..n)
         .into_par_iter()
         .map_init(
-            || (FieldWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
-            |(ws, needed, positions, sigma), z| {
+            || {
+                (
+                    FieldWorkspace::default(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                )
+            },
+            |(ws, needed, positions, sigma, plane), z| {
                 // The plane's points on a wanted cell of a layer it bounds.
                 needed.clear();
                 needed.resize(n * n, false);
@@ -212,7 +220,9 @@ fn cell_peaks(field: &Field, res: usize, steps: usize, wanted: &(dyn Fn(usize) -
                 sigma.clear();
                 sigma.resize(positions.len(), 0.0);
                 field.density_only(positions, ws, sigma);
-                let mut plane = vec![0.0f32; n * n];
+                // The plane's densities, 0 where not evaluated (buffer reused per worker).
+                plane.clear();
+                plane.resize(n * n, 0.0f32);
                 let mut values = sigma.iter();
                 for (p, _) in plane.iter_mut().zip(needed.iter()).filter(|(_, &k)| k) {
                     *p = values.next().copied().unwrap_or(0.0);

@@ -15,7 +15,7 @@ use super::parse::BoxSet;
 use super::project::{project_box, PixelRect};
 use super::reach::{self, Contested};
 use super::support::{excluded_planes, ExcludedPlane};
-use super::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
+use super::surface::{first_crossings, skip_shared_empty_space, CrossingOptions, SurfaceWorkspace};
 use super::tsdf::BoxTsdf;
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::model_file::Model;
@@ -526,6 +526,7 @@ impl<'a> Labeler<'a> {
                         index.push((i, norm));
                     }
                 }
+                skip_shared_empty_space(grid, rays);
                 out.clear();
                 out.resize(rays.len(), None);
                 first_crossings(field, grid, rays, &crossing, ws, out);

@@ -7,7 +7,7 @@ use crate::nerf::field::simd::exp::exp_m1;
 use crate::nerf::field::{Field, FieldWorkspace};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{sanitize_tau, TERMINATION_TRANSMITTANCE};
-use crate::nerf::render::march::{march_skipping, Segment, StepRule};
+use crate::nerf::render::march::{cone_clear_until, march_skipping, Segment, StepRule};
 use crate::nerf::render::rays::RenderRay;
 
 /// Samples evaluated per round across all active rays.
@@ -54,6 +54,43 @@ pub struct CrossingOptions {
     pub threshold: f32,
     /// Hard cap per ray so nothing can hang.
     pub max_samples: usize,
+}
+
+/// Rays that share one cone in [`skip_shared_empty_space`]: neighbouring
+/// pixels of a row are a narrow fan.
+const CONE_RAYS: usize = 8;
+
+/// Moves each ray's start past the empty space it shares with its
+/// neighbours: every run of [`CONE_RAYS`] consecutive rays from one origin
+/// is bounded by a cone, traced once through the grid's empty groups
+/// ([`cone_clear_until`]), so the rays do not each walk that space. The rays
+/// keep every occupied cell of their interval; a ray left with nothing to
+/// search gets `t_min = t_max`.
+pub fn skip_shared_empty_space(grid: &OccupancyGrid, rays: &mut [RenderRay]) {
+    for run in rays.chunks_mut(CONE_RAYS) {
+        let origin = run[0].ray.origin;
+        if run.iter().any(|r| r.ray.origin != origin) {
+            continue;
+        }
+        let sum = run
+            .iter()
+            .fold([0.0f32; 3], |acc, r| std::array::from_fn(|a| acc[a] + r.ray.dir[a]));
+        let norm = (sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]).sqrt();
+        if !(norm > 0.0) {
+            continue;
+        }
+        let axis = sum.map(|v| v / norm);
+        let spread = run
+            .iter()
+            .map(|r| (0..3).map(|a| (r.ray.dir[a] - axis[a]).powi(2)).sum::<f32>().sqrt())
+            .fold(0.0f32, f32::max);
+        let t0 = run.iter().map(|r| r.t_min).fold(f32::INFINITY, f32::min);
+        let t1 = run.iter().map(|r| r.t_max).fold(f32::NEG_INFINITY, f32::max);
+        let clear = cone_clear_until(grid, origin, axis, spread, t0, t1);
+        for r in run.iter_mut() {
+            r.t_min = r.t_min.max(clear.min(r.t_max));
+        }
+    }
 }
 
 /// For each ray, the distance where accumulated opacity first reaches the
@@ -310,5 +347,58 @@ mod tests {
             evaluated as f64 <= 1.02 * needed as f64,
             "{evaluated} samples evaluated for {needed} needed ({crossed} rays crossed)"
         );
+    }
+    /// Fans of rays from one camera toward a grid empty in front: sharing
+    /// cones moves most starts forward, past no occupied cell.
+    #[test]
+    fn shared_cones_skip_empty_space_and_no_occupied_cell() {
+        let res: usize = 64;
+        // Occupied: a slab 0.6 <= z < 0.7 and one pillar nearer the camera.
+        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+        for cell in 0..res * res * res {
+            let [x, y, z] = [cell % res, (cell / res) % res, cell / (res * res)];
+            let slab = (38..45).contains(&z);
+            let pillar = (20..24).contains(&x) && (20..24).contains(&y) && (10..16).contains(&z);
+            if !(slab || pillar) {
+                carved[cell >> 6] |= 1 << (cell & 63);
+            }
+        }
+        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+        let origin = [0.45, 0.4, -0.3];
+        let mut rays = Vec::new();
+        for row in 0..40 {
+            for col in 0..40 {
+                let d = [(col as f32 - 20.0) * 0.02, (row as f32 - 20.0) * 0.02, 1.0];
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let ray = LocalRay {
+                    origin,
+                    dir: d.map(|v| v / n),
+                };
+                if let Some((t_min, t_max)) = ray_interval(&ray, 0.0) {
+                    rays.push(RenderRay { ray, t_min, t_max });
+                }
+            }
+        }
+        let mut skipped = rays.clone();
+        skip_shared_empty_space(&grid, &mut skipped);
+        let mut moved = 0;
+        for (before, after) in rays.iter().zip(&skipped) {
+            assert!(after.t_min >= before.t_min && after.t_min <= after.t_max);
+            moved += usize::from(after.t_min > before.t_min + 0.1);
+            // Nothing occupied lies on the stretch the ray no longer walks.
+            for j in 0..1000 {
+                let t = before.t_min + (after.t_min - before.t_min) * j as f32 / 1000.0;
+                if let Some(cell) = grid.cell_of(before.ray.at(t)) {
+                    assert!(!grid.is_occupied_cell(cell), "occupied cell skipped at t = {t}");
+                }
+            }
+        }
+        assert!(moved > rays.len() / 2, "only {moved} of {} starts moved", rays.len());
+        // Rays from different origins are left alone.
+        let mut mixed = rays[..8].to_vec();
+        mixed[3].ray.origin[0] += 0.01;
+        let kept = mixed.clone();
+        skip_shared_empty_space(&grid, &mut mixed);
+        assert!(mixed.iter().zip(&kept).all(|(a, b)| a.t_min == b.t_min));
     }
 }

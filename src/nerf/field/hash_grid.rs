@@ -356,6 +356,9 @@ impl HashGrid {
             "HashGrid::encode: out has the wrong length"
         );
         let use_simd = allow_simd && fpl == 2 && simd::available();
+        if use_simd && self.encode_levels_simd(positions, levels.clone(), out) {
+            return;
+        }
         let mut block = Block::new();
         for (row, level) in self.levels[levels].iter().enumerate() {
             let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
@@ -385,6 +388,32 @@ impl HashGrid {
                 }
             }
         }
+    }
+
+    /// The 2-feature SIMD encode of all `levels`, the positions converted to
+    /// columns once for all of them (per thread, in a buffer kept between
+    /// calls). False, with `out` possibly part written, when a level does
+    /// not fit the kernel: the caller then encodes everything the scalar way.
+    fn encode_levels_simd(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32]) -> bool {
+        thread_local! {
+            static COLUMNS: std::cell::RefCell<[Vec<f32>; 3]> = const { std::cell::RefCell::new([Vec::new(), Vec::new(), Vec::new()]) };
+        }
+        let n = positions.len();
+        COLUMNS.with_borrow_mut(|columns| {
+            // Lanes past the end are 0 so the kernel's reads stay defined.
+            let padded = n.next_multiple_of(8);
+            for (a, column) in columns.iter_mut().enumerate() {
+                column.clear();
+                column.extend(positions.iter().map(|p| unit(p[a])));
+                column.resize(padded, 0.0);
+            }
+            let [x, y, z] = &*columns;
+            self.levels[levels].iter().enumerate().all(|(row, level)| {
+                let table = &self.params[level.param_offset..level.param_offset + level.entries * 2];
+                let (out0, out1) = out[2 * row * n..2 * (row + 1) * n].split_at_mut(n);
+                simd::encode_level_f2(level, table, [x, y, z], out0, out1)
+            })
+        })
     }
 
     /// Accumulates d(loss)/d(params) into `grad.values` from feature-major

@@ -135,10 +135,9 @@ fn march_impl<const BOUNDED: bool>(
 /// along the ray are walked (a few multiplications per step, where
 /// [`march`] pays a division and a libm call per cell), a cube of empty
 /// groups of [`GROUP`]^3 cells in one step, and
-/// marching resumes at the first step whose middle lies past the run, so at
-/// most one step of an occupied cell is passed over, as with [`march`].
-/// Landing points follow the current step size, so with growing steps they
-/// can differ slightly from [`march`]'s (rendering only; training keeps
+/// marching resumes past the run, within one smallest step of its end. With
+/// constant steps that is [`march`]'s lattice; with growing steps the
+/// landing points differ from [`march`]'s (rendering only; training keeps
 /// [`march`]).
 pub fn march_skipping(
     ray: &LocalRay,
@@ -174,9 +173,79 @@ pub fn march_skipping(
         // No need to walk past the end of the interval.
         let exit = empty_run_length(grid, p, ray.dir, idx, t1 - mid);
         let gap = exit.max(0.0) + 0.5 * dt;
-        t += ceil_positive(gap / dt).max(1.0) * dt;
+        // Land in whole smallest steps: at most one of them past the run's
+        // end, where a whole current step could pass over a surface.
+        let m = rule.min_step;
+        t += ceil_positive(gap / m).max(1.0) * m;
     }
     t
+}
+
+/// Most steps a cone takes through empty space.
+const MAX_CONE_STEPS: usize = 256;
+/// A cone stops once a step gains less than this many cells.
+const MIN_CONE_STEP_CELLS: f32 = 1.0;
+
+/// How far every ray of a bundle can go without entering a cell the grid
+/// keeps: the rays leave `origin` with unit directions within `spread`
+/// (Euclidean, `|d - axis|`) of the unit `axis`, and the result `t` (at least
+/// `t0`, at most `t1`) leaves each of them nothing to sample over [t0, t).
+/// It steps along the axis by the clearance of the empty cube of groups
+/// around it ([`OccupancyGrid::empty_group_reach`]): a point at distance `u`
+/// on a ray lies within `u * spread + (u - s)` of the axis point at `s`, so
+/// the step from `s` to `(s + clearance) / (1 + spread)` stays inside. Stops
+/// at an occupied group or the edge of the grid; conservative, never exact.
+pub fn cone_clear_until(grid: &OccupancyGrid, origin: [f32; 3], axis: [f32; 3], spread: f32, t0: f32, t1: f32) -> f32 {
+    if !(spread.is_finite() && spread >= 0.0 && t0.is_finite()) {
+        return t0;
+    }
+    let res = grid.resolution();
+    let r = res as f32;
+    let mut s = t0;
+    for _ in 0..MAX_CONE_STEPS {
+        if s >= t1 {
+            return t1;
+        }
+        let q: [f32; 3] = std::array::from_fn(|a| (origin[a] + s * axis[a]) * r);
+        if q.iter().any(|v| v.is_nan()) {
+            return s;
+        }
+        // Outside the grid, the nearest point of the grid is no farther from
+        // any cell than the point itself (projection onto a box), so its
+        // clearance holds there too.
+        let q = q.map(|v| v.clamp(0.0, r * (1.0 - f32::EPSILON)));
+        let group = q.map(|v| v as usize / GROUP);
+        let reach = grid.empty_group_reach(group);
+        if reach == 0 {
+            return s;
+        }
+        // Cells per side from q to the faces of the empty cube of groups
+        // within reach - 1; a face at or past the grid's edge bounds nothing.
+        let clearance_cells = (0..3)
+            .map(|a| {
+                let below = if group[a] + 1 > reach {
+                    q[a] - ((group[a] + 1 - reach) * GROUP) as f32
+                } else {
+                    f32::INFINITY
+                };
+                let hi = (group[a] + reach) * GROUP;
+                let above = if hi < res { hi as f32 - q[a] } else { f32::INFINITY };
+                below.min(above)
+            })
+            .fold(f32::INFINITY, f32::min);
+        // A hair less than the clearance, for the rounding of q.
+        let clearance = (clearance_cells - 1e-3) / r;
+        let next = (s + clearance) / (1.0 + spread);
+        if !(next > s) {
+            return s;
+        }
+        // Near a surface the steps shrink geometrically: the rays' own walks are cheaper there.
+        if next - s < MIN_CONE_STEP_CELLS / r {
+            return next.min(t1);
+        }
+        s = next;
+    }
+    s.min(t1)
 }
 
 #[inline(always)]
@@ -647,5 +716,111 @@ mod tests {
         let mut capped = Vec::new();
         march(&ray, 0.0, 1.0, &grid, &r, 0.0, 7, &mut capped);
         assert_eq!(capped.len(), 7);
+    }
+    /// Every ray of a fan, sampled densely over [t0, clear), stays in empty
+    /// cells; and on the shell grid the cone does skip most of the space in
+    /// front of the shell.
+    #[test]
+    fn a_cone_never_passes_an_occupied_cell_of_its_rays() {
+        let mut rng = crate::rng::Rng::new(31, 0);
+        let grid = shell_grid(&mut rng);
+        let r = grid.resolution() as f32;
+        let (mut cleared, mut total) = (0.0f32, 0.0f32);
+        for fan in 0..300 {
+            let origin = [rng.range(-0.3, 1.3) as f32, rng.range(-0.3, 1.3) as f32, -0.2];
+            let target = [rng.f32(), rng.f32(), rng.f32()];
+            let axis = unit(std::array::from_fn(|a| target[a] - origin[a]));
+            // Up to 0.05 rad apart: far wider than a pixel row's eight rays.
+            let width = 0.05 * rng.f32();
+            let side = unit([axis[1], -axis[0], 0.3]);
+            let dirs: Vec<[f32; 3]> = (0..8)
+                .map(|k| {
+                    unit(std::array::from_fn(|a| {
+                        axis[a] + width * (k as f32 / 7.0 - 0.5) * side[a]
+                    }))
+                })
+                .collect();
+            let sum = dirs
+                .iter()
+                .fold([0.0f32; 3], |acc, d| std::array::from_fn(|a| acc[a] + d[a]));
+            let centre = unit(sum);
+            let spread = dirs
+                .iter()
+                .map(|d| (0..3).map(|a| (d[a] - centre[a]).powi(2)).sum::<f32>().sqrt())
+                .fold(0.0f32, f32::max);
+            let Some((t0, t1)) = ray_interval(&LocalRay { origin, dir: centre }, 0.0) else {
+                continue;
+            };
+            let clear = cone_clear_until(&grid, origin, centre, spread, t0, t1);
+            assert!(clear >= t0 && clear <= t1, "fan {fan}: {clear} outside [{t0}, {t1}]");
+            cleared += clear - t0;
+            total += t1 - t0;
+            for (k, dir) in dirs.iter().enumerate() {
+                let ray = LocalRay { origin, dir: *dir };
+                for j in 0..2000 {
+                    let t = t0 + (clear - t0) * j as f32 / 2000.0;
+                    let p = ray.at(t);
+                    let q = p.map(|v| v * r);
+                    if q.iter().all(|&v| v >= 0.0 && v < r) {
+                        let cell = cell_index_of(q.map(|v| v as i32), grid.resolution());
+                        assert!(
+                            !grid.is_occupied_cell(cell),
+                            "fan {fan} ray {k}: occupied cell at t = {t} < {clear}"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(
+            cleared > 0.3 * total,
+            "the cones should clear much of the way: {cleared} of {total}"
+        );
+        // A NaN spread or start leaves the start where it was.
+        assert_eq!(
+            cone_clear_until(&grid, [0.5; 3], [0.0, 0.0, 1.0], f32::NAN, 0.1, 1.0),
+            0.1
+        );
+    }
+
+    fn unit(v: [f32; 3]) -> [f32; 3] {
+        let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|x| x / n)
+    }
+    /// With steps growing along the ray, a jump over empty space still lands
+    /// within one smallest step past the run's end: a whole current step
+    /// could pass over the surface at the front of the occupied cells.
+    #[test]
+    fn a_skip_lands_within_one_smallest_step_of_the_occupied_cells() {
+        let res: usize = 64;
+        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+        for cell in 0..res * res * res {
+            // Occupied: 0.5 <= z < 0.6.
+            if !(32..38).contains(&(cell / (res * res))) {
+                carved[cell >> 6] |= 1 << (cell & 63);
+            }
+        }
+        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+        let rule = StepRule {
+            min_step: 1.0 / 1024.0,
+            max_step: 1.0 / 16.0,
+            cone: 0.05,
+        };
+        for k in 0..50 {
+            let ray = LocalRay {
+                origin: [0.3 + 0.004 * k as f32, 0.5, -0.5 + 0.002 * k as f32],
+                dir: [0.0, 0.0, 1.0],
+            };
+            let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
+            let mut out = Vec::new();
+            march_skipping(&ray, t0, t1, &grid, &rule, 1, &mut out);
+            let front = 0.5 - ray.origin[2];
+            // Steps there are about 0.05, 50 smallest steps.
+            assert!(rule.at(front) > 20.0 * rule.min_step);
+            let t = out[0].t;
+            assert!(
+                t >= front - 1e-5 && t < front + rule.min_step + 1e-5,
+                "ray {k}: first sample at {t}, front at {front}"
+            );
+        }
     }
 }

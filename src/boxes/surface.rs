@@ -38,6 +38,8 @@ struct State {
 pub struct SurfaceWorkspace {
     field: FieldWorkspace,
     active: Vec<usize>,
+    /// The rays of `active` that go on to the next round.
+    still_active: Vec<usize>,
     state: Vec<State>,
     segments: Vec<Segment>,
     owner: Vec<(usize, usize, usize)>,
@@ -151,7 +153,7 @@ pub fn first_crossings(
                 .map(|(&sigma, seg)| -sanitize_tau(sigma * seg.dt)),
         );
         exp_m1(&mut ws.absorbed);
-        let mut keep = Vec::with_capacity(ws.owner.len());
+        ws.still_active.clear();
         for &(r, first, count) in &ws.owner {
             let st = &mut ws.state[r];
             let mut done = count == 0;
@@ -171,10 +173,10 @@ pub fn first_crossings(
                 || st.transmittance < TERMINATION_TRANSMITTANCE
                 || st.samples as usize >= max_samples;
             if !done {
-                keep.push(r);
+                ws.still_active.push(r);
             }
         }
-        ws.active = keep;
+        std::mem::swap(&mut ws.active, &mut ws.still_active);
     }
     evaluated
 }

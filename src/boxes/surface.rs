@@ -354,18 +354,12 @@ mod tests {
     /// cones moves most starts forward, past no occupied cell.
     #[test]
     fn shared_cones_skip_empty_space_and_no_occupied_cell() {
-        let res: usize = 64;
         // Occupied: a slab 0.6 <= z < 0.7 and one pillar nearer the camera.
-        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
-        for cell in 0..res * res * res {
-            let [x, y, z] = [cell % res, (cell / res) % res, cell / (res * res)];
+        let grid = OccupancyGrid::keeping(64, |[x, y, z]| {
             let slab = (38..45).contains(&z);
             let pillar = (20..24).contains(&x) && (20..24).contains(&y) && (10..16).contains(&z);
-            if !(slab || pillar) {
-                carved[cell >> 6] |= 1 << (cell & 63);
-            }
-        }
-        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+            slab || pillar
+        });
         let origin = [0.45, 0.4, -0.3];
         let mut rays = Vec::new();
         for row in 0..40 {

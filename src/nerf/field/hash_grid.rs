@@ -25,6 +25,7 @@ pub use grad::GridGrad;
 use crate::nerf::field::simd::grid as simd;
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
 use std::ops::Range;
 
 /// Instant-NGP hash primes for x, y, z.
@@ -267,10 +268,6 @@ impl Block {
             (self.x[i], self.y[i], self.z[i]) = (0.0, 0.0, 0.0);
         }
     }
-
-    fn padded_len(&self) -> usize {
-        self.len.next_multiple_of(8)
-    }
 }
 
 impl HashGrid {
@@ -356,64 +353,42 @@ impl HashGrid {
             "HashGrid::encode: out has the wrong length"
         );
         let use_simd = allow_simd && fpl == 2 && simd::available();
-        if use_simd && self.encode_levels_simd(positions, levels.clone(), out) {
-            return;
+        thread_local! {
+            /// Positions as columns for the SIMD kernel, kept between calls.
+            static COLUMNS: RefCell<[Vec<f32>; 3]> = const { RefCell::new([Vec::new(), Vec::new(), Vec::new()]) };
         }
-        let mut block = Block::new();
-        for (row, level) in self.levels[levels].iter().enumerate() {
-            let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
-            for start in (0..n).step_by(BLOCK) {
-                block.load(&positions[start..]);
-                let len = block.len;
-                let first = row * fpl * n + start;
+        COLUMNS.with_borrow_mut(|columns| {
+            if use_simd {
+                // Converted once for all levels; lanes past the end are 0 so the kernel's reads stay defined.
+                let padded = n.next_multiple_of(8);
+                for (a, column) in columns.iter_mut().enumerate() {
+                    column.clear();
+                    column.extend(positions.iter().map(|p| unit(p[a])));
+                    column.resize(padded, 0.0);
+                }
+            }
+            let mut block = Block::new();
+            for (row, level) in self.levels[levels].iter().enumerate() {
+                let table = &self.params[level.param_offset..level.param_offset + level.entries * fpl];
                 if use_simd {
-                    let (head, tail) = out.split_at_mut(first + n);
-                    let pad = block.padded_len();
-                    let done = simd::encode_level_f2(
-                        level,
-                        table,
-                        [&block.x[..pad], &block.y[..pad], &block.z[..pad]],
-                        &mut head[first..first + len],
-                        &mut tail[..len],
-                    );
-                    if done {
+                    let [x, y, z] = &*columns;
+                    let (out0, out1) = out[2 * row * n..2 * (row + 1) * n].split_at_mut(n);
+                    if simd::encode_level_f2(level, table, [x, y, z], out0, out1) {
                         continue;
                     }
                 }
-                match fpl {
-                    1 => encode_level_scalar::<1>(level, table, &block, out, first, n),
-                    2 => encode_level_scalar::<2>(level, table, &block, out, first, n),
-                    4 => encode_level_scalar::<4>(level, table, &block, out, first, n),
-                    _ => encode_level_scalar::<8>(level, table, &block, out, first, n),
+                for start in (0..n).step_by(BLOCK) {
+                    block.load(&positions[start..]);
+                    let first = row * fpl * n + start;
+                    match fpl {
+                        1 => encode_level_scalar::<1>(level, table, &block, out, first, n),
+                        2 => encode_level_scalar::<2>(level, table, &block, out, first, n),
+                        4 => encode_level_scalar::<4>(level, table, &block, out, first, n),
+                        _ => encode_level_scalar::<8>(level, table, &block, out, first, n),
+                    }
                 }
             }
-        }
-    }
-
-    /// The 2-feature SIMD encode of all `levels`, the positions converted to
-    /// columns once for all of them (per thread, in a buffer kept between
-    /// calls). False, with `out` possibly part written, when a level does
-    /// not fit the kernel: the caller then encodes everything the scalar way.
-    fn encode_levels_simd(&self, positions: &[[f32; 3]], levels: Range<usize>, out: &mut [f32]) -> bool {
-        thread_local! {
-            static COLUMNS: std::cell::RefCell<[Vec<f32>; 3]> = const { std::cell::RefCell::new([Vec::new(), Vec::new(), Vec::new()]) };
-        }
-        let n = positions.len();
-        COLUMNS.with_borrow_mut(|columns| {
-            // Lanes past the end are 0 so the kernel's reads stay defined.
-            let padded = n.next_multiple_of(8);
-            for (a, column) in columns.iter_mut().enumerate() {
-                column.clear();
-                column.extend(positions.iter().map(|p| unit(p[a])));
-                column.resize(padded, 0.0);
-            }
-            let [x, y, z] = &*columns;
-            self.levels[levels].iter().enumerate().all(|(row, level)| {
-                let table = &self.params[level.param_offset..level.param_offset + level.entries * 2];
-                let (out0, out1) = out[2 * row * n..2 * (row + 1) * n].split_at_mut(n);
-                simd::encode_level_f2(level, table, [x, y, z], out0, out1)
-            })
-        })
+        });
     }
 
     /// Accumulates d(loss)/d(params) into `grad.values` from feature-major

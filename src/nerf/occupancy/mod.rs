@@ -535,6 +535,19 @@ impl OccupancyGrid {
         Some(grid)
     }
 
+    /// A grid keeping exactly the cells `(x, y, z)` for which `keep` holds
+    /// (density 1 there), for tests.
+    #[cfg(test)]
+    pub(crate) fn keeping(res: usize, keep: impl Fn([usize; 3]) -> bool) -> Self {
+        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
+        for cell in 0..res * res * res {
+            if !keep([cell % res, (cell / res) % res, cell / (res * res)]) {
+                carved[cell >> 6] |= 1 << (cell & 63);
+            }
+        }
+        OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).expect("a valid test grid")
+    }
+
     /// Rebuild a grid from saved density estimates and carved mask.
     pub fn from_saved(res: usize, density: Vec<f32>, carved: Vec<u64>) -> Option<Self> {
         let mut grid = OccupancyGrid::full(res);

@@ -786,20 +786,14 @@ mod tests {
         let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
         v.map(|x| x / n)
     }
+
     /// With steps growing along the ray, a jump over empty space still lands
     /// within one smallest step past the run's end: a whole current step
     /// could pass over the surface at the front of the occupied cells.
     #[test]
     fn a_skip_lands_within_one_smallest_step_of_the_occupied_cells() {
-        let res: usize = 64;
-        let mut carved = vec![0u64; (res * res * res).div_ceil(64)];
-        for cell in 0..res * res * res {
-            // Occupied: 0.5 <= z < 0.6.
-            if !(32..38).contains(&(cell / (res * res))) {
-                carved[cell >> 6] |= 1 << (cell & 63);
-            }
-        }
-        let grid = OccupancyGrid::from_saved(res, vec![1.0; res * res * res], carved).unwrap();
+        // Occupied: 0.5 <= z < 0.6.
+        let grid = OccupancyGrid::keeping(64, |[_, _, z]| (32..38).contains(&z));
         let rule = StepRule {
             min_step: 1.0 / 1024.0,
             max_step: 1.0 / 16.0,

@@ -1,8 +1,9 @@
 //! Full-frame rendering speed of a fitted model on its own scan's cameras,
 //! for each occupancy grid a renderer can march: the model's own, the grid
 //! re-estimated from the field at the same resolution (`lattice_pruned`)
-//! and that grid refined to twice the resolution (`refined`, what `label
-//! --depth` and `synth` use). For each: set-up time, then per frame the
+//! refined to twice the resolution (`refined`) and refined again at the
+//! children's corners (`rendering_grid`, what `label --depth` and `synth`
+//! use). For each: set-up time, then per frame the
 //! depth-only surface search of `label --depth` (first crossing of opacity
 //! 0.5) and the colour + depth render of `synth`, with samples per ray and
 //! colour PSNR against the frames' images, and
@@ -13,7 +14,7 @@
 use nerflabel::boxes::surface::{first_crossings, CrossingOptions, SurfaceWorkspace};
 use nerflabel::evaluate::read_gray16;
 use nerflabel::nerf::model_file::Model;
-use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined};
+use nerflabel::nerf::occupancy::from_field::{lattice_pruned, refined, rendering_grid};
 use nerflabel::nerf::occupancy::OccupancyGrid;
 use nerflabel::nerf::render::rays::{render_image, RayOutput, RenderRay, PACKET};
 use nerflabel::nerf::render::view::ViewRenderer;
@@ -59,7 +60,7 @@ fn main() -> Result<(), Error> {
         1.0 / rule.cone.max(1e-9),
     );
 
-    let grids: [(&str, GridBuilder); 3] = [
+    let grids: [(&str, GridBuilder); 4] = [
         ("model grid", Box::new(|| model.occupancy.clone())),
         (
             "lattice-pruned",
@@ -68,6 +69,10 @@ fn main() -> Result<(), Error> {
         (
             "pruned + refined",
             Box::new(|| refined(&model.field, &lattice_pruned(&model.field, &model.occupancy))),
+        ),
+        (
+            "rendering grid (refined again at corners)",
+            Box::new(|| rendering_grid(&model.field, &model.occupancy)),
         ),
     ];
     let mut previous_depths: Option<Vec<Vec<f32>>> = None;

@@ -71,11 +71,29 @@ const REFINE_CHUNK: usize = 256;
 /// few children are dense (nothing trained).
 pub fn refined(field: &Field, grid: &OccupancyGrid) -> OccupancyGrid {
     let fine = 2 * grid.resolution();
-    refined_at(field, grid, RENDER_MIN_CELL_OPTICAL_DEPTH * fine as f32)
+    refined_at(field, grid, RENDER_MIN_CELL_OPTICAL_DEPTH * fine as f32, LATTICE_STEPS)
 }
 
-/// [`refined`] with a given density threshold.
-fn refined_at(field: &Field, grid: &OccupancyGrid, min_density: f32) -> OccupancyGrid {
+/// [`refined`] with a lattice of one step per child edge: a child is kept
+/// when the density at one of its corners is dense. After [`refined`] these
+/// corners lie as far apart as the lattice that level sampled, so the
+/// field is tested no more coarsely, for a fifth of the density evaluations.
+pub fn refined_at_corners(field: &Field, grid: &OccupancyGrid) -> OccupancyGrid {
+    let fine = 2 * grid.resolution();
+    refined_at(field, grid, RENDER_MIN_CELL_OPTICAL_DEPTH * fine as f32, 1)
+}
+
+/// The grid that renders many views of one model: [`lattice_pruned`], then
+/// [`refined`] and [`refined_at_corners`] (four times the model grid's
+/// resolution where occupied space meets empty space, up to
+/// [`MAX_RESOLUTION`]). Rays then land nearer their surface: on the
+/// realistic tabletop 9.5 -> 6.6 samples per ray of the surface search.
+pub fn rendering_grid(field: &Field, model_grid: &OccupancyGrid) -> OccupancyGrid {
+    refined_at_corners(field, &refined(field, &lattice_pruned(field, model_grid)))
+}
+
+/// [`refined`] with a given density threshold and lattice steps per child edge.
+fn refined_at(field: &Field, grid: &OccupancyGrid, min_density: f32, steps: usize) -> OccupancyGrid {
     let res = grid.resolution();
     let fine = 2 * res;
     if fine > MAX_RESOLUTION {
@@ -85,10 +103,9 @@ fn refined_at(field: &Field, grid: &OccupancyGrid, min_density: f32) -> Occupanc
     let boundary: Vec<usize> = occupied.iter().copied().filter(|&c| on_boundary(grid, c)).collect();
     let boundary_children: Vec<u8> = boundary
         .par_chunks(REFINE_CHUNK)
-        .map_init(
-            || (FieldWorkspace::default(), Vec::new(), Vec::new()),
-            |(ws, positions, sigma), cells| dense_children(field, res, cells, min_density, ws, positions, sigma),
-        )
+        .map_init(DensityScratch::default, |scratch, cells| {
+            dense_children(field, res, cells, min_density, steps, scratch)
+        })
         .flatten_iter()
         .collect();
     // Too few dense children on the boundary: nothing trained.
@@ -116,6 +133,14 @@ fn refined_at(field: &Field, grid: &OccupancyGrid, min_density: f32) -> Occupanc
     OccupancyGrid::from_occupied_bits(fine, bits).unwrap_or_else(|| grid.clone())
 }
 
+/// Buffers of one worker's density evaluations, kept between work items.
+#[derive(Default)]
+struct DensityScratch {
+    ws: FieldWorkspace,
+    positions: Vec<[f32; 3]>,
+    sigma: Vec<f32>,
+}
+
 /// Whether an occupied cell has an empty face neighbour (outside the grid counts as empty).
 fn on_boundary(grid: &OccupancyGrid, cell: usize) -> bool {
     let res = grid.resolution();
@@ -133,22 +158,23 @@ fn on_boundary(grid: &OccupancyGrid, cell: usize) -> bool {
 }
 
 /// For each cell of `cells` (a grid of `res` per axis), a bit per child
-/// (x + 2 y + 4 z) set when the child is dense at a point of its lattice.
+/// (x + 2 y + 4 z) set when the child is dense at a point of its lattice
+/// (`steps` per child edge).
 fn dense_children(
     field: &Field,
     res: usize,
     cells: &[usize],
     min_density: f32,
-    ws: &mut FieldWorkspace,
-    positions: &mut Vec<[f32; 3]>,
-    sigma: &mut Vec<f32>,
+    steps: usize,
+    scratch: &mut DensityScratch,
 ) -> Vec<u8> {
+    let DensityScratch { ws, positions, sigma } = scratch;
     // Lattice points per cell edge, shared by its two children at the middle.
-    let k = 2 * LATTICE_STEPS + 1;
-    let inv = 1.0 / (2 * LATTICE_STEPS * res) as f32;
+    let k = 2 * steps + 1;
+    let inv = 1.0 / (2 * steps * res) as f32;
     positions.clear();
     for &cell in cells {
-        let base = [cell % res, (cell / res) % res, cell / (res * res)].map(|i| i * 2 * LATTICE_STEPS);
+        let base = [cell % res, (cell / res) % res, cell / (res * res)].map(|i| i * 2 * steps);
         positions.extend((0..k * k * k).map(|i| {
             let o = [i % k, (i / k) % k, i / (k * k)];
             std::array::from_fn(|a| (base[a] + o[a]) as f32 * inv)
@@ -162,12 +188,12 @@ fn dense_children(
         .map(|lattice| {
             let mut mask = 0u8;
             for child in 0..8 {
-                let lo = [child & 1, (child >> 1) & 1, child >> 2].map(|h| h * LATTICE_STEPS);
-                let dense = (0..=LATTICE_STEPS).any(|z| {
-                    (0..=LATTICE_STEPS).any(|y| {
+                let lo = [child & 1, (child >> 1) & 1, child >> 2].map(|h| h * steps);
+                let dense = (0..=steps).any(|z| {
+                    (0..=steps).any(|y| {
                         let row = ((lo[2] + z) * k + lo[1] + y) * k + lo[0];
                         // Written so NaN is not dense.
-                        lattice[row..=row + LATTICE_STEPS].iter().any(|&s| s >= min_density)
+                        lattice[row..=row + steps].iter().any(|&s| s >= min_density)
                     })
                 });
                 mask |= u8::from(dense) << child;
@@ -346,39 +372,45 @@ mod tests {
             carved[c >> 6] |= 1 << (c & 63);
         }
         let grid = OccupancyGrid::from_saved(res, vec![1.0; cells], carved).unwrap();
-        // Reference: each fine cell's peak over its own lattice points.
-        let fine = 2 * res;
-        let peak = cell_peaks(&field, fine, LATTICE_STEPS, &|_| true);
-        let mut sorted = peak.clone();
-        sorted.sort_by(f32::total_cmp);
-        let threshold = sorted[sorted.len() / 2];
-        let refined = refined_at(&field, &grid, threshold);
-        assert_eq!(refined.resolution(), fine);
-        let (mut kept, mut dropped, mut inside) = (0, 0, 0);
-        for (c, &p) in peak.iter().enumerate() {
-            let (x, y, z) = (c % fine, (c / fine) % fine, c / (fine * fine));
-            let parent = ((z / 2) * res + y / 2) * res + x / 2;
-            inside += usize::from(grid.is_occupied_cell(parent) && !on_boundary(&grid, parent) && p < threshold);
-            // Batches of other sizes round the MLP differently in the last bits.
-            if (p - threshold).abs() <= 1e-4 * threshold.abs().max(1.0) {
-                continue;
-            }
-            let keep = grid.is_occupied_cell(parent) && (p >= threshold || !on_boundary(&grid, parent));
-            assert_eq!(refined.is_occupied_cell(c), keep, "fine cell {c} peak {p}");
-            if grid.is_occupied_cell(parent) {
-                if keep {
-                    kept += 1;
-                } else {
-                    dropped += 1;
+        for steps in [LATTICE_STEPS, 1] {
+            // Reference: each fine cell's peak over its own lattice points.
+            let fine = 2 * res;
+            let peak = cell_peaks(&field, fine, steps, &|_| true);
+            let mut sorted = peak.clone();
+            sorted.sort_by(f32::total_cmp);
+            let threshold = sorted[sorted.len() / 2];
+            let refined = refined_at(&field, &grid, threshold, steps);
+            assert_eq!(refined.resolution(), fine);
+            let (mut kept, mut dropped, mut inside) = (0, 0, 0);
+            for (c, &p) in peak.iter().enumerate() {
+                let (x, y, z) = (c % fine, (c / fine) % fine, c / (fine * fine));
+                let parent = ((z / 2) * res + y / 2) * res + x / 2;
+                inside += usize::from(grid.is_occupied_cell(parent) && !on_boundary(&grid, parent) && p < threshold);
+                // Batches of other sizes round the MLP differently in the last bits.
+                if (p - threshold).abs() <= 1e-4 * threshold.abs().max(1.0) {
+                    continue;
+                }
+                let keep = grid.is_occupied_cell(parent) && (p >= threshold || !on_boundary(&grid, parent));
+                assert_eq!(
+                    refined.is_occupied_cell(c),
+                    keep,
+                    "steps {steps}: fine cell {c} peak {p}"
+                );
+                if grid.is_occupied_cell(parent) {
+                    if keep {
+                        kept += 1;
+                    } else {
+                        dropped += 1;
+                    }
                 }
             }
-        }
-        assert!(
+            assert!(
             kept > 300 && dropped > 300 && inside > 50,
-            "every kind of child occurs: {kept} kept, {dropped} dropped, {inside} kept inside the occupied space"
+            "steps {steps}: every kind of child occurs: {kept} kept, {dropped} dropped, {inside} kept inside the occupied space"
         );
+        }
         // Nothing dense: the grid is kept as it was given.
-        let unchanged = refined_at(&field, &grid, f32::INFINITY);
+        let unchanged = refined_at(&field, &grid, f32::INFINITY, LATTICE_STEPS);
         assert_eq!(unchanged.bits(), grid.bits());
     }
 

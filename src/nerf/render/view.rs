@@ -9,7 +9,7 @@ use crate::nerf::appearance::{apply, Affine, IDENTITY};
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
-use crate::nerf::occupancy::from_field::{lattice_pruned, refined};
+use crate::nerf::occupancy::from_field::rendering_grid;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
 use crate::poses::{GeometryError, SceneTransform};
@@ -56,12 +56,11 @@ impl<'a> ViewRenderer<'a> {
         })
     }
 
-    /// Renderer for `model` through a grid re-estimated from the field:
-    /// [`lattice_pruned`], then [`refined`] to twice the resolution (worth it
-    /// for many views: the set-up costs about as much as rendering a few
-    /// views with the model's own grid).
+    /// Renderer for `model` through a grid re-estimated from the field
+    /// ([`rendering_grid`]: worth it for many views, the set-up costs about
+    /// as much as rendering a few views with the model's own grid).
     pub fn pruned(model: &'a Model) -> Result<Self, GeometryError> {
-        let grid = refined(&model.field, &lattice_pruned(&model.field, &model.occupancy));
+        let grid = rendering_grid(&model.field, &model.occupancy);
         Self::with_grid(model, grid)
     }
 

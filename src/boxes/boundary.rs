@@ -89,15 +89,15 @@ impl NearestColours {
 /// First stage: each pixel within [`MEAN_BAND`] pixels of a label change takes
 /// the label whose sure pixels within [`MEAN_WINDOW`] pixels have the nearest
 /// mean colour, when clearly nearer than its own label's mean.
-fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+fn snap_to_mean_colour(mask: &[u16], colours: &Colours) -> Vec<u16> {
+    let (w, h) = (colours.width, colours.height);
     let band = distance_to_change(mask, w, h, MEAN_BAND + 1);
     let mut out = mask.to_vec();
-    let pixel = |i: usize| colour_at(rgb, i);
+    let pixel = |i: usize| colours.rgb[i];
     // Mean colour of each label's sure pixels in the window (at most a few labels).
     let mut means: Vec<(u16, [f32; 3], u32)> = Vec::new();
     for i in 0..w * h {
-        if band[i] > MEAN_BAND {
+        if usize::from(band[i]) > MEAN_BAND {
             continue;
         }
         let (x, y) = (i % w, i / w);
@@ -134,32 +134,62 @@ fn snap_to_mean_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
 pub fn snap_to_colour(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
     assert_eq!(mask.len(), w * h, "mask and image sizes differ");
-    let mut snapped = if edge_width(rgb) > SOFT_EDGE_PX {
-        snap_to_mean_colour(mask, rgb)
+    let colours = Colours::of(rgb);
+    let snapped = if edge_width(rgb) > SOFT_EDGE_PX {
+        snap_to_mean_colour(mask, &colours)
     } else {
         mask.to_vec()
     };
+    nearest_colour_passes(snapped, &colours)
+}
+
+/// Stage 2 repeated until nothing changes, at most [`NEAREST_PASSES`] times.
+/// A pass after the first decides again only near what the pass before
+/// changed: elsewhere its inputs, and so its decisions, are the same.
+fn nearest_colour_passes(mut mask: Vec<u16>, colours: &Colours) -> Vec<u16> {
+    let (w, h) = (colours.width, colours.height);
+    let mut revisit: Option<Vec<bool>> = None;
     for _ in 0..NEAREST_PASSES {
-        let next = snap_to_nearest_colours(&snapped, rgb);
-        if next == snapped {
+        let next = snap_to_nearest_colours(&mask, colours, revisit.as_deref());
+        let changed: Vec<usize> = (0..w * h).filter(|&i| next[i] != mask[i]).collect();
+        if changed.is_empty() {
             break;
         }
-        snapped = next;
+        revisit = Some(near_any(&changed, w, h, DECISION_REACH));
+        mask = next;
     }
-    snapped
+    mask
+}
+
+/// How far (Chebyshev, pixels) a stage-2 decision looks at the mask: its
+/// window, plus how far a window pixel's distance to a change looks.
+const DECISION_REACH: usize = WINDOW + BAND + 2;
+
+/// Pixels within `reach` (Chebyshev) of any of `pixels`.
+fn near_any(pixels: &[usize], w: usize, h: usize, reach: usize) -> Vec<bool> {
+    let mut near = vec![false; w * h];
+    for &i in pixels {
+        let (x, y) = (i % w, i / w);
+        let columns = x.saturating_sub(reach)..(x + reach + 1).min(w);
+        for ny in y.saturating_sub(reach)..(y + reach + 1).min(h) {
+            near[ny * w + columns.start..ny * w + columns.end].fill(true);
+        }
+    }
+    near
 }
 
 /// Second stage: each pixel next to a label change takes the label whose
 /// sure pixels within [`WINDOW`] pixels hold the colours nearest its own,
-/// when clearly nearer than its own label's.
-fn snap_to_nearest_colours(mask: &[u16], rgb: &RgbImage) -> Vec<u16> {
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+/// when clearly nearer than its own label's. With `only`, pixels outside it
+/// keep their label.
+fn snap_to_nearest_colours(mask: &[u16], colours: &Colours, only: Option<&[bool]>) -> Vec<u16> {
+    let (w, h) = (colours.width, colours.height);
     let band = distance_to_change(mask, w, h, BAND + 1);
     let mut out = mask.to_vec();
-    let pixel = |i: usize| colour_at(rgb, i);
+    let pixel = |i: usize| colours.rgb[i];
     let mut nearest: Vec<NearestColours> = Vec::new();
     for i in 0..w * h {
-        if band[i] > BAND {
+        if usize::from(band[i]) > BAND || only.is_some_and(|only| !only[i]) {
             continue;
         }
         let (x, y, c) = (i % w, i / w, pixel(i));
@@ -247,10 +277,21 @@ pub fn edge_width(rgb: &RgbImage) -> f32 {
     *widths.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
-/// RGB of pixel `i` (row-major index) of `rgb`, as floats.
-fn colour_at(rgb: &RgbImage, i: usize) -> [f32; 3] {
-    let w = rgb.width() as usize;
-    rgb.get_pixel((i % w) as u32, (i / w) as u32).0.map(f32::from)
+/// A frame's colours as floats, row-major, converted once for every pass.
+struct Colours {
+    width: usize,
+    height: usize,
+    rgb: Vec<[f32; 3]>,
+}
+
+impl Colours {
+    fn of(image: &RgbImage) -> Colours {
+        Colours {
+            width: image.width() as usize,
+            height: image.height() as usize,
+            rgb: image.pixels().map(|p| p.0.map(f32::from)).collect(),
+        }
+    }
 }
 
 /// Indices of the pixels within `window` (Chebyshev) of (x, y) that are
@@ -261,19 +302,21 @@ fn sure_pixels_around(
     y: usize,
     w: usize,
     h: usize,
-    band: &[usize],
+    band: &[u8],
     band_px: usize,
     window: usize,
 ) -> impl Iterator<Item = usize> + '_ {
+    let columns = x.saturating_sub(window)..(x + window + 1).min(w);
     (y.saturating_sub(window)..(y + window + 1).min(h))
-        .flat_map(move |wy| (x.saturating_sub(window)..(x + window + 1).min(w)).map(move |wx| wy * w + wx))
-        .filter(move |&j| band[j] > band_px)
+        .flat_map(move |wy| wy * w + columns.start..wy * w + columns.end)
+        .filter(move |&j| usize::from(band[j]) > band_px)
 }
 
 /// Chebyshev distance in pixels from each pixel to the nearest pixel with a
 /// 4-neighbour of another label (0 on such pixels), capped at `cap`.
-fn distance_to_change(mask: &[u16], w: usize, h: usize, cap: usize) -> Vec<usize> {
-    let mut dist = vec![cap; w * h];
+fn distance_to_change(mask: &[u16], w: usize, h: usize, cap: usize) -> Vec<u8> {
+    let cap = cap.min(usize::from(u8::MAX));
+    let mut dist = vec![cap as u8; w * h];
     for y in 0..h {
         for x in 0..w {
             let i = y * w + x;
@@ -284,7 +327,7 @@ fn distance_to_change(mask: &[u16], w: usize, h: usize, cap: usize) -> Vec<usize
             if differs {
                 for ny in y.saturating_sub(cap)..(y + cap + 1).min(h) {
                     for nx in x.saturating_sub(cap)..(x + cap + 1).min(w) {
-                        let d = (nx.abs_diff(x)).max(ny.abs_diff(y));
+                        let d = (nx.abs_diff(x)).max(ny.abs_diff(y)) as u8;
                         let j = ny * w + nx;
                         dist[j] = dist[j].min(d);
                     }
@@ -317,6 +360,49 @@ mod tests {
             sorted.truncate(NEAREST);
             assert_eq!(&nearest.distances[..nearest.count], &sorted[..], "offered {offered:?}");
         }
+    }
+
+    /// Passes after the first decide again only near the pixels the pass
+    /// before changed; the result is that of deciding every pixel in every
+    /// pass. Noisy discs on a noisy floor, each mask grown by a few pixels
+    /// so that its contour walks over several passes.
+    #[test]
+    fn passes_that_revisit_only_what_changed_match_passes_over_every_pixel() {
+        let mut rng = crate::rng::Rng::new(11, 0);
+        let mut walked = 0;
+        for _ in 0..24 {
+            let (w, h) = (64u32, 48u32);
+            let (cx, cy, r) = (20.0 + 24.0 * rng.f32(), 16.0 + 16.0 * rng.f32(), 6.0 + 8.0 * rng.f32());
+            let grow = 1.0 + 4.0 * rng.f32();
+            let [object, floor] = [0; 2].map(|_| [0; 3].map(|_| 40.0 + 170.0 * rng.f32()));
+            let inside = |x: u32, y: u32, by: f32| (x as f32 - cx).hypot(y as f32 - cy) < r + by;
+            let noise: Vec<f32> = (0..w * h * 3).map(|_| 24.0 * (rng.f32() - 0.5)).collect();
+            let rgb = RgbImage::from_fn(w, h, |x, y| {
+                let base = if inside(x, y, 0.0) { object } else { floor };
+                let i = ((y * w + x) * 3) as usize;
+                image::Rgb(std::array::from_fn(|k| {
+                    (base[k] + noise[i + k]).clamp(0.0, 255.0) as u8
+                }))
+            });
+            let mask: Vec<u16> = (0..w * h).map(|i| u16::from(inside(i % w, i / w, grow))).collect();
+            let colours = Colours::of(&rgb);
+            let mut every = mask.clone();
+            let mut passes = 0;
+            for _ in 0..NEAREST_PASSES {
+                let next = snap_to_nearest_colours(&every, &colours, None);
+                if next == every {
+                    break;
+                }
+                every = next;
+                passes += 1;
+            }
+            walked += usize::from(passes >= 2);
+            assert_eq!(nearest_colour_passes(mask, &colours), every);
+        }
+        assert!(
+            walked >= 8,
+            "only {walked} cases changed the mask in more than one pass"
+        );
     }
 
     /// A bright square on a dark floor, the mask shifted by a pixel: the
@@ -437,7 +523,7 @@ mod tests {
             .map(|i| u16::from(inside(i % w, i / w) || rim(i % w, i / w)))
             .collect();
         let wrong = |m: &[u16]| m.iter().zip(&truth).filter(|(a, b)| a != b).count();
-        let once = wrong(&snap_to_nearest_colours(&grown, &rgb));
+        let once = wrong(&snap_to_nearest_colours(&grown, &Colours::of(&rgb), None));
         let repeated = wrong(&snap_to_colour(&grown, &rgb));
         assert!(wrong(&grown) > 60);
         assert!(once > 0, "one pass already trims the bulge");

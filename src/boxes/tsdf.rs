@@ -189,13 +189,21 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
         .par_chunks_mut(slab)
         .zip(block.weight.par_chunks_mut(slab))
         .enumerate()
-        .for_each(|(k, (tsdf, weight))| {
+        .for_each_init(Vec::new, |row_starts, (k, (tsdf, weight))| {
             for j in 0..dims[1] {
+                // Camera coordinates are affine along a row of voxels: each
+                // view's start and step, instead of a rotation per voxel.
+                let p0 = origin + Vector3::new(0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
+                row_starts.clear();
+                row_starts.extend(
+                    views
+                        .iter()
+                        .map(|(world_to_cam, eye, _)| (world_to_cam * (p0 - eye), world_to_cam * Vector3::x() * voxel)),
+                );
                 for i in 0..dims[0] {
-                    let p = origin + Vector3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
                     let n = j * dims[0] + i;
-                    for (world_to_cam, eye, frame) in &views {
-                        let c = world_to_cam * (p - eye);
+                    for ((start, step), (_, _, frame)) in row_starts.iter().zip(&views) {
+                        let c = start + step * i as f64;
                         if c.z <= 1e-6 {
                             continue;
                         }
@@ -237,14 +245,24 @@ mod tests {
         IsometryMatrix3::from_parts(Translation3::from(eye), Rotation3::from_matrix_unchecked(r))
     }
 
-    #[test]
-    fn noisy_views_of_a_floor_fuse_to_the_floor() {
+    /// An 80x60 frame with depth `metres` (row-major) seen from `pose`.
+    fn view(i: u64, pose: IsometryMatrix3<f64>, metres: Vec<f32>) -> Frame {
         let k = Intrinsics {
             fx: 60.0,
             fy: 60.0,
             cx: 39.5,
             cy: 29.5,
         };
+        let depth = DepthMap {
+            width: 80,
+            height: 60,
+            metres,
+        };
+        Frame::new(i, format!("{i:06}"), image::RgbImage::new(80, 60), Some(depth), pose, k)
+    }
+
+    #[test]
+    fn noisy_views_of_a_floor_fuse_to_the_floor() {
         let mut rng = Rng::new(1, 0);
         let sigma = 0.004;
         let frames: Vec<Frame> = (0..12)
@@ -252,19 +270,7 @@ mod tests {
                 let eye = Vector3::new(0.02 * (i % 4) as f64, 0.02 * (i / 4) as f64, 1.0);
                 // Looking straight down at the floor z = 0: every pixel's z-depth is the height.
                 let metres = (0..80 * 60).map(|_| (1.0 + sigma * rng.normal()) as f32).collect();
-                let depth = DepthMap {
-                    width: 80,
-                    height: 60,
-                    metres,
-                };
-                Frame::new(
-                    i,
-                    format!("{i:06}"),
-                    image::RgbImage::new(80, 60),
-                    Some(depth),
-                    looking_down(eye),
-                    k,
-                )
+                view(i, looking_down(eye), metres)
             })
             .collect();
         let boxes = BoxSet::from_boxes(vec![Box3 {
@@ -287,6 +293,68 @@ mod tests {
         // Outside every block, and along a ray that never meets the floor, nothing.
         assert_eq!(tsdf.depth_along(&Point3::new(2.0, 0.0, 1.0), &-Vector3::z(), 1.0), 0.0);
         assert_eq!(tsdf.depth_along(&Point3::new(0.0, 0.0, 1.0), &Vector3::z(), 1.0), 0.0);
+    }
+
+    /// Oblique cameras over a depth map that varies across the image: every
+    /// voxel's fused distance and weight are those of projecting its own
+    /// centre into every frame (the rows step their camera coordinates).
+    #[test]
+    fn fused_voxels_match_projecting_each_voxel_centre_into_each_frame() {
+        let mut rng = Rng::new(3, 0);
+        let frames: Vec<Frame> = (0..6)
+            .map(|i| {
+                let eye = Vector3::new(0.1 * rng.normal(), 0.1 * rng.normal(), 0.6 + 0.1 * rng.f64());
+                let tilt = Rotation3::from_euler_angles(0.3 * rng.normal(), 0.3 * rng.normal(), rng.f64() * 6.0);
+                let down = looking_down(eye);
+                let metres = (0..80 * 60)
+                    .map(|n| (0.5 + 0.002 * (n % 80) as f64 + 0.003 * (n / 80) as f64) as f32)
+                    .collect();
+                view(
+                    i,
+                    IsometryMatrix3::from_parts(down.translation, tilt * down.rotation),
+                    metres,
+                )
+            })
+            .collect();
+        let boxes = BoxSet::from_boxes(vec![Box3 {
+            label: "block".into(),
+            instance_id: 1,
+            center: Point3::new(0.01, -0.02, 0.05),
+            size: Vector3::new(0.12, 0.1, 0.08),
+            rotation: Rotation3::identity(),
+        }]);
+        let fused = BoxTsdf::fuse(&frames, &boxes, 0.004);
+        let block = &fused.blocks[0];
+        let truncation = TRUNCATION_VOXELS * block.voxel;
+        let mut observed = 0;
+        for n in (0..block.tsdf.len()).step_by(7) {
+            let [di, dj] = [block.dims[0], block.dims[1]];
+            let (i, j, l) = (n % di, (n / di) % dj, n / (di * dj));
+            let p = block.origin + Vector3::new(i as f64 + 0.5, j as f64 + 0.5, l as f64 + 0.5) * block.voxel;
+            let (mut value, mut weight) = (0.0f32, 0.0f32);
+            for f in &frames {
+                let c = f.camera_to_world.inverse() * p;
+                let k = &f.intrinsics;
+                let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+                if c.z <= 1e-6 || !(u >= -0.5 && v >= -0.5 && u < 79.5 && v < 59.5) {
+                    continue;
+                }
+                let z = f64::from(f.depth.as_ref().unwrap().get(u.round() as u32, v.round() as u32));
+                if z - c.z < -truncation {
+                    continue;
+                }
+                value = (value * weight + ((z - c.z) / truncation).min(1.0) as f32) / (weight + 1.0);
+                weight += 1.0;
+            }
+            assert_eq!(block.weight[n], weight, "voxel {n}");
+            assert!(
+                (block.tsdf[n] - value).abs() < 1e-5,
+                "voxel {n}: {} against {value}",
+                block.tsdf[n]
+            );
+            observed += usize::from(weight > 0.0 && value.abs() < 1.0);
+        }
+        assert!(observed > 100, "only {observed} voxels near a surface");
     }
 
     /// A thin slab 5 cm above a floor, in one block: the first surface along

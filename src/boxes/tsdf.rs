@@ -170,18 +170,32 @@ impl BoxTsdf {
     }
 }
 
+/// A frame with depth, as the integration sees it.
+struct View<'a> {
+    world_to_cam: Rotation3<f64>,
+    eye: Point3<f64>,
+    /// Camera coordinates from one voxel of a row (along x) to the next.
+    row_step: Vector3<f64>,
+    frame: &'a Frame,
+}
+
 /// Running average of the truncated signed distance over every frame.
 fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
     let dims = block.dims;
     let voxel = block.voxel;
     let slab = dims[0] * dims[1];
     let origin = block.origin;
-    let views: Vec<(Rotation3<f64>, Point3<f64>, &Frame)> = frames
+    let views: Vec<View> = frames
         .iter()
         .filter(|f| f.depth.is_some())
-        .map(|f| {
-            let rot = f.camera_to_world.rotation.transpose();
-            (rot, Point3::from(f.camera_to_world.translation.vector), f)
+        .map(|frame| {
+            let world_to_cam = frame.camera_to_world.rotation.transpose();
+            View {
+                world_to_cam,
+                eye: Point3::from(frame.camera_to_world.translation.vector),
+                row_step: world_to_cam * Vector3::x() * voxel,
+                frame,
+            }
         })
         .collect();
     block
@@ -195,15 +209,11 @@ fn integrate(block: &mut Block, frames: &[Frame], truncation: f64) {
                 // view's start and step, instead of a rotation per voxel.
                 let p0 = origin + Vector3::new(0.5, j as f64 + 0.5, k as f64 + 0.5) * voxel;
                 row_starts.clear();
-                row_starts.extend(
-                    views
-                        .iter()
-                        .map(|(world_to_cam, eye, _)| (world_to_cam * (p0 - eye), world_to_cam * Vector3::x() * voxel)),
-                );
+                row_starts.extend(views.iter().map(|view| view.world_to_cam * (p0 - view.eye)));
                 for i in 0..dims[0] {
                     let n = j * dims[0] + i;
-                    for ((start, step), (_, _, frame)) in row_starts.iter().zip(&views) {
-                        let c = start + step * i as f64;
+                    for (start, View { row_step, frame, .. }) in row_starts.iter().zip(&views) {
+                        let c = start + row_step * i as f64;
                         if c.z <= 1e-6 {
                             continue;
                         }

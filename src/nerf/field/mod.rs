@@ -107,9 +107,10 @@ impl FieldGrad {
         self.color.iter_mut().for_each(|g| *g = 0.0);
     }
 
-    /// Add another buffer into this one (callers fix the order).
-    pub fn merge_from(&mut self, other: &FieldGrad) {
-        self.grid.merge_from(&other.grid);
+    /// Add another buffer into this one (callers fix the order); the
+    /// other's grid gradient is left empty (see [`GridGrad::drain_from`]).
+    pub fn drain_from(&mut self, other: &mut FieldGrad) {
+        self.grid.drain_from(&mut other.grid);
         for (a, b) in self.density.iter_mut().zip(&other.density) {
             *a += b;
         }

@@ -135,13 +135,15 @@ impl Adam {
     /// a multiple of 64), and `touched(start, len)` lists the touched
     /// parameters of a range as `(first index, bitmask)` words of 64. Each
     /// parameter's update is the sequential one, so results do not depend on
-    /// the number of parts; whole words run as one contiguous loop.
+    /// the number of parts; whole words run as one contiguous loop. The
+    /// gradients of the touched parameters are zeroed as they are consumed
+    /// (the buffer is ready for the next step without another pass over it).
     // The sequential step's arguments plus how to cut the range.
     #[allow(clippy::too_many_arguments)]
     pub fn step_sparse_decayed_parallel<F, I>(
         &mut self,
         params: &mut [f32],
-        grads: &[f32],
+        grads: &mut [f32],
         touched: F,
         block: usize,
         parts: usize,
@@ -160,25 +162,21 @@ impl Adam {
             .par_chunks_mut(len)
             .zip(self.m.par_chunks_mut(len))
             .zip(self.v.par_chunks_mut(len))
+            .zip(grads.par_chunks_mut(len))
             .enumerate()
-            .for_each(|(part, ((params, ms), vs))| {
+            .for_each(|(part, (((params, ms), vs), grads))| {
                 let start = part * len;
-                let update = |k: usize, g: f32, params: &mut [f32], ms: &mut [f32], vs: &mut [f32]| {
-                    let g = clamp_gradient(g + weight_decay * params[k]);
-                    rule.apply(&mut params[k], &mut ms[k], &mut vs[k], g);
-                };
                 for (first, bits) in touched(start, len) {
                     let k0 = first - start;
                     if bits.count_ones() >= WHOLE_WORD_MIN_TOUCHED && k0 + 64 <= params.len() {
                         fn slice_of_64(s: &mut [f32], k0: usize) -> &mut [f32; 64] {
                             (&mut s[k0..k0 + 64]).try_into().expect("64 entries")
                         }
-                        let g: &[f32; 64] = grads[start + k0..start + k0 + 64].try_into().expect("64 entries");
                         let word = Word {
                             params: slice_of_64(params, k0),
                             m: slice_of_64(ms, k0),
                             v: slice_of_64(vs, k0),
-                            grads: g,
+                            grads: slice_of_64(grads, k0),
                             touched: bits,
                         };
                         update_word(&rule, weight_decay, word, avx2);
@@ -187,7 +185,8 @@ impl Adam {
                         while rest != 0 {
                             let k = k0 + rest.trailing_zeros() as usize;
                             rest &= rest - 1;
-                            update(k, grads[start + k], params, ms, vs);
+                            let g = clamp_gradient(std::mem::take(&mut grads[k]) + weight_decay * params[k]);
+                            rule.apply(&mut params[k], &mut ms[k], &mut vs[k], g);
                         }
                     }
                 }
@@ -199,13 +198,13 @@ impl Adam {
 /// computed, the untouched ones left as they were) rather than bit by bit.
 const WHOLE_WORD_MIN_TOUCHED: u32 = 8;
 
-/// One word of 64 grid parameters: their values, moments and gradient, and
-/// which of them the step touched (bit k for entry k).
+/// One word of 64 grid parameters: their values, moments and gradient (zeroed
+/// once used), and which of them the step touched (bit k for entry k).
 struct Word<'a> {
     params: &'a mut [f32; 64],
     m: &'a mut [f32; 64],
     v: &'a mut [f32; 64],
-    grads: &'a [f32; 64],
+    grads: &'a mut [f32; 64],
     touched: u64,
 }
 
@@ -257,6 +256,8 @@ fn update_word_lanes(rule: &StepRule, weight_decay: f32, word: Word) {
         m[k] = if touched { mk } else { m[k] };
         v[k] = if touched { vk } else { v[k] };
     }
+    // Untouched lanes hold zero already.
+    *g = [0.0; 64];
 }
 
 /// One step's constants: decay rates, eps, bias corrections, learning rate.
@@ -331,8 +332,11 @@ mod tests {
                 words.into_iter()
             };
             for _ in 0..3 {
+                let mut consumed = grads.clone();
                 par.0
-                    .step_sparse_decayed_parallel(&mut par.1, &grads, within, 64, parts, 0.01, 1e-3);
+                    .step_sparse_decayed_parallel(&mut par.1, &mut consumed, within, 64, parts, 0.01, 1e-3);
+                let left = touched.iter().filter(|&&i| consumed[i] != 0.0).count();
+                assert_eq!(left, 0, "touched gradients are consumed");
             }
             assert_eq!(par.1, seq.1, "{parts} parts");
             assert_eq!(par.0.moments(), seq.0.moments());

@@ -376,8 +376,8 @@ impl Trainer {
         let update_started = Instant::now();
         // Merge in chunk order so results do not depend on scheduling.
         let (first, rest) = self.chunks.split_at_mut(1);
-        for other in rest.iter() {
-            first[0].grad.merge_from(&other.grad);
+        for other in rest.iter_mut() {
+            first[0].grad.drain_from(&mut other.grad);
             for (g, o) in first[0].grad_appearance.iter_mut().zip(&other.grad_appearance) {
                 *g += o;
             }
@@ -451,16 +451,20 @@ impl Trainer {
             (1.0 - LOSS_EMA_WEIGHT) * self.loss_ema + LOSS_EMA_WEIGHT * total.loss
         };
         let grid_decay = GRID_PRIOR * grid_rms.unwrap_or(0.0);
-        // The grid's touched entries are updated on every thread.
+        // The grid's touched entries are updated on every thread, consuming
+        // their gradients.
+        let grad = &mut first[0].grad;
+        let (grid_grads, touched) = grad.grid.values_and_touched();
         self.adam_grid.step_sparse_decayed_parallel(
             &mut self.field.grid.params,
-            &grad.grid.values,
-            |start, len| grad.grid.touched_words_in(start, len),
+            grid_grads,
+            |start, len| touched.words_in(start, len),
             GridGrad::BLOCK,
             threads,
             lr,
             grid_decay,
         );
+        grad.grid.forget_zeroed();
         self.adam_density
             .step_dense(&mut self.field.density.params, &grad.density, lr, MLP_WEIGHT_DECAY);
         self.adam_color

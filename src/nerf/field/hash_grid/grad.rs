@@ -90,14 +90,11 @@ impl GridGrad {
 
     /// [`GridGrad::touched_in`] as `(first index, bitmask)` words.
     pub fn touched_words_in(&self, start: usize, len: usize) -> impl Iterator<Item = (usize, u64)> + '_ {
-        debug_assert!(start.is_multiple_of(Self::BLOCK) && len.is_multiple_of(Self::BLOCK));
-        let first = start / Self::BLOCK;
-        let last = ((start + len) / Self::BLOCK).min(self.summary.len());
-        self.summary[first.min(last)..last]
-            .iter()
-            .enumerate()
-            .flat_map(move |(k, &sw)| ones(sw).map(move |b| (first + k) * 64 + b))
-            .map(move |w| (w * 64, self.bits[w]))
+        Touched {
+            bits: &self.bits,
+            summary: &self.summary,
+        }
+        .words_in(start, len)
     }
 
     /// Root mean square of the touched values, or `None` when one of them
@@ -120,8 +117,7 @@ impl GridGrad {
                     .flat_map(|(k, &sw)| ones(sw).map(move |b| (c * SUMMARY_WORDS + k) * 64 + b));
                 for w in words {
                     let end = (w * 64 + 64).min(self.values.len());
-                    let word = &self.values[w * 64..end];
-                    let squares: f32 = word.iter().map(|v| v * v).sum();
+                    let squares = sum_of_squares(&self.values[w * 64..end]);
                     finite &= squares.is_finite();
                     sum += squares as f64;
                     count += self.bits[w].count_ones() as usize;
@@ -158,38 +154,76 @@ impl GridGrad {
         }
     }
 
-    /// Adds `other`'s touched values into `self` and takes over its touched set.
-    /// Deterministic for a fixed merge order. Panics if the sizes differ.
-    pub fn merge_from(&mut self, other: &GridGrad) {
+    /// Adds `other`'s touched values into `self`, takes over its touched set
+    /// and leaves `other` empty (its values zeroed while they are in cache,
+    /// so its next [`GridGrad::clear`] has nothing to do). Deterministic for
+    /// a fixed merge order. Panics if the sizes differ.
+    pub fn drain_from(&mut self, other: &mut GridGrad) {
         assert_eq!(
             self.values.len(),
             other.values.len(),
-            "GridGrad::merge_from: buffers of different grids"
+            "GridGrad::drain_from: buffers of different grids"
         );
         use rayon::prelude::*;
         // Blocks of summary words on every thread (disjoint parameters).
         const SUMMARY_WORDS: usize = 16;
+        let GridGrad {
+            values: from_values,
+            bits: from_bits,
+            summary: from_summary,
+        } = other;
         self.values
             .par_chunks_mut(SUMMARY_WORDS * Self::BLOCK)
             .zip(self.bits.par_chunks_mut(SUMMARY_WORDS * 64))
-            .zip(other.summary.par_chunks(SUMMARY_WORDS))
-            .enumerate()
-            .for_each(|(c, ((values, bits), summary))| {
-                let first_word = c * SUMMARY_WORDS * 64;
+            .zip(from_values.par_chunks_mut(SUMMARY_WORDS * Self::BLOCK))
+            .zip(from_bits.par_chunks_mut(SUMMARY_WORDS * 64))
+            .zip(from_summary.par_chunks(SUMMARY_WORDS))
+            .for_each(|((((values, bits), from_values), from_bits), summary)| {
                 for (k, &sw) in summary.iter().enumerate() {
                     for w in ones(sw).map(|b| k * 64 + b) {
                         let (start, end) = (w * 64, (w * 64 + 64).min(values.len()));
-                        let from = (first_word + w) * 64;
                         // Untouched values of `other` are zero, so adding the whole word is exact.
-                        for (a, b) in values[start..end].iter_mut().zip(&other.values[from..]) {
+                        for (a, b) in values[start..end].iter_mut().zip(&mut from_values[start..end]) {
                             *a += *b;
+                            *b = 0.0;
                         }
-                        bits[w] |= other.bits[first_word + w];
+                        bits[w] |= std::mem::take(&mut from_bits[w]);
                     }
                 }
             });
-        for (a, b) in self.summary.iter_mut().zip(&other.summary) {
-            *a |= *b;
+        for (a, b) in self.summary.iter_mut().zip(from_summary.iter_mut()) {
+            *a |= std::mem::take(b);
+        }
+    }
+
+    /// The values (to be read and zeroed by the optimiser) beside the touched
+    /// set, which stays readable; call [`GridGrad::forget_zeroed`] once every
+    /// touched value is zero again.
+    pub fn values_and_touched(&mut self) -> (&mut [f32], Touched<'_>) {
+        let touched = Touched {
+            bits: &self.bits,
+            summary: &self.summary,
+        };
+        (&mut self.values, touched)
+    }
+
+    /// Forgets the touched set once its values were zeroed by whoever
+    /// consumed them (see [`GridGrad::values_and_touched`]): restores the
+    /// invariant without writing the values a second time.
+    pub fn forget_zeroed(&mut self) {
+        for s in 0..self.summary.len() {
+            let mut sw = std::mem::take(&mut self.summary[s]);
+            while sw != 0 {
+                let w = s * 64 + sw.trailing_zeros() as usize;
+                sw &= sw - 1;
+                debug_assert!(
+                    self.values[w * 64..(w * 64 + 64).min(self.values.len())]
+                        .iter()
+                        .all(|v| *v == 0.0),
+                    "GridGrad::forget_zeroed: word {w} still holds values"
+                );
+                self.bits[w] = 0;
+            }
         }
     }
 
@@ -200,6 +234,46 @@ impl GridGrad {
             .enumerate()
             .flat_map(|(s, &sw)| ones(sw).map(move |b| s * 64 + b))
     }
+}
+
+/// A gradient buffer's touched set, read beside its values.
+#[derive(Clone, Copy)]
+pub struct Touched<'a> {
+    bits: &'a [u64],
+    summary: &'a [u64],
+}
+
+impl<'a> Touched<'a> {
+    /// Touched parameters in `start..start + len` as `(first index,
+    /// bitmask)` words, ascending; `start` and `len` are multiples of
+    /// [`GridGrad::BLOCK`], so that each block's parameters can be updated
+    /// by another thread.
+    pub fn words_in(self, start: usize, len: usize) -> impl Iterator<Item = (usize, u64)> + 'a {
+        debug_assert!(start.is_multiple_of(GridGrad::BLOCK) && len.is_multiple_of(GridGrad::BLOCK));
+        let first = start / GridGrad::BLOCK;
+        let last = ((start + len) / GridGrad::BLOCK).min(self.summary.len());
+        let bits = self.bits;
+        self.summary[first.min(last)..last]
+            .iter()
+            .enumerate()
+            .flat_map(move |(k, &sw)| ones(sw).map(move |b| (first + k) * 64 + b))
+            .map(move |w| (w * 64, bits[w]))
+    }
+}
+
+/// Sum of the squares of `values` in eight interleaved partial sums, so that
+/// the additions do not wait on one another (a fixed order: the same sum on
+/// every run).
+fn sum_of_squares(values: &[f32]) -> f32 {
+    let mut partial = [0.0f32; 8];
+    let mut lanes = values.chunks_exact(8);
+    for lane in &mut lanes {
+        for k in 0..8 {
+            partial[k] += lane[k] * lane[k];
+        }
+    }
+    let rest: f32 = lanes.remainder().iter().map(|v| v * v).sum();
+    partial.iter().sum::<f32>() + rest
 }
 
 /// Positions of the set bits of `word`, ascending.

@@ -485,8 +485,8 @@ fn merge_is_deterministic_and_matches_one_buffer() {
     let (a, b) = (half(0..1000), half(1000..2000));
     let merged = |first: &GridGrad, second: &GridGrad| {
         let mut m = GridGrad::new(g.param_count());
-        m.merge_from(first);
-        m.merge_from(second);
+        m.drain_from(&mut first.clone());
+        m.drain_from(&mut second.clone());
         m
     };
     let (m1, m2) = (merged(&a, &b), merged(&a, &b));
@@ -560,7 +560,7 @@ fn no_reallocation_after_warm_up() {
         other.clear();
         g.backward(&pos[..700], &d[..700 * g.output_dim()], &mut main);
         g.backward(&pos[..700], &d[..700 * g.output_dim()], &mut other);
-        main.merge_from(&other);
+        main.drain_from(&mut other);
     }
     assert_eq!(before, (fingerprint(&main), fingerprint(&other)));
     assert_eq!(main.values.len(), g.param_count());
@@ -619,8 +619,8 @@ fn level_split_across_threads_matches_one_thread_exactly() {
         assert_eq!(out, whole_out, "split {split}: encode differs");
         // Disjoint parameters: merging in either order is exact.
         let mut merged = GridGrad::new(g.param_count());
-        merged.merge_from(&gb);
-        merged.merge_from(&ga);
+        merged.drain_from(&mut gb.clone());
+        merged.drain_from(&mut ga.clone());
         assert!(
             merged
                 .values
@@ -636,9 +636,9 @@ fn level_split_across_threads_matches_one_thread_exactly() {
 
 #[test]
 fn buffers_shorter_than_a_word_work() {
-    let empty = GridGrad::new(0);
+    let mut empty = GridGrad::new(0);
     let mut other = GridGrad::new(0);
-    other.merge_from(&empty);
+    other.drain_from(&mut empty);
     other.clear();
     assert_eq!(other.touched().count(), 0);
 
@@ -659,9 +659,21 @@ fn buffers_shorter_than_a_word_work() {
     // Cells (1,1,1) and (1,0,1) of the 3x3x3 vertices (index x + 3y + 9z) share 4 corners.
     assert_eq!(touched, [10, 11, 13, 14, 16, 17, 19, 20, 22, 23, 25, 26]);
     let mut sum = GridGrad::new(27);
-    sum.merge_from(&grad);
-    sum.merge_from(&grad);
+    let (mut first, mut second) = (grad.clone(), grad.clone());
+    sum.drain_from(&mut first);
+    sum.drain_from(&mut second);
     assert!(touched.iter().all(|&i| sum.values[i] == 2.0 * grad.values[i]));
+    // Drained buffers are empty and zero, ready for the next step.
+    for drained in [&first, &second] {
+        assert!(drained.values.iter().all(|v| *v == 0.0) && drained.touched_count() == 0);
+    }
+    assert_eq!(sum.touched().collect::<Vec<_>>(), touched);
+    // Zeroed by a consumer, the set is forgotten without another pass.
+    let (values, _) = first.values_and_touched();
+    assert!(values.iter().all(|v| *v == 0.0));
+    sum.values.iter_mut().for_each(|v| *v = 0.0);
+    sum.forget_zeroed();
+    assert_eq!(sum.touched_count(), 0);
     sum.clear();
     assert!(sum.values.iter().all(|v| *v == 0.0) && sum.touched_count() == 0);
 }

@@ -18,6 +18,10 @@ use rayon::prelude::*;
 const POINTS_PER_FRAME: usize = 400;
 /// The coarse scan covers scales from 1/RANGE to RANGE.
 const RANGE: f64 = 20.0;
+/// The coarse scan and the rough search use every this-many-th point: they
+/// only have to find the basin around the answer, which the fine search,
+/// on every point, then pins down.
+const COARSE_POINT_STRIDE: usize = 4;
 const COARSE_STEPS: usize = 49;
 /// The fine search looks within this factor of the rough estimate.
 const NEAR: f64 = 1.05;
@@ -106,10 +110,14 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
         return Ok(None);
     }
     let poses = scan.poses();
+    let sparse: Vec<Vec<Point3<f64>>> = samples
+        .iter()
+        .map(|s| s.iter().step_by(COARSE_POINT_STRIDE).copied().collect())
+        .collect();
     // Far from the answer, the distance to the nearest point of another
     // frame; near it, the distance to the plane through the nearest points
     // (sharper: it does not bottom out at the sampling spacing).
-    let coarse_cost = |scale: f64| disagreement(&samples, &scale_poses(&poses, scale), false);
+    let coarse_cost = |scale: f64| disagreement(&sparse, &scale_poses(&poses, scale), false);
     let cost = |scale: f64| disagreement(&samples, &scale_poses(&poses, scale), true);
     let at = |k: usize| RANGE.powf(2.0 * k as f64 / (COARSE_STEPS - 1) as f64 - 1.0);
     let coarse: Vec<f64> = (0..COARSE_STEPS).into_par_iter().map(|k| coarse_cost(at(k))).collect();

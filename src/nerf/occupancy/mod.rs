@@ -8,6 +8,7 @@ pub mod from_field;
 pub mod measured;
 
 use crate::nerf::camera::{unit_cube_interval, LocalCamera};
+use crate::nerf::field::simd::vectorised;
 use crate::rng::Rng;
 use rayon::prelude::*;
 
@@ -691,12 +692,11 @@ const NO_CORE: u32 = u32::MAX;
 /// Only a pass through the core of a cell counts as seeing it free: a ray
 /// grazing a thin object in a corner must not carve it. The samples are
 /// placed in batches, and each batch's cells are found in one branch-free
-/// loop (AVX2 where the CPU has it): the same votes as testing the samples
+/// loop (AVX2 where the CPU has it, see [`vectorised`]): the same votes as testing the samples
 /// one by one, at a fraction of the time.
 fn count_free_passes(ray: &DepthRay, t0: f32, t_end: f32, step: f32, res: usize, votes: &mut [u16]) {
     let mut ts = [0.0f32; PASS_BATCH];
     let mut cells = [NO_CORE; PASS_BATCH];
-    let avx2 = has_avx2();
     let mut t = t0;
     let mut last = NO_CORE;
     while t < t_end {
@@ -707,7 +707,7 @@ fn count_free_passes(ray: &DepthRay, t0: f32, t_end: f32, step: f32, res: usize,
             t += step;
             n += 1;
         }
-        core_cells(ray.origin, ray.dir, &ts[..n], res, &mut cells[..n], avx2);
+        vectorised(|| core_cells(ray.origin, ray.dir, &ts[..n], res, &mut cells[..n]));
         for &c in &cells[..n] {
             if c != NO_CORE && c != last {
                 votes[c as usize] = votes[c as usize].saturating_add(1);
@@ -717,36 +717,11 @@ fn count_free_passes(ray: &DepthRay, t0: f32, t_end: f32, step: f32, res: usize,
     }
 }
 
-/// Whether this CPU runs the AVX2 build of [`core_cells_lanes`].
-fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return std::is_x86_feature_detected!("avx2");
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
-/// For each `t`, the cell whose core holds `o + t d`, or [`NO_CORE`].
-fn core_cells(o: [f32; 3], d: [f32; 3], ts: &[f32], res: usize, cells: &mut [u32], avx2: bool) {
-    #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: the caller detected AVX2 (has_avx2).
-        return unsafe { core_cells_avx2(o, d, ts, res, cells) };
-    }
-    let _ = avx2;
-    core_cells_lanes(o, d, ts, res, cells)
-}
-
-/// [`core_cells_lanes`] compiled for AVX2 (8 lanes per instruction).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn core_cells_avx2(o: [f32; 3], d: [f32; 3], ts: &[f32], res: usize, cells: &mut [u32]) {
-    core_cells_lanes(o, d, ts, res, cells)
-}
-
-/// The lane loop, written without branches so that it vectorises: the same
-/// arithmetic as [`cell_index`] per sample, plus the core test.
+/// For each `t`, the cell whose core holds `o + t d`, or [`NO_CORE`]: a lane
+/// loop written without branches so that it vectorises, the same arithmetic
+/// as [`cell_index`] per sample plus the core test.
 #[inline(always)]
-fn core_cells_lanes(o: [f32; 3], d: [f32; 3], ts: &[f32], res: usize, cells: &mut [u32]) {
+fn core_cells(o: [f32; 3], d: [f32; 3], ts: &[f32], res: usize, cells: &mut [u32]) {
     let r = res as f32;
     let res = res as u32;
     for (cell, &t) in cells.iter_mut().zip(ts) {

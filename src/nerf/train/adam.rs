@@ -1,6 +1,8 @@
 //! Adam with a dense path for the MLPs and a sparse path for hash-table
 //! entries touched in the step (untouched entries keep their moments).
 
+use crate::nerf::field::simd::vectorised;
+
 /// Adam state for one parameter vector.
 #[derive(Clone, Debug)]
 pub struct Adam {
@@ -155,7 +157,6 @@ impl Adam {
     {
         use rayon::prelude::*;
         let rule = self.next_step(lr);
-        let avx2 = has_avx2();
         let block = block.max(1);
         let len = params.len().div_ceil(parts.max(1)).div_ceil(block).max(1) * block;
         params
@@ -179,7 +180,7 @@ impl Adam {
                             grads: slice_of_64(grads, k0),
                             touched: bits,
                         };
-                        update_word(&rule, weight_decay, word, avx2);
+                        update_word(&rule, weight_decay, word);
                     } else {
                         let mut rest = bits;
                         while rest != 0 {
@@ -210,43 +211,26 @@ struct Word<'a> {
 
 /// Adam on the touched entries of `word`: every lane is computed in SIMD
 /// and only the touched lanes are written back (the same arithmetic per
-/// entry as [`StepRule::apply`]). `avx2` comes from [`has_avx2`].
+/// entry as [`StepRule::apply`]).
 #[inline]
-fn update_word(rule: &StepRule, weight_decay: f32, word: Word, avx2: bool) {
-    #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: the caller detected AVX2 (has_avx2).
-        return unsafe { update_word_avx2(rule, weight_decay, word) };
-    }
-    let _ = avx2;
-    update_word_lanes(rule, weight_decay, word)
-}
-
-/// Whether this CPU runs [`update_word_avx2`] (asked once per step, not per word).
-fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return std::is_x86_feature_detected!("avx2");
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
-/// [`update_word_lanes`] compiled for AVX2 (8 lanes per instruction).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn update_word_avx2(rule: &StepRule, weight_decay: f32, word: Word) {
-    update_word_lanes(rule, weight_decay, word)
+fn update_word(rule: &StepRule, weight_decay: f32, word: Word) {
+    vectorised(|| update_word_lanes(rule, weight_decay, word))
 }
 
 /// The lane loop, written without branches so that it vectorises.
 #[inline(always)]
 fn update_word_lanes(rule: &StepRule, weight_decay: f32, word: Word) {
     let Word {
-        params: p,
-        m,
-        v,
-        grads: g,
+        params,
+        m: moments,
+        v: squares,
+        grads,
         touched: bits,
     } = word;
+    // Local copies: nothing the loop writes can alias what it reads, so it
+    // vectorises whatever the compiler knows of the references.
+    let rule = *rule;
+    let (mut p, mut m, mut v, g) = (*params, *moments, *squares, *grads);
     for k in 0..64 {
         let (mut pk, mut mk, mut vk) = (p[k], m[k], v[k]);
         let gk = clamp_gradient(g[k] + weight_decay * pk);
@@ -256,8 +240,9 @@ fn update_word_lanes(rule: &StepRule, weight_decay: f32, word: Word) {
         m[k] = if touched { mk } else { m[k] };
         v[k] = if touched { vk } else { v[k] };
     }
+    (*params, *moments, *squares) = (p, m, v);
     // Untouched lanes hold zero already.
-    *g = [0.0; 64];
+    *grads = [0.0; 64];
 }
 
 /// One step's constants: decay rates, eps, bias corrections, learning rate.

@@ -20,7 +20,7 @@ const POINTS_PER_FRAME: usize = 400;
 const RANGE: f64 = 20.0;
 /// The coarse scan and the rough search use every this-many-th point: they
 /// only have to find the basin around the answer, which the fine search,
-/// on every point, then pins down.
+/// on every point, then pins down (and every point judges the answer).
 const COARSE_POINT_STRIDE: usize = 4;
 const COARSE_STEPS: usize = 49;
 /// The fine search looks within this factor of the rough estimate.
@@ -118,6 +118,7 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     // frame; near it, the distance to the plane through the nearest points
     // (sharper: it does not bottom out at the sampling spacing).
     let coarse_cost = |scale: f64| disagreement(&sparse, &scale_poses(&poses, scale), false);
+    let nearest_cost = |scale: f64| disagreement(&samples, &scale_poses(&poses, scale), false);
     let cost = |scale: f64| disagreement(&samples, &scale_poses(&poses, scale), true);
     let at = |k: usize| RANGE.powf(2.0 * k as f64 / (COARSE_STEPS - 1) as f64 - 1.0);
     let coarse: Vec<f64> = (0..COARSE_STEPS).into_par_iter().map(|k| coarse_cost(at(k))).collect();
@@ -132,11 +133,12 @@ pub fn estimate_pose_scale(scan: &Scan) -> Result<Option<ScaleEstimate>, Geometr
     );
     let fine = golden_section(rough / NEAR, rough * NEAR, TOLERANCE, &cost);
     // Frames that disagree by more than their planes' size (poses off by
-    // centimetres) find too few planes: the rough estimate stands.
+    // centimetres) find too few planes: the rough estimate stands, judged
+    // on every point (the sparse scan's distances bottom out higher).
     let (scale, cost): (f64, &dyn Fn(f64) -> f64) = if cost(fine).is_finite() {
         (fine, &cost)
     } else {
-        (rough, &coarse_cost)
+        (rough, &nearest_cost)
     };
     let cost_at_scale = cost(scale);
     let sharpness = if cost_at_scale.is_finite() {

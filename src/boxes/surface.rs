@@ -236,6 +236,7 @@ mod tests {
             rule,
             max_samples_per_ray: 4096,
             background: [0.0; 3],
+            environment: None,
         };
         let mut reference = vec![RayOutput::default(); rays.len()];
         render_rays(

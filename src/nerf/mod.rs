@@ -11,6 +11,7 @@
 pub mod appearance;
 pub mod camera;
 pub mod container;
+pub mod environment;
 pub mod field;
 pub mod model_file;
 pub mod occupancy;

@@ -5,6 +5,7 @@
 
 use crate::nerf::appearance::Affine;
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
+use crate::nerf::environment::{Environment, ENVIRONMENT_PARAMS};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::march::StepRule;
@@ -52,6 +53,10 @@ pub struct ModelHeader {
     pub units_per_metre: f64,
     pub occupancy_resolution: usize,
     pub background: [f32; 3],
+    /// Coefficients of the learnt colour beyond the cube
+    /// (`nerf::environment`); `None`: `background` in every direction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<Vec<f32>>,
     pub render_step: StepRule,
     pub steps: u64,
     pub seed: u64,
@@ -92,6 +97,7 @@ impl Model {
             rule: self.header.render_step,
             max_samples_per_ray: RENDER_MAX_SAMPLES_PER_RAY,
             background: self.header.background,
+            environment: self.header.environment.as_deref().and_then(Environment::from_slice),
         }
     }
 
@@ -237,6 +243,19 @@ impl Model {
             .ok_or_else(|| damaged(path, "parameter counts do not match the network configuration".into()))?;
         let mut occupancy = OccupancyGrid::from_saved(header.occupancy_resolution, occupancy.f32s(), carved.u64s())
             .ok_or_else(|| damaged(path, "occupancy grid size does not match its resolution".into()))?;
+        if header
+            .environment
+            .as_deref()
+            .is_some_and(|e| Environment::from_slice(e).is_none())
+        {
+            return Err(damaged(
+                path,
+                format!(
+                    "the environment needs {ENVIRONMENT_PARAMS} finite coefficients, the file has {}",
+                    header.environment.as_ref().map_or(0, Vec::len)
+                ),
+            ));
+        }
         // A model's grid is for rendering: the saved estimates decide what is marched.
         occupancy.restrict_to_rendering();
         Ok(Model {
@@ -294,6 +313,7 @@ mod tests {
             units_per_metre: 0.5,
             occupancy_resolution: 16,
             background: [0.1, 0.2, 0.3],
+            environment: Some(Environment::uniform([0.7, 0.6, 0.5]).coeffs.to_vec()),
             render_step: train.step,
             steps: 7,
             seed: 3,
@@ -330,7 +350,24 @@ mod tests {
         assert_eq!(back.occupancy.bits(), model.occupancy.bits());
         assert_eq!(back.occupancy.carved_words(), model.occupancy.carved_words());
         assert_eq!(back.header.scene_transform, model.header.scene_transform);
+        assert_eq!(
+            back.render_options(true).environment,
+            model.render_options(true).environment
+        );
+        assert!(back.render_options(true).environment.is_some());
         assert_eq!(back.to_bytes(), bytes, "saving again gives identical bytes");
+    }
+
+    #[test]
+    fn an_environment_of_the_wrong_size_is_a_clear_error() {
+        let mut model = sample_model();
+        model.header.environment = Some(vec![0.5; 7]);
+        let err = Model::from_bytes(&model.to_bytes(), Path::new("m.nlf")).err().unwrap();
+        assert!(err.to_string().contains("the environment needs 48"), "{err}");
+        // Models of earlier versions have none and render the flat background.
+        model.header.environment = None;
+        let back = Model::from_bytes(&model.to_bytes(), Path::new("m.nlf")).unwrap();
+        assert!(back.render_options(true).environment.is_none());
     }
 
     #[test]

@@ -20,6 +20,7 @@
 //! typical ray are saved.
 
 use crate::nerf::camera::{LocalCamera, LocalRay};
+use crate::nerf::environment::Environment;
 use crate::nerf::field::mlp::MlpWorkspace;
 use crate::nerf::field::sh::{self, SH_COEFFS};
 use crate::nerf::field::{density_activation, Field, DENSITY_OUTPUTS};
@@ -58,8 +59,18 @@ pub struct RenderOptions {
     pub rule: StepRule,
     /// Hard cap per ray so nothing can hang.
     pub max_samples_per_ray: usize,
-    /// Colour behind rays that stay transparent.
+    /// Colour behind rays that stay transparent...
     pub background: [f32; 3],
+    /// ... or by direction, when the model learnt it.
+    pub environment: Option<Environment>,
+}
+
+impl RenderOptions {
+    /// Colour behind a transparent ray with direction `dir`.
+    #[inline]
+    pub fn background_along(&self, dir: [f32; 3]) -> [f32; 3] {
+        self.environment.map_or(self.background, |e| e.colour(dir))
+    }
 }
 
 /// A ray to render with the interval to march (local units).
@@ -91,10 +102,10 @@ pub struct RayOutput {
 }
 
 impl RayOutput {
-    /// The output of a ray that meets nothing.
-    pub fn background(opts: &RenderOptions) -> RayOutput {
+    /// The output of a ray with direction `dir` that meets nothing.
+    pub fn background(opts: &RenderOptions, dir: [f32; 3]) -> RayOutput {
         RayOutput {
-            rgb: opts.background,
+            rgb: opts.background_along(dir),
             ..RayOutput::default()
         }
     }
@@ -202,13 +213,13 @@ pub fn render_rays(
                 && (st.samples as usize) < opts.max_samples_per_ray
         });
     }
-    for (o, st) in out.iter_mut().zip(&ws.state) {
-        *o = finish(st, opts);
+    for ((o, st), ray) in out.iter_mut().zip(&ws.state).zip(rays) {
+        *o = finish(st, opts, ray.ray.dir);
     }
 }
 
 /// The output of a finished ray.
-fn finish(st: &RayState, opts: &RenderOptions) -> RayOutput {
+fn finish(st: &RayState, opts: &RenderOptions, dir: [f32; 3]) -> RayOutput {
     let transmittance = st.trans;
     let absorbed = transmittance < ABSORBED_TRANSMITTANCE;
     // Weight left unshaded after the last shaded sample takes the ray's mean
@@ -223,7 +234,11 @@ fn finish(st: &RayState, opts: &RenderOptions) -> RayOutput {
     } else {
         0.0
     };
-    let bg = opts.background;
+    let bg = if behind > 0.0 {
+        opts.background_along(dir)
+    } else {
+        [0.0; 3]
+    };
     RayOutput {
         rgb: [0, 1, 2].map(|c| (st.rgb[c] * scale + behind * bg[c]).clamp(0.0, 1.0)),
         opacity: opacity.clamp(0.0, 1.0),
@@ -388,7 +403,10 @@ fn render_packet(
     near_of: impl Fn(usize) -> f32,
     out: &mut [RayOutput],
 ) {
-    out.fill(RayOutput::background(opts));
+    out.fill(RayOutput {
+        rgb: opts.background,
+        ..RayOutput::default()
+    });
     with_workspace(|ws| {
         let mut rays = std::mem::take(&mut ws.rays);
         let mut index = std::mem::take(&mut ws.index);
@@ -398,9 +416,13 @@ fn render_packet(
         for k in 0..count {
             let (u, v, i) = pixel(k);
             let near = opts.rule.min_step.max(near_of(i));
-            if let Some(r) = RenderRay::through_cube(camera.ray(u, v).0, near) {
-                rays.push(r);
-                index.push(i as u32);
+            let ray = camera.ray(u, v).0;
+            match RenderRay::through_cube(ray, near) {
+                Some(r) => {
+                    rays.push(r);
+                    index.push(i as u32);
+                }
+                None => out[i] = RayOutput::background(opts, ray.dir),
             }
         }
         results.clear();
@@ -561,6 +583,14 @@ mod tests {
             },
             max_samples_per_ray: 4096,
             background: [0.2, 0.4, 0.6],
+            // Colour behind the scene that changes with direction.
+            environment: Some({
+                let mut env = Environment::uniform([0.2, 0.4, 0.6]);
+                env.coeffs[1] = 1.5;
+                env.coeffs[16 + 2] = -1.0;
+                env.coeffs[32 + 7] = 0.8;
+                env
+            }),
         }
     }
 
@@ -627,7 +657,7 @@ mod tests {
         if !exact && tr < ABSORBED_TRANSMITTANCE {
             (unshaded, opacity, tr) = (unshaded + tr, opacity + tr, 0.0);
         }
-        let bg = opts.background;
+        let bg = opts.background_along(ray.ray.dir);
         let scale = if shaded > 0.0 {
             (shaded + unshaded) / shaded
         } else {
@@ -679,7 +709,7 @@ mod tests {
                 let (u, v) = ((k % 48) as f32, (k / 48) as f32);
                 let want = match RenderRay::through_cube(cam.ray(u, v).0, opts.rule.min_step) {
                     Some(r) => reference(&field, &grid, &r, &opts, false),
-                    None => RayOutput::background(&opts),
+                    None => RayOutput::background(&opts, cam.ray(u, v).0.dir),
                 };
                 assert_eq!(o.depth_median.is_some(), want.depth_median.is_some(), "pixel {k}");
                 let d = o

@@ -9,7 +9,7 @@
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::field::{Field, FieldConfig};
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::train::appearance::AppearanceLearner;
+use crate::nerf::train::adam::Adam;
 use crate::nerf::train::fit::FitOptions;
 use crate::nerf::train::pose_learning::{PoseLearner, PoseLearnerState};
 use crate::nerf::train::report::{CurvePoint, PoseAlignmentReport, Timings};
@@ -137,42 +137,47 @@ pub struct CheckpointHeader {
     pub sections: [usize; SECTIONS.len()],
     /// The appearance maps and their optimiser, when learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub appearance: Option<AppearanceState>,
+    pub appearance: Option<LearnerState>,
+    /// The environment's coefficients and optimiser, when learnt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<LearnerState>,
     /// The pose learner's optimiser, when poses are learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_learning: Option<PoseLearnerState>,
 }
 
-/// Appearance maps and Adam state as f32 bit patterns (exact round trip
-/// through JSON; a few hundred numbers per frame at most).
+/// A small learnt parameter vector (appearance maps, the environment) and
+/// its Adam state as f32 bit patterns (exact round trip through JSON; a few
+/// hundred numbers per frame at most).
 #[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct AppearanceState {
-    pub deltas: Vec<u32>,
+pub struct LearnerState {
+    #[serde(rename = "deltas")]
+    pub values: Vec<u32>,
     pub m: Vec<u32>,
     pub v: Vec<u32>,
     pub steps: u64,
 }
 
-impl AppearanceState {
-    fn of(learner: &AppearanceLearner) -> Self {
+impl LearnerState {
+    fn of(values: &[f32], adam: &Adam) -> Self {
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect();
-        let (m, v) = learner.adam.moments();
-        AppearanceState {
-            deltas: bits(&learner.deltas),
+        let (m, v) = adam.moments();
+        LearnerState {
+            values: bits(values),
             m: bits(m),
             v: bits(v),
-            steps: learner.adam.steps(),
+            steps: adam.steps(),
         }
     }
 
-    /// Restore into `learner`; false when the sizes differ.
-    fn restore(&self, learner: &mut AppearanceLearner) -> bool {
+    /// Restore into `values` and `adam`; false when the sizes differ.
+    fn restore(&self, values: &mut [f32], adam: &mut Adam) -> bool {
         let floats = |x: &[u32]| x.iter().map(|&b| f32::from_bits(b)).collect::<Vec<f32>>();
-        if self.deltas.len() != learner.deltas.len() {
+        if self.values.len() != values.len() {
             return false;
         }
-        learner.deltas = floats(&self.deltas);
-        learner.adam.restore(floats(&self.m), floats(&self.v), self.steps)
+        values.copy_from_slice(&floats(&self.values));
+        adam.restore(floats(&self.m), floats(&self.v), self.steps)
     }
 }
 
@@ -244,7 +249,14 @@ pub fn save(
         lr_scale_bits: lr_scale.to_bits(),
         loss_ema_bits: loss_ema.to_bits(),
         sections: sections.map(|s| s.count()),
-        appearance: trainer.appearance.as_ref().map(AppearanceState::of),
+        appearance: trainer
+            .appearance
+            .as_ref()
+            .map(|a| LearnerState::of(&a.deltas, &a.adam)),
+        environment: trainer
+            .environment
+            .as_ref()
+            .map(|e| LearnerState::of(&e.environment.coeffs, &e.adam)),
         pose_learning: trainer.poses.as_ref().map(PoseLearner::state),
     };
     let write_error = |source| CheckpointError::Write {
@@ -369,10 +381,18 @@ impl Checkpoint {
         }
         let h = self.header;
         let appearance_restored = match (&h.appearance, &mut trainer.appearance) {
-            (Some(saved), Some(learner)) => saved.restore(learner),
+            (Some(saved), Some(learner)) => saved.restore(&mut learner.deltas, &mut learner.adam),
             (None, None) => true,
             _ => false,
         };
+        let environment_restored = match (&h.environment, &mut trainer.environment) {
+            (Some(saved), Some(learner)) => saved.restore(&mut learner.environment.coeffs, &mut learner.adam),
+            (None, None) => true,
+            _ => false,
+        };
+        if !environment_restored {
+            return Err(damaged(&path, "the learnt environment does not match this fit's"));
+        }
         if !appearance_restored {
             return Err(damaged(
                 &path,
@@ -417,6 +437,7 @@ mod tests {
         let field = Field::new(field_cfg, &mut Rng::new(9, 0));
         let mut t = Trainer::new(field, OccupancyGrid::full(16), train, [0.5; 3]);
         t.learn_appearance(3);
+        t.learn_environment();
         let views = plane_views(3, 16, true);
         for s in 0..steps {
             t.step(&views, s as f32 / 70.0);
@@ -469,6 +490,7 @@ mod tests {
             [0.5; 3],
         );
         b.learn_appearance(3);
+        b.learn_environment();
         let back = ckpt.restore(&mut b).unwrap();
         assert_eq!((back.train_seconds, back.last_point), (1.5, (1.0, 99)));
         for s in 50..70 {
@@ -481,6 +503,8 @@ mod tests {
         let maps = |t: &Trainer| t.appearance.as_ref().unwrap().deltas.clone();
         assert_eq!(maps(&a), maps(&b));
         assert!(maps(&a).iter().any(|&d| d != 0.0), "the maps learnt after warm-up");
+        let environment = |t: &Trainer| t.environment.as_ref().unwrap().environment;
+        assert_eq!(environment(&a), environment(&b));
         assert_eq!(a.occupancy.densities(), b.occupancy.densities());
         assert_eq!(a.counters.steps, 70);
         assert!(a.counters.occupancy_refreshes >= 3);
@@ -550,6 +574,7 @@ mod tests {
                 train,
                 [0.5; 3],
             );
+            t.learn_environment();
             if let Some(n) = frames {
                 t.learn_appearance(n);
             }
@@ -561,6 +586,22 @@ mod tests {
                 .to_string();
             assert!(m.contains("appearance maps do not match"), "{m}");
         }
+        // A trainer without the environment the checkpoint has.
+        let (field_cfg, train) = small_config(9);
+        let mut t = Trainer::new(
+            Field::new(field_cfg, &mut Rng::new(1, 0)),
+            OccupancyGrid::full(16),
+            train,
+            [0.5; 3],
+        );
+        t.learn_appearance(3);
+        let m = Checkpoint::load(&path)
+            .unwrap()
+            .restore(&mut t)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(m.contains("environment does not match"), "{m}");
         let m = msg(FitIdentity {
             settings_fingerprint: 12,
             ..identity()

@@ -271,6 +271,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     if opts.settings.per_frame_appearance {
         trainer.learn_appearance(data.train.len());
     }
+    trainer.learn_environment();
     if let Some(learner) = pose_learner {
         trainer.learn_poses(learner);
     }
@@ -577,6 +578,7 @@ fn run(
         rule: settings.render_step,
         max_samples_per_ray: 4096,
         background: data.background,
+        environment: None,
     };
     // Wall seconds of earlier runs (a resumed fit), then of this one.
     let earlier_wall = state.timings.wall_s.max(state.train_seconds);
@@ -629,7 +631,7 @@ fn run(
         let r: Validation = validate(
             &trainer.field,
             &grid,
-            &render_opts,
+            &trainer.render_options(&render_opts),
             &data.holdout,
             metres_per_unit,
             side,
@@ -694,12 +696,13 @@ fn run(
         if opts.settings.refine_poses && pose_alignment_due(&state.pose_alignment, progress, steps, warmup) {
             let frames = data.train_frames.clone();
             let before = state.timings.pose_align_s;
+            let render = trainer.render_options(&render_opts);
             align_poses_to_field(
                 scan,
                 &mut data,
                 &mut trainer,
                 &transform,
-                &render_opts,
+                &render,
                 &frames,
                 &alignment_options,
                 &mut state,
@@ -765,12 +768,13 @@ fn run(
     // is aligned to the final field, once the first pass ran.
     if opts.settings.refine_poses && !state.pose_alignment.is_empty() && !state.interrupted {
         let frames: Vec<usize> = (0..frame_count).collect();
+        let render = trainer.render_options(&render_opts);
         align_poses_to_field(
             scan,
             &mut data,
             &mut trainer,
             &transform,
-            &render_opts,
+            &render,
             &frames,
             &alignment_options,
             &mut state,
@@ -790,6 +794,7 @@ fn run(
         units_per_metre: transform.scale(),
         occupancy_resolution: trainer.occupancy.resolution(),
         background: data.background,
+        environment: trainer.environment.as_ref().map(|e| e.environment.coeffs.to_vec()),
         render_step: settings.render_step,
         steps: trainer.counters.steps,
         seed: opts.settings.seed,

@@ -5,15 +5,19 @@
 //! thread count.
 
 use crate::nerf::appearance::apply_backward;
+use crate::nerf::environment::{Environment, ENVIRONMENT_PARAMS};
 use crate::nerf::field::hash_grid::GridGrad;
+use crate::nerf::field::sh::{self, SH_COEFFS};
 use crate::nerf::field::{Field, FieldGrad, FieldSeconds, FieldWorkspace};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule};
+use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::adam::Adam;
 use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::dataset::View;
+use crate::nerf::train::environment::EnvironmentLearner;
 use crate::nerf::train::pose_learning::{self, PoseGradient, PoseLearner};
 use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
@@ -91,6 +95,7 @@ const POSE_SAMPLE_MIN_WEIGHT: f32 = 1e-3;
 pub struct StepStats {
     pub loss: f64,
     pub loss_rgb: f64,
+    /// Depth, line-of-sight, no-return and distortion terms: the geometry's.
     pub loss_depth: f64,
     pub rays: usize,
     pub samples: usize,
@@ -197,6 +202,8 @@ struct Chunk {
     d_rgb: Vec<f32>,
     /// Gradient of the training views' appearance maps (12 per view).
     grad_appearance: Vec<f32>,
+    /// Gradient of the environment's coefficients, when learnt.
+    grad_environment: Vec<f32>,
     /// Gradient of the training views' pose corrections, when learnt.
     grad_pose: Vec<PoseGradient>,
     /// Loss gradient with respect to each sample's position, and the
@@ -229,6 +236,8 @@ pub struct Trainer {
     measured: Option<MeasuredSurfaces>,
     /// Per-frame appearance maps, when learnt.
     pub appearance: Option<AppearanceLearner>,
+    /// The colour beyond the cube, when learnt (else `background`).
+    pub environment: Option<EnvironmentLearner>,
     /// Per-frame pose corrections, when learnt.
     pub poses: Option<PoseLearner>,
     /// The pose steps of the last training step, one per training view
@@ -257,6 +266,7 @@ impl Trainer {
                 d_sigma: Vec::new(),
                 d_rgb: Vec::new(),
                 grad_appearance: Vec::new(),
+                grad_environment: Vec::new(),
                 grad_pose: Vec::new(),
                 d_position: Vec::new(),
                 pose_samples: Vec::new(),
@@ -281,8 +291,23 @@ impl Trainer {
             depth_coverage: None,
             measured: None,
             appearance: None,
+            environment: None,
             poses: None,
             pose_steps: Vec::new(),
+        }
+    }
+
+    /// Learn the colour beyond the cube (`nerf::environment`), starting
+    /// from the background colour.
+    pub fn learn_environment(&mut self) {
+        self.environment = Some(EnvironmentLearner::new(self.background));
+    }
+
+    /// `base` rendering what the trainer has learnt beyond the field (the environment).
+    pub fn render_options(&self, base: &RenderOptions) -> RenderOptions {
+        RenderOptions {
+            environment: self.environment.as_ref().map(|e| e.environment),
+            ..*base
         }
     }
 
@@ -349,6 +374,7 @@ impl Trainer {
             background: self.background,
             measured: self.measured.as_ref().filter(|_| self.config.lambda_no_return > 0.0),
             appearance: self.appearance.as_ref(),
+            environment: self.environment.as_ref().map(|e| &e.environment),
             pose_levels: self
                 .poses
                 .as_ref()
@@ -356,6 +382,11 @@ impl Trainer {
                 .map(|p| p.levels),
         };
         let appearance_len = self.appearance.as_ref().map_or(0, |a| a.deltas.len());
+        let environment_len = if self.environment.is_some() {
+            ENVIRONMENT_PARAMS
+        } else {
+            0
+        };
         let pose_len = if ctx.pose_levels.is_some() { views.len() } else { 0 };
         let seed = self.config.seed;
         let stats: Vec<ChunkStats> = self
@@ -367,6 +398,8 @@ impl Trainer {
                 chunk.grad.clear();
                 chunk.grad_appearance.clear();
                 chunk.grad_appearance.resize(appearance_len, 0.0);
+                chunk.grad_environment.clear();
+                chunk.grad_environment.resize(environment_len, 0.0);
                 chunk.grad_pose.clear();
                 chunk.grad_pose.resize(pose_len, [0.0; 6]);
                 chunk.ws.seconds = FieldSeconds::default();
@@ -379,6 +412,9 @@ impl Trainer {
         for other in rest.iter_mut() {
             first[0].grad.drain_from(&mut other.grad);
             for (g, o) in first[0].grad_appearance.iter_mut().zip(&other.grad_appearance) {
+                *g += o;
+            }
+            for (g, o) in first[0].grad_environment.iter_mut().zip(&other.grad_environment) {
                 *g += o;
             }
             for (g, o) in first[0].grad_pose.iter_mut().zip(&other.grad_pose) {
@@ -423,7 +459,8 @@ impl Trainer {
         let finite = total.loss.is_finite()
             && grad.mlps_finite()
             && grid_rms.is_some()
-            && grad_appearance.iter().all(|g| g.is_finite());
+            && grad_appearance.iter().all(|g| g.is_finite())
+            && first[0].grad_environment.iter().all(|g| g.is_finite());
         if finite {
             let density = self
                 .adam_density
@@ -477,6 +514,9 @@ impl Trainer {
             .filter(|_| step_index >= self.config.warmup_steps)
         {
             appearance.step(grad_appearance, lr);
+        }
+        if let Some(environment) = self.environment.as_mut() {
+            environment.step(&first[0].grad_environment, lr);
         }
         if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
             let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();
@@ -585,6 +625,7 @@ struct StepContext<'a> {
     background: [f32; 3],
     measured: Option<&'a MeasuredSurfaces>,
     appearance: Option<&'a AppearanceLearner>,
+    environment: Option<&'a Environment>,
     /// Grid levels of the cameras' gradient, when poses are learnt this step.
     pose_levels: Option<usize>,
 }
@@ -772,7 +813,6 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
     let d_rgb = sized(&mut chunk.d_rgb, 3 * n);
     let sigma = &chunk.ws.sigma;
     let rgb = &chunk.ws.rgb;
-    let bg = ctx.background;
     let (lambda_d, lambda_los, window) = (cfg.lambda_depth, cfg.lambda_line_of_sight, cfg.surface_window);
     for r in rays {
         let rec = &chunk.rays[r];
@@ -784,6 +824,15 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
         }
         let comp = weights_from_optical_depth(&tau[o..o + k], &mut weights[o..o + k]);
         let t_final = comp.transmittance;
+        // The colour behind the ray: learnt by direction, or the scan's mean.
+        let mut basis = [0.0f32; SH_COEFFS];
+        let bg = match ctx.environment {
+            Some(env) => {
+                sh::encode(chunk.ray_dirs[r], &mut basis);
+                env.colour_of_basis(&basis)
+            }
+            None => ctx.background,
+        };
         let mut color = [bg[0] * t_final, bg[1] * t_final, bg[2] * t_final];
         let mut depth = t_final * rec.t_end;
         for i in 0..k {
@@ -811,6 +860,10 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             two_err = back.map(|g| g / GRAD_SCALE);
         }
         let mut g_t = two_err[0] * bg[0] + two_err[1] * bg[1] + two_err[2] * bg[2];
+        if ctx.environment.is_some() && t_final > 0.0 {
+            let g_bg = two_err.map(|g| g * t_final);
+            Environment::backward(bg, &basis, g_bg, &mut chunk.grad_environment);
+        }
         for i in 0..k {
             let j = o + i;
             grad_w[j] = two_err[0] * rgb[j] + two_err[1] * rgb[n + j] + two_err[2] * rgb[2 * n + j];
@@ -841,6 +894,10 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
                     grad_w[o + i] -= 2.0 * lambda_los * miss;
                 }
             }
+        }
+        if rec.depth_t.is_none() && ctx.environment.is_some() {
+            // Colour seen through empty space belongs to the environment, not to fog.
+            stats.loss_depth += distortion(segs, &weights[o..o + k], DISTORTION_WEIGHT, &mut grad_w[o..o + k]) as f64;
         }
         if let (true, Some(measured)) = (rec.no_return, ctx.measured) {
             let positions = &chunk.sample_positions[o..o + k];
@@ -919,6 +976,35 @@ fn pose_gradient(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usi
     }
 }
 
+/// Weight of the distortion term on rays without measured depth.
+const DISTORTION_WEIGHT: f32 = 0.01;
+
+/// Distortion term of one ray (Mip-NeRF 360): `lambda` times
+/// `sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 dt_i` over its samples'
+/// midpoints `m`. Small when the weight sits in one short interval, large
+/// for weight spread along the ray (fog), so colour seen through empty
+/// space goes to the environment instead. Adds its gradient with respect to
+/// the weights to `grad_w` and returns the loss.
+fn distortion(segs: &[Segment], weights: &[f32], lambda: f32, grad_w: &mut [f32]) -> f32 {
+    let (total_w, total_wm) = segs
+        .iter()
+        .zip(weights)
+        .fold((0.0f32, 0.0f32), |(a, b), (s, &w)| (a + w, b + w * s.mid()));
+    let (mut before_w, mut before_wm) = (0.0f32, 0.0f32);
+    let mut loss = 0.0f32;
+    for ((s, &w), g) in segs.iter().zip(weights).zip(grad_w.iter_mut()) {
+        let m = s.mid();
+        let (after_w, after_wm) = (total_w - before_w - w, total_wm - before_wm - w * m);
+        // sum_j w_j |m - m_j|
+        let spread = m * before_w - before_wm + after_wm - m * after_w;
+        loss += w * spread + w * w * s.dt / 3.0;
+        *g += lambda * (2.0 * spread + 2.0 / 3.0 * w * s.dt);
+        before_w += w;
+        before_wm += w * m;
+    }
+    lambda * loss
+}
+
 /// No-return term of one ray without sensor depth: `lambda` times the light
 /// that reaches the first sample on a surface the sensor measured (from
 /// other views). The sensor would have returned that surface, so something
@@ -952,7 +1038,7 @@ pub(crate) mod tests {
     use crate::nerf::field::{FieldConfig, GridSpec};
     use crate::nerf::occupancy::DepthRay;
     use crate::nerf::render::composite::optical_depth_backward;
-    use crate::nerf::render::rays::{render_pixels, RenderOptions};
+    use crate::nerf::render::rays::{render_image, render_pixels};
     use crate::scan::Intrinsics;
 
     /// Views of a textured plane at local z = 0.6 seen from z ~ 0.15.
@@ -1029,6 +1115,7 @@ pub(crate) mod tests {
             rule: train_cfg.step,
             max_samples_per_ray: 4096,
             background: [0.5; 3],
+            environment: None,
         };
         let cam = views[0].camera;
         let pixels: Vec<(f32, f32)> = (8..40)
@@ -1057,6 +1144,105 @@ pub(crate) mod tests {
             })
             .collect();
         MeasuredSurfaces::from_depth_rays(&rays, 64)
+    }
+
+    /// Views from inside the cube that see nothing: each pixel shows a sky
+    /// whose colour changes with the ray's direction (no depth).
+    fn sky_views(n: usize, size: u32) -> Vec<View> {
+        plane_views(n, size, false)
+            .into_iter()
+            .map(|mut view| {
+                let camera = view.camera;
+                view.rgb = (0..camera.pixels())
+                    .flat_map(|p| {
+                        let (ray, _) = camera.ray((p % size as usize) as f32, (p / size as usize) as f32);
+                        let [x, y, _] = ray.dir;
+                        [0.3 + 0.5 * x.abs(), 0.5 + 0.4 * y, 0.8].map(|c| (c * 255.0) as u8)
+                    })
+                    .collect();
+                view
+            })
+            .collect()
+    }
+
+    #[test]
+    fn colour_beyond_the_scene_is_learnt_as_environment_not_fog() {
+        let views = sky_views(4, 24);
+        let (field_cfg, train_cfg) = small_config(5);
+        let render = |trainer: &mut Trainer| {
+            let grid = trainer.rendering_occupancy();
+            let base = RenderOptions {
+                color: true,
+                rule: train_cfg.step,
+                max_samples_per_ray: 4096,
+                background: [0.5; 3],
+                environment: None,
+            };
+            let out = render_image(&trainer.field, &grid, &trainer.render_options(&base), &views[1].camera);
+            let samples = out.iter().map(|o| o.samples as f32).sum::<f32>() / out.len() as f32;
+            let opacity = out.iter().map(|o| o.opacity).sum::<f32>() / out.len() as f32;
+            let colour_error = out
+                .iter()
+                .zip(views[1].rgb.chunks_exact(3))
+                .map(|(o, want)| (0..3).map(|c| (o.rgb[c] - want[c] as f32 / 255.0).abs()).sum::<f32>() / 3.0)
+                .sum::<f32>()
+                / out.len() as f32;
+            (samples, opacity, colour_error)
+        };
+        let trained = |environment: bool| {
+            let field = Field::new(field_cfg.clone(), &mut Rng::new(5, 0));
+            let mut trainer = Trainer::new(field, OccupancyGrid::full(32), train_cfg.clone(), [0.5; 3]);
+            if environment {
+                trainer.learn_environment();
+            }
+            for s in 0..400 {
+                trainer.step(&views, s as f32 / 400.0);
+            }
+            render(&mut trainer)
+        };
+        let (fog_samples, fog_opacity, _) = trained(false);
+        let (samples, opacity, error) = trained(true);
+        assert!(error < 0.03, "the environment shows the sky: mean error {error}");
+        // 0.39 against 0.62 after 400 steps when this was written.
+        assert!(
+            opacity < 0.8 * fog_opacity,
+            "less fog: opacity {opacity} against {fog_opacity} without"
+        );
+        assert!(samples <= fog_samples, "{samples} samples against {fog_samples}");
+    }
+
+    #[test]
+    fn distortion_gradient_matches_finite_differences_and_spread_weight_costs_more() {
+        let segs: Vec<Segment> = (0..12)
+            .map(|i| Segment {
+                t: 0.1 + 0.02 * i as f32 + 0.003 * (i % 3) as f32,
+                dt: 0.02,
+            })
+            .collect();
+        let weights: Vec<f32> = (0..12).map(|i| 0.02 + 0.05 * ((i as f32) * 1.3).sin().abs()).collect();
+        let mut grad = vec![0.0f32; 12];
+        let loss = distortion(&segs, &weights, 0.5, &mut grad);
+        for k in 0..12 {
+            let h = 1e-3;
+            let mut up = weights.clone();
+            up[k] += h;
+            let mut down = weights.clone();
+            down[k] -= h;
+            let mut scratch = vec![0.0f32; 12];
+            let numeric =
+                (distortion(&segs, &up, 0.5, &mut scratch) - distortion(&segs, &down, 0.5, &mut scratch)) / (2.0 * h);
+            assert!(
+                (numeric - grad[k]).abs() < 2e-3 * (1.0 + numeric.abs()),
+                "weight {k}: {numeric} vs {}",
+                grad[k]
+            );
+        }
+        // The same total weight in one sample costs far less than spread along the ray.
+        let total: f32 = weights.iter().sum();
+        let mut one = vec![0.0f32; 12];
+        one[6] = total;
+        let concentrated = distortion(&segs, &one, 0.5, &mut [0.0; 12]);
+        assert!(concentrated < 0.2 * loss, "{concentrated} vs spread {loss}");
     }
 
     #[test]
@@ -1156,6 +1342,7 @@ pub(crate) mod tests {
             rule: train_cfg.step,
             max_samples_per_ray: 4096,
             background: [0.5; 3],
+            environment: None,
         };
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
         let mut err: Vec<f32> = out

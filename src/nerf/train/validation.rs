@@ -118,6 +118,7 @@ mod tests {
             rule: train.step,
             max_samples_per_ray: 4096,
             background: [0.5; 3],
+            environment: None,
         };
         let views = plane_views(1, 32, true);
         let r = validate(&field, &OccupancyGrid::full(64), &opts, &views, 1.0, 32, None);

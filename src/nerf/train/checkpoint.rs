@@ -445,6 +445,17 @@ mod tests {
         t
     }
 
+    /// A trainer for the same settings as [`trained`], with other initial weights.
+    fn untrained() -> Trainer {
+        let (field_cfg, train) = small_config(9);
+        Trainer::new(
+            Field::new(field_cfg, &mut Rng::new(1, 0)),
+            OccupancyGrid::full(16),
+            train,
+            [0.5; 3],
+        )
+    }
+
     fn identity() -> FitIdentity {
         FitIdentity {
             scan_fingerprint: 7,
@@ -482,13 +493,7 @@ mod tests {
         assert_ne!(ckpt.header.refresh_phase, 0);
         ckpt.check(&identity()).unwrap();
         // A fresh trainer (other initial weights) takes over the saved state.
-        let (field_cfg, train) = small_config(9);
-        let mut b = Trainer::new(
-            Field::new(field_cfg, &mut Rng::new(1, 0)),
-            OccupancyGrid::full(16),
-            train,
-            [0.5; 3],
-        );
+        let mut b = untrained();
         b.learn_appearance(3);
         b.learn_environment();
         let back = ckpt.restore(&mut b).unwrap();
@@ -565,42 +570,21 @@ mod tests {
             m.contains("without --no-appearance (this run: with --no-appearance)"),
             "{m}"
         );
-        // Maps for another number of training frames, or none, are damage.
+        // Maps for another number of training frames, or none, are damage;
+        // so is a trainer without the environment the checkpoint has.
+        let restore_error = |t: &mut Trainer| Checkpoint::load(&path).unwrap().restore(t).err().unwrap().to_string();
         for frames in [None, Some(4)] {
-            let (field_cfg, train) = small_config(9);
-            let mut t = Trainer::new(
-                Field::new(field_cfg, &mut Rng::new(1, 0)),
-                OccupancyGrid::full(16),
-                train,
-                [0.5; 3],
-            );
+            let mut t = untrained();
             t.learn_environment();
             if let Some(n) = frames {
                 t.learn_appearance(n);
             }
-            let m = Checkpoint::load(&path)
-                .unwrap()
-                .restore(&mut t)
-                .err()
-                .unwrap()
-                .to_string();
+            let m = restore_error(&mut t);
             assert!(m.contains("appearance maps do not match"), "{m}");
         }
-        // A trainer without the environment the checkpoint has.
-        let (field_cfg, train) = small_config(9);
-        let mut t = Trainer::new(
-            Field::new(field_cfg, &mut Rng::new(1, 0)),
-            OccupancyGrid::full(16),
-            train,
-            [0.5; 3],
-        );
+        let mut t = untrained();
         t.learn_appearance(3);
-        let m = Checkpoint::load(&path)
-            .unwrap()
-            .restore(&mut t)
-            .err()
-            .unwrap()
-            .to_string();
+        let m = restore_error(&mut t);
         assert!(m.contains("environment does not match"), "{m}");
         let m = msg(FitIdentity {
             settings_fingerprint: 12,

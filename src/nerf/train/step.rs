@@ -1108,15 +1108,20 @@ pub(crate) mod tests {
         (field, train)
     }
 
-    /// Mean depth error (local units) of the trained plane seen from view 0.
-    fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
-        let opts = RenderOptions {
+    /// Colour rendering with the training step rule, grey behind.
+    fn colour_options(train_cfg: &TrainConfig) -> RenderOptions {
+        RenderOptions {
             color: true,
             rule: train_cfg.step,
             max_samples_per_ray: 4096,
             background: [0.5; 3],
             environment: None,
-        };
+        }
+    }
+
+    /// Mean depth error (local units) of the trained plane seen from view 0.
+    fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
+        let opts = colour_options(train_cfg);
         let cam = views[0].camera;
         let pixels: Vec<(f32, f32)> = (8..40)
             .step_by(4)
@@ -1171,14 +1176,8 @@ pub(crate) mod tests {
         let (field_cfg, train_cfg) = small_config(5);
         let render = |trainer: &mut Trainer| {
             let grid = trainer.rendering_occupancy();
-            let base = RenderOptions {
-                color: true,
-                rule: train_cfg.step,
-                max_samples_per_ray: 4096,
-                background: [0.5; 3],
-                environment: None,
-            };
-            let out = render_image(&trainer.field, &grid, &trainer.render_options(&base), &views[1].camera);
+            let opts = trainer.render_options(&colour_options(&train_cfg));
+            let out = render_image(&trainer.field, &grid, &opts, &views[1].camera);
             let samples = out.iter().map(|o| o.samples as f32).sum::<f32>() / out.len() as f32;
             let opacity = out.iter().map(|o| o.opacity).sum::<f32>() / out.len() as f32;
             let colour_error = out

@@ -889,8 +889,8 @@ mod tests {
                 translation_m: 0.0,
                 rotation_deg: 0.0,
                 shift_px,
-                cost_before: 1.0,
-                cost_after: 0.5,
+                cost_before: Some(1.0),
+                cost_after: Some(0.5),
                 refined: i < moved,
             })
             .collect();

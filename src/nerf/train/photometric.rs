@@ -86,9 +86,12 @@ pub struct PhotometricCorrection {
     /// the correction found (kept or not), pixels.
     pub shift_px: f64,
     /// Robust colour cost (mean Huber loss, 0-1 colour scale) before and
-    /// after, at the finest level.
-    pub cost_before: f64,
-    pub cost_after: f64,
+    /// after, at the finest level; absent when the frame had too few
+    /// surface points to be aligned.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cost_before: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cost_after: Option<f64>,
     /// Whether the correction was kept.
     pub refined: bool,
 }
@@ -137,8 +140,8 @@ pub fn align_to_field(
             translation_m: 0.0,
             rotation_deg: 0.0,
             shift_px: outcome.as_ref().map_or(0.0, |a| a.shift_px),
-            cost_before: outcome.as_ref().map_or(f64::NAN, |a| a.cost_before),
-            cost_after: outcome.as_ref().map_or(f64::NAN, |a| a.cost_after),
+            cost_before: outcome.as_ref().map(|a| a.cost_before),
+            cost_after: outcome.as_ref().map(|a| a.cost_after),
             refined,
         });
     }

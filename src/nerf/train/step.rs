@@ -17,7 +17,7 @@ use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::adam::Adam;
 use crate::nerf::train::appearance::AppearanceLearner;
 use crate::nerf::train::dataset::View;
-use crate::nerf::train::environment::EnvironmentLearner;
+use crate::nerf::train::environment::{self, EnvironmentLearner};
 use crate::nerf::train::pose_learning::{self, PoseGradient, PoseLearner};
 use crate::nerf::train::settings::TrainConfig;
 use crate::rng::Rng;
@@ -516,7 +516,8 @@ impl Trainer {
             appearance.step(grad_appearance, lr);
         }
         if let Some(environment) = self.environment.as_mut() {
-            environment.step(&first[0].grad_environment, lr);
+            let rate = environment::LEARNING_RATE * schedule * self.lr_scale;
+            environment.step(&first[0].grad_environment, rate);
         }
         if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
             let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();

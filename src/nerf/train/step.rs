@@ -515,9 +515,9 @@ impl Trainer {
         {
             appearance.step(grad_appearance, lr);
         }
-        if let Some(environment) = self.environment.as_mut() {
+        if let Some(learner) = self.environment.as_mut() {
             let rate = environment::LEARNING_RATE * schedule * self.lr_scale;
-            environment.step(&first[0].grad_environment, rate);
+            learner.step(&first[0].grad_environment, rate);
         }
         if let (Some(learner), true) = (self.poses.as_mut(), pose_len > 0) {
             let centres: Vec<[f64; 3]> = views.iter().map(|v| v.camera.origin.map(f64::from)).collect();

@@ -5,6 +5,7 @@
 //! every ray that leaves the scene then marches through that fog.
 
 use crate::nerf::field::sh::{self, SH_COEFFS};
+use crate::nerf::field::sigmoid;
 
 /// Parameters of an [`Environment`]: one set of coefficients per channel.
 pub const ENVIRONMENT_PARAMS: usize = 3 * SH_COEFFS;
@@ -47,8 +48,7 @@ impl Environment {
     pub fn colour_of_basis(&self, basis: &[f32; SH_COEFFS]) -> [f32; 3] {
         std::array::from_fn(|c| {
             let k = &self.coeffs[c * SH_COEFFS..(c + 1) * SH_COEFFS];
-            let x: f32 = k.iter().zip(basis).map(|(a, b)| a * b).sum();
-            1.0 / (1.0 + (-x).exp())
+            sigmoid(k.iter().zip(basis).map(|(a, b)| a * b).sum())
         })
     }
 

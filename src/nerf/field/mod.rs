@@ -190,8 +190,9 @@ fn density_activation_grad(raw: f32) -> f32 {
     raw.clamp(-GRAD_LOG_DENSITY, GRAD_LOG_DENSITY).exp()
 }
 
+/// The colour network's output activation (also the environment's).
 #[inline]
-fn sigmoid(x: f32) -> f32 {
+pub fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 

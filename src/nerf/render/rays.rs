@@ -23,7 +23,7 @@ use crate::nerf::camera::{LocalCamera, LocalRay};
 use crate::nerf::environment::Environment;
 use crate::nerf::field::mlp::MlpWorkspace;
 use crate::nerf::field::sh::{self, SH_COEFFS};
-use crate::nerf::field::{density_activation, Field, DENSITY_OUTPUTS};
+use crate::nerf::field::{density_activation, sigmoid, Field, DENSITY_OUTPUTS};
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::composite::{sanitize_tau, MIN_SURFACE_WEIGHT};
 use crate::nerf::render::march::{march_skipping, ray_interval, Segment, StepRule};
@@ -368,12 +368,6 @@ fn shade_round(field: &Field, rays: &[RenderRay], ws: &mut RenderWorkspace) {
             st.rgb[c] += w * sigmoid(color_out[c * m + k]);
         }
     }
-}
-
-/// The colour network's output activation (as in [`Field::forward`]).
-#[inline]
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 thread_local! {

@@ -61,12 +61,24 @@ pub fn march(
     out: &mut Vec<Segment>,
 ) -> f32 {
     // No optical-depth bound: the grid's density estimates are never read.
-    march_impl::<false>(ray, t0, t1, grid, rule, jitter, max_samples, f32::INFINITY, out)
+    march_impl::<false>(ray, t0, t1, grid, rule, jitter, max_samples, f32::INFINITY, None, out)
+}
+
+/// Longer steps where the grid's density estimate says the medium is thin:
+/// in a cell where a step `factor` times the rule's would gather less than
+/// `max_optical_depth`, that longer step is taken. A sum of samples is off
+/// by a fraction of the optical depth it spans, so thin space loses little
+/// by coarse samples, while surfaces keep the rule's step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ThinSteps {
+    pub factor: f32,
+    pub max_optical_depth: f32,
 }
 
 /// Like [`march`], but also stops once the optical depth estimated from the
 /// grid's density exceeds `max_optical_depth` (the ray is surely absorbed):
 /// training rays without measured depth stop behind the first surface.
+/// With `thin`, thin cells take longer steps (see [`ThinSteps`]).
 #[allow(clippy::too_many_arguments)]
 pub fn march_until(
     ray: &LocalRay,
@@ -77,9 +89,21 @@ pub fn march_until(
     jitter: f32,
     max_samples: usize,
     max_optical_depth: f32,
+    thin: Option<ThinSteps>,
     out: &mut Vec<Segment>,
 ) -> f32 {
-    march_impl::<true>(ray, t0, t1, grid, rule, jitter, max_samples, max_optical_depth, out)
+    march_impl::<true>(
+        ray,
+        t0,
+        t1,
+        grid,
+        rule,
+        jitter,
+        max_samples,
+        max_optical_depth,
+        thin,
+        out,
+    )
 }
 
 /// The marching loop; `BOUNDED` reads the grid's density for the optical-depth stop.
@@ -94,6 +118,7 @@ fn march_impl<const BOUNDED: bool>(
     jitter: f32,
     max_samples: usize,
     max_optical_depth: f32,
+    thin: Option<ThinSteps>,
     out: &mut Vec<Segment>,
 ) -> f32 {
     let res = grid.resolution();
@@ -115,11 +140,26 @@ fn march_impl<const BOUNDED: bool>(
         let idx = [c[0] as i32 as usize, c[1] as i32 as usize, c[2] as i32 as usize];
         let cell = (idx[2] * res + idx[1]) * res + idx[0];
         if grid.is_occupied_cell(cell) {
+            let mut dt = dt;
+            if BOUNDED {
+                let density = grid.cell_density(cell);
+                if let Some(thin) = thin {
+                    let long = dt * thin.factor;
+                    // The cells at the longer step's middle and end must be
+                    // thin too, so it never reaches into a surface.
+                    let thin_at = |d: f32| {
+                        let cell = grid.cell_of(ray.at(t + d));
+                        // Written so NaN keeps the rule's step.
+                        cell.is_none_or(|c| grid.cell_density(c) * long < thin.max_optical_depth)
+                    };
+                    if density * long < thin.max_optical_depth && thin_at(0.5 * long) && thin_at(long) {
+                        dt = long;
+                    }
+                }
+                optical_depth += density * dt;
+            }
             out.push(Segment { t, dt: dt.min(t1 - t) });
             taken += 1;
-            if BOUNDED {
-                optical_depth += grid.cell_density(cell) * dt;
-            }
             t += dt;
         } else {
             // Skip the empty cell in whole steps so samples stay on the step lattice.
@@ -816,5 +856,84 @@ mod tests {
                 "ray {k}: first sample at {t}, front at {front}"
             );
         }
+    }
+
+    /// Haze (density 1) below z = 0.5, a surface (density 1000) over two
+    /// cells above it, nothing carved; a ray straight up through both.
+    fn haze_then_surface() -> (OccupancyGrid, LocalRay) {
+        let res = 32;
+        let density = (0..res * res * res)
+            .map(|c| {
+                if (16..18).contains(&(c / (res * res))) {
+                    1000.0
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let grid = OccupancyGrid::from_saved(res, density, vec![0; (res * res * res).div_ceil(64)]).unwrap();
+        let ray = LocalRay {
+            origin: [0.51, 0.52, -0.5],
+            dir: [0.0, 0.0, 1.0],
+        };
+        (grid, ray)
+    }
+
+    #[test]
+    fn long_steps_cross_thin_space_and_the_rules_step_samples_the_surface() {
+        let (grid, ray) = haze_then_surface();
+        let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
+        let rule = rule();
+        let thin = ThinSteps {
+            factor: 4.0,
+            max_optical_depth: 0.1,
+        };
+        let surface = 0.5 - ray.origin[2];
+        // Jittered by half a step: the long steps do not end on the surface.
+        let jitter = 0.5;
+        let mut plain = Vec::new();
+        let stop_plain = march_until(&ray, t0, t1, &grid, &rule, jitter, 10_000, 20.0, None, &mut plain);
+        let mut out = Vec::new();
+        let stop = march_until(&ray, t0, t1, &grid, &rule, jitter, 10_000, 20.0, Some(thin), &mut out);
+
+        // The haze: 128 samples at the rule's step, about a quarter as many
+        // long ones, none of which reaches into the surface.
+        let in_haze = |v: &[Segment]| v.iter().filter(|s| s.t < surface).count();
+        assert_eq!(in_haze(&plain), 128);
+        let long = 4.0 * rule.min_step;
+        assert!(
+            (30..=36).contains(&in_haze(&out)),
+            "{} samples in the haze",
+            in_haze(&out)
+        );
+        for s in out.iter().filter(|s| s.dt > 1.5 * rule.min_step) {
+            assert!((s.dt - long).abs() < 1e-6 && s.t + s.dt <= surface + 1e-6, "{s:?}");
+        }
+        // The surface: the rule's step, and the ray stops inside it after
+        // the same samples as without long steps (optical depth 20 reached).
+        let at_surface = |v: &[Segment]| v.iter().filter(|s| s.t >= surface).map(|s| s.dt).collect::<Vec<_>>();
+        assert_eq!(at_surface(&out), at_surface(&plain));
+        assert!(!at_surface(&out).is_empty() && at_surface(&out).iter().all(|&dt| dt == rule.min_step));
+        assert!(stop < surface + 2.0 / 32.0 && (stop - stop_plain).abs() < 2.0 * rule.min_step);
+
+        // A threshold the haze exceeds keeps the rule's step everywhere.
+        let dense_haze = ThinSteps {
+            max_optical_depth: 0.01,
+            ..thin
+        };
+        let mut strict = Vec::new();
+        march_until(
+            &ray,
+            t0,
+            t1,
+            &grid,
+            &rule,
+            jitter,
+            10_000,
+            20.0,
+            Some(dense_haze),
+            &mut strict,
+        );
+        assert_eq!(strict, plain);
     }
 }

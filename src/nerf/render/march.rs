@@ -65,14 +65,18 @@ pub fn march(
 }
 
 /// Longer steps where the grid's density estimate says the medium is thin:
-/// in a cell where a step `factor` times the rule's would gather less than
-/// `max_optical_depth`, that longer step is taken. A sum of samples is off
-/// by a fraction of the optical depth it spans, so thin space loses little
-/// by coarse samples, while surfaces keep the rule's step.
+/// in a cell where a step `factor` times the rule's (at most `max_cells`
+/// cells of the grid) would gather less than `max_optical_depth`, that
+/// longer step is taken. A sum of samples is off by a fraction of the
+/// optical depth it spans, so thin space loses little by coarse samples,
+/// while surfaces keep the rule's step. The grid's cells decide, so a step
+/// never crosses more of them than its checked points (start, middle, end)
+/// can see.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ThinSteps {
     pub factor: f32,
     pub max_optical_depth: f32,
+    pub max_cells: f32,
 }
 
 /// Like [`march`], but also stops once the optical depth estimated from the
@@ -144,7 +148,7 @@ fn march_impl<const BOUNDED: bool>(
             if BOUNDED {
                 let density = grid.cell_density(cell);
                 if let Some(thin) = thin {
-                    let long = dt * thin.factor;
+                    let long = (dt * thin.factor).min(thin.max_cells / r).max(dt);
                     // The cells at the longer step's middle and end must be
                     // thin too, so it never reaches into a surface.
                     let thin_at = |d: f32| {
@@ -887,6 +891,7 @@ mod tests {
         let thin = ThinSteps {
             factor: 4.0,
             max_optical_depth: 0.1,
+            max_cells: 2.0,
         };
         let surface = 0.5 - ray.origin[2];
         // Jittered by half a step: the long steps do not end on the surface.
@@ -935,5 +940,48 @@ mod tests {
             &mut strict,
         );
         assert_eq!(strict, plain);
+    }
+
+    #[test]
+    fn long_steps_cross_at_most_the_cells_they_check_and_never_shorten_the_rules() {
+        let (grid, ray) = haze_then_surface();
+        let (t0, t1) = ray_interval(&ray, 0.0).unwrap();
+        let cell = 1.0 / 32.0;
+        let thin = ThinSteps {
+            factor: 8.0,
+            max_optical_depth: 1.0,
+            max_cells: 2.0,
+        };
+        // 8 steps of half a cell would span 4 cells: 2 are taken.
+        let fine = StepRule {
+            min_step: cell / 2.0,
+            max_step: 1.0,
+            cone: 0.0,
+        };
+        let mut out = Vec::new();
+        march_until(&ray, t0, t1, &grid, &fine, 0.0, 10_000, 20.0, Some(thin), &mut out);
+        let longest = out.iter().map(|s| s.dt).fold(0.0, f32::max);
+        assert!((longest - 2.0 * cell).abs() < 1e-6, "longest step {longest}");
+        // A rule already stepping over 2 cells keeps its own step.
+        let coarse = StepRule {
+            min_step: 3.0 * cell,
+            max_step: 1.0,
+            cone: 0.0,
+        };
+        let (mut plain, mut with_thin) = (Vec::new(), Vec::new());
+        march_until(&ray, t0, t1, &grid, &coarse, 0.0, 10_000, 20.0, None, &mut plain);
+        march_until(
+            &ray,
+            t0,
+            t1,
+            &grid,
+            &coarse,
+            0.0,
+            10_000,
+            20.0,
+            Some(thin),
+            &mut with_thin,
+        );
+        assert_eq!(with_thin, plain);
     }
 }

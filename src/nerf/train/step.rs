@@ -38,18 +38,21 @@ const SPARSE_STEP_FACTOR: f32 = 8.0;
 /// colour, and at the base step they would cost most of a batch's samples.
 const COLOUR_ONLY_STEP_FACTOR: f32 = 4.0;
 /// Through space the grid estimates thin, those rays take 4 times longer
-/// steps still, while such a step gathers under 0.1 optical depth (about
-/// 10 % of the light; the sum over it is off by a fraction of that). Most
-/// of their samples crossed faint haze over the scene (what lies past the
-/// walls, or the sky); now each step trains on more rays. Realistic
-/// tabletop, seeds 2 / 3, `fit --time 60`: held-out 27.50 / 27.34 dB and
-/// depth 11.3 / 10.6 mm against exact truth, 26.97 / 26.97 dB and 16.0 /
-/// 16.0 mm before. Rays the sensor missed something on (no return) keep
-/// the shorter step: with it too, seed 2's object without depth was
-/// labelled worse (fused 0.952 against 0.971).
+/// steps still (at most 2 grid cells), while such a step gathers under 0.1
+/// optical depth (about 10 % of the light; the sum over it is off by a
+/// fraction of that). Most of their samples crossed faint haze over the
+/// scene (what lies past the walls, or the sky); now each step trains on
+/// more rays. Realistic tabletop, seeds 2 / 3, `fit --time 60`: held-out
+/// 27.25 / 27.55 dB and depth 11.8 / 10.7 mm against exact truth, 26.97 /
+/// 26.97 dB and 16.0 / 16.0 mm before. Rays the sensor missed something on
+/// (no return) keep the shorter step: with it too, seed 2's object without
+/// depth was labelled worse (fused 0.952 against 0.971). Without the cap,
+/// the coarse grid of the fast preset let steps cross a tenth of the scene
+/// and a small scan's depth error grew sixfold (tests/robustness_inputs.rs).
 const COLOUR_ONLY_THIN_STEPS: ThinSteps = ThinSteps {
     factor: 4.0,
     max_optical_depth: 0.1,
+    max_cells: 2.0,
 };
 /// Depth coverage of the training pixels below which rays without depth are
 /// the scan's main signal: they then march at the base step with the full

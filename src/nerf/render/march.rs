@@ -156,7 +156,8 @@ fn march_impl<const BOUNDED: bool>(
                         // Written so NaN keeps the rule's step.
                         cell.is_none_or(|c| grid.cell_density(c) * long < thin.max_optical_depth)
                     };
-                    if density * long < thin.max_optical_depth && thin_at(0.5 * long) && thin_at(long) {
+                    // No checks when the cap leaves the rule's step as it is.
+                    if long > dt && density * long < thin.max_optical_depth && thin_at(0.5 * long) && thin_at(long) {
                         dt = long;
                     }
                 }

@@ -1,5 +1,6 @@
-//! Hash grid throughput: encode and encode+backward samples/s for a
-//! tabletop-sized grid, on uniformly random positions and on points along
+//! Hash grid throughput: encode and encode+backward samples/s for the small
+//! fixture's grid (2.4 MiB, in cache) and for a 640x480 scan's (31 MiB, far
+//! beyond it), on uniformly random positions and on points along
 //! rays (the access pattern of training): one thread, SIMD and scalar, then
 //! two threads splitting the levels (`encode_levels` / `backward_levels`).
 //! Last, the time to build an occupancy grid for rendering (its bits, group
@@ -61,10 +62,22 @@ fn rates(pos: &[[f32; 3]], mut run: impl FnMut(&[[f32; 3]])) -> (f64, f64) {
 }
 
 fn main() {
-    let config = HashGridConfig::for_scene(2.0, 0.015);
+    // The small fixture's grid (fits in cache) and a 640x480 scan's (finest
+    // resolution 695, as the realistic tabletop: tables far beyond cache).
+    for (name, cell) in [
+        ("small fixture (2 m, 1.5 cm)", 0.015),
+        ("640x480 scan (2 m, finest 695)", 2.0 / 695.0),
+    ] {
+        grid_rates(name, HashGridConfig::for_scene(2.0, cell));
+    }
+    occupancy_build_times();
+}
+
+/// Encode and backward rates of one grid, on one thread and on two.
+fn grid_rates(name: &str, config: HashGridConfig) {
     let grid = HashGrid::new(config, &mut Rng::new(1, 0));
     let dim = grid.output_dim();
-    println!("tabletop grid (2 m, 1.5 cm): {config:?}");
+    println!("{name}: {config:?}");
     for (l, level) in grid.levels().iter().enumerate() {
         let kind = if level.dense { "dense" } else { "hashed" };
         println!(
@@ -156,8 +169,7 @@ fn main() {
         });
         println!("{name:<10} {:>16} {:>18}", fmt(enc), fmt(both));
     }
-
-    occupancy_build_times();
+    println!();
 }
 
 /// Milliseconds to build a rendering occupancy grid (`from_occupied_bits`:

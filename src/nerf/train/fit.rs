@@ -339,8 +339,18 @@ fn typical_correction(refinement: Option<&PoseRefinement>) -> Option<(f64, f64)>
 /// typical pose error at the full learning rate.
 const POSE_ERROR_STEPS: f64 = 100.0;
 
+/// Share of the training time spent: `trained` seconds so far, `remaining`
+/// seconds of the budget still free for training (1 once none is left).
+fn training_time_share(trained: f64, remaining: f64) -> f64 {
+    if remaining <= 0.0 {
+        1.0
+    } else {
+        (trained / (trained + remaining)).clamp(0.0, 1.0)
+    }
+}
+
 /// Whether the training frames are to be aligned to the field now, after
-/// the passes `done`: a pass is due at `progress`, the field has trained
+/// the passes `done`: a pass is due at `progress` (share of the training time), the field has trained
 /// through the warm-up and, since the last pass, half a warm-up more, and
 /// the last pass still moved many frames.
 fn pose_alignment_due(done: &[PoseAlignmentReport], progress: f64, steps: u64, warmup: u64) -> bool {
@@ -674,12 +684,24 @@ fn run(
         set_view_cameras(scan, &mut data, &transform);
     }
     loop {
-        let used = |limit: f64| (spent() + finish_cost) / limit;
-        let progress = match (time_budget, step_budget) {
-            (Some(limit), Some(steps)) => used(limit).max(trainer.counters.steps as f64 / steps as f64),
-            (Some(limit), None) => used(limit),
-            (None, Some(steps)) => trainer.counters.steps as f64 / steps.max(1) as f64,
-            (None, None) => 1.0,
+        // `progress` is the share of the budget used (the stop and the
+        // progress bar); `training` the share of the training time, which the
+        // learning-rate schedule and the pose passes follow: preparation and
+        // finishing must not eat into the schedule's full-rate phase. With the
+        // wall share, `--time 60` on the realistic tabletop (seed 2) left the
+        // full rate after 37 % of its 578 steps and scored 27.04 dB held out;
+        // `--steps 569` (schedule by steps) 27.50 dB.
+        let step_share = |steps: u64| trainer.counters.steps as f64 / steps.max(1) as f64;
+        let wall_share = |limit: f64| (spent() + finish_cost) / limit;
+        let training_share = |limit: f64| training_time_share(state.train_seconds, limit - spent() - finish_cost);
+        let (progress, training) = match (time_budget, step_budget) {
+            (Some(limit), Some(steps)) => (
+                wall_share(limit).max(step_share(steps)),
+                training_share(limit).max(step_share(steps)),
+            ),
+            (Some(limit), None) => (wall_share(limit), training_share(limit)),
+            (None, Some(steps)) => (step_share(steps), step_share(steps)),
+            (None, None) => (1.0, 1.0),
         };
         // At least one step, so that even a budget spent on preparation gives a model.
         if progress >= 1.0 && trainer.counters.steps > 0 {
@@ -693,7 +715,7 @@ fn run(
         // their own images before they are scored. After the warm-up at
         // least: an untrained field has nothing to align to.
         let (steps, warmup) = (trainer.counters.steps, trainer.config.warmup_steps);
-        if opts.settings.refine_poses && pose_alignment_due(&state.pose_alignment, progress, steps, warmup) {
+        if opts.settings.refine_poses && pose_alignment_due(&state.pose_alignment, training, steps, warmup) {
             let frames = data.train_frames.clone();
             let before = state.timings.pose_align_s;
             let render = trainer.render_options(&render_opts);
@@ -714,7 +736,7 @@ fn run(
             continue;
         }
         let t = Instant::now();
-        let stats = trainer.step(&data.train, progress as f32);
+        let stats = trainer.step(&data.train, training as f32);
         if let Some(steps) = trainer.take_pose_steps() {
             move_training_cameras(scan, &mut data, &transform, &steps);
             state.aligned_poses = scan.frames.iter().map(|f| column_major(&f.camera_to_world)).collect();
@@ -956,5 +978,19 @@ mod tests {
         // No more than the scheduled passes, however much they move.
         let four: Vec<_> = (0..4).map(|i| pass(100 * i, 100, 50, 2.0)).collect();
         assert!(!pose_alignment_due(&four, 0.99, 1000, 128));
+    }
+
+    #[test]
+    fn the_schedule_follows_training_time_not_preparation_or_finishing() {
+        // 6 s of preparation and 8 s of finishing in a 60 s budget: after
+        // 23 s of training, half of the 46 s the steps get is used, whereas
+        // the wall clock stands at (6 + 23 + 8) / 60 = 0.62.
+        let (limit, prep, finish, trained) = (60.0, 6.0, 8.0, 23.0);
+        let share = training_time_share(trained, limit - (prep + trained) - finish);
+        assert!((share - 0.5).abs() < 1e-12, "{share}");
+        // Nothing trained yet: 0; budget gone (or overrun): 1.
+        assert_eq!(training_time_share(0.0, 50.0), 0.0);
+        assert_eq!(training_time_share(10.0, 0.0), 1.0);
+        assert_eq!(training_time_share(0.0, -3.0), 1.0);
     }
 }

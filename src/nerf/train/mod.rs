@@ -6,6 +6,7 @@ pub mod adam;
 pub mod appearance;
 pub mod checkpoint;
 pub mod dataset;
+pub mod detail;
 pub mod environment;
 pub mod fit;
 pub mod metrics;

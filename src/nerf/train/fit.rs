@@ -350,9 +350,9 @@ fn training_time_share(trained: f64, remaining: f64) -> f64 {
 }
 
 /// Whether the training frames are to be aligned to the field now, after
-/// the passes `done`: a pass is due at `progress` (share of the training time), the field has trained
-/// through the warm-up and, since the last pass, half a warm-up more, and
-/// the last pass still moved many frames.
+/// the passes `done`: a pass is due at `progress` (share of the training
+/// time), the field has trained through the warm-up and, since the last
+/// pass, half a warm-up more, and the last pass still moved many frames.
 fn pose_alignment_due(done: &[PoseAlignmentReport], progress: f64, steps: u64, warmup: u64) -> bool {
     let passes_due = POSE_ALIGN_AT.iter().filter(|&&at| progress >= at).count();
     if done.len() >= passes_due || steps < warmup {

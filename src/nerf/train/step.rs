@@ -47,7 +47,7 @@ const DETAIL_SHARE: f32 = 0.75;
 /// from 0.3 of the steps, 1.7 % with this (uniform: 1.8-1.9 %).
 const DETAIL_FROM: f32 = 0.5;
 
-/// Share of a step's rays drawn by detail at `progress` (fraction of the budget).
+/// Share of a step's rays drawn by detail at `progress` (share of the training time).
 fn detail_share(progress: f32) -> f32 {
     if progress >= DETAIL_FROM {
         DETAIL_SHARE
@@ -767,10 +767,14 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             Some(detail) if ctx.detail_share > 0.0 && rng.f32() < ctx.detail_share => detail.sample(rng),
             _ => rng.below(view.camera.pixels() as u64) as usize,
         };
-        let importance = ctx.detail[view_index].as_ref().map_or(1.0, |detail| {
-            let share = ctx.detail_share as f64;
-            (1.0 / ((1.0 - share) + share * detail.density_ratio(pixel))) as f32
-        });
+        let importance = match &ctx.detail[view_index] {
+            Some(detail) if ctx.detail_share > 0.0 => {
+                let share = ctx.detail_share as f64;
+                (1.0 / ((1.0 - share) + share * detail.density_ratio(pixel))) as f32
+            }
+            // Uniform draws: every ray counts once (no ratio to look up).
+            _ => 1.0,
+        };
         let width = view.camera.width as usize;
         let (ray, t_per_z) = view.camera.ray((pixel % width) as f32, (pixel / width) as f32);
         let Some((t0, t1)) = ray_interval(&ray, ctx.rule.min_step) else {
@@ -1538,7 +1542,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn detail_draws_start_after_the_coarse_geometry_and_are_weighted_back() {
+    fn detail_draws_start_after_the_coarse_geometry() {
         assert_eq!(detail_share(0.0), 0.0);
         assert_eq!(detail_share(DETAIL_FROM - 1e-3), 0.0);
         assert_eq!(detail_share(DETAIL_FROM), DETAIL_SHARE);

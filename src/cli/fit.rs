@@ -8,6 +8,7 @@ use nerflabel::nerf::train::checkpoint::{checkpoint_path, Checkpoint};
 use nerflabel::nerf::train::fit::{fit, resume, FitEvent, FitOptions, DEFAULT_TIME_S};
 use nerflabel::nerf::train::report::report_path;
 use nerflabel::outputs::{check_outputs, lock_output, Output, ProtectedInputs};
+use nerflabel::scan::DepthNoise;
 
 pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     // `--time` is the wall time of the whole command, loading the scan included.
@@ -109,11 +110,15 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             holdout_views,
             param_count,
             occupied_fraction,
+            depth_noise,
         } => {
             bar.suspend(|| note!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
                 occupied_fraction * 100.0
             ));
+            if let Some(noise) = depth_noise {
+                bar.suspend(|| note!("depth noise: {}", describe_noise(noise)));
+            }
         }
         FitEvent::Step {
             step, stats, progress, ..
@@ -218,4 +223,16 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     }
     say!("report: {}", report_path.display());
     Ok(())
+}
+
+/// The sensor's depth noise at the nearest, middle and farthest measured depths.
+fn describe_noise(noise: &DepthNoise) -> String {
+    let n = noise.depths.len();
+    let mut picks = vec![0, n / 2, n - 1];
+    picks.dedup();
+    picks
+        .iter()
+        .map(|&i| format!("{:.1} mm at {:.1} m", noise.sigmas[i] * 1e3, noise.depths[i]))
+        .collect::<Vec<_>>()
+        .join(", ")
 }

@@ -122,15 +122,15 @@ pub fn resample_depth_to(depth: &DepthMap, width: u32, height: u32) -> DepthMap 
 
 /// Source neighbours and weight of one target pixel along one axis.
 #[derive(Clone, Copy, Debug)]
-struct Tap {
-    lo: usize,
-    hi: usize,
-    frac: f32,
+pub(super) struct Tap {
+    pub lo: usize,
+    pub hi: usize,
+    pub frac: f32,
 }
 
 /// Taps for mapping `target` pixels onto `source` pixels, centres aligned,
 /// clamped at the borders.
-fn axis_taps(source: usize, target: usize) -> Vec<Tap> {
+pub(super) fn axis_taps(source: usize, target: usize) -> Vec<Tap> {
     let scale = source as f64 / target.max(1) as f64;
     let last = source.saturating_sub(1) as f64;
     (0..target)

@@ -12,6 +12,7 @@
 mod assemble;
 mod colmap;
 mod depth;
+mod depth_noise;
 mod detect;
 mod error;
 mod files;
@@ -28,6 +29,7 @@ mod tum;
 mod validate;
 
 pub use depth::{resample_depth_to, vouched_free_distance, vouched_start, DepthMap, EDGE_RELATIVE_GAP, FREE_FRACTION};
+pub use depth_noise::{depth_noise, DepthNoise};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
 pub use error::ScanError;
 pub use rigid::isometry;

@@ -26,7 +26,7 @@ use crate::poses::{
     NormalizeOptions, PoseRefinement, RefineOptions, SceneTransform,
 };
 use crate::rng::Rng;
-use crate::scan::Scan;
+use crate::scan::{depth_noise, DepthNoise, Scan};
 use nalgebra::{IsometryMatrix3, Rotation3, Translation3, Vector3};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -131,6 +131,8 @@ pub enum FitEvent<'a> {
         holdout_views: usize,
         param_count: usize,
         occupied_fraction: f64,
+        /// The depth sensor's noise as measured on the scan (metres).
+        depth_noise: Option<&'a DepthNoise>,
     },
     /// A step finished; `progress` in [0, 1].
     Step {
@@ -200,6 +202,8 @@ const POSE_STEP_PX: f64 = 0.05;
 /// Everything a fit sets up before training: views, settings and a trainer at step 0.
 pub struct Prepared {
     pub data: Dataset,
+    /// The depth sensor's noise (metres), when the scan's depth shows it.
+    pub depth_noise: Option<DepthNoise>,
     pub settings: NerfSettings,
     pub transform: SceneTransform,
     pub metres_per_unit: f64,
@@ -275,6 +279,10 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     if let Some(learner) = pose_learner {
         trainer.learn_poses(learner);
     }
+    let noise = depth_noise(&scan.frames);
+    if let Some(noise) = &noise {
+        trainer.set_depth_noise(noise.scaled(transform.scale() as f32));
+    }
     if opts.settings.unseen_objects {
         let measured = dataset::depth_rays(&data.train, 2);
         if !measured.is_empty() {
@@ -284,6 +292,7 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     }
     Ok(Prepared {
         data,
+        depth_noise: noise,
         settings,
         transform,
         metres_per_unit,
@@ -532,6 +541,7 @@ fn run(
     let scaled = scale_report.is_some();
     let Prepared {
         mut data,
+        depth_noise,
         settings,
         transform,
         metres_per_unit,
@@ -576,6 +586,7 @@ fn run(
         holdout_views: data.holdout.len(),
         param_count,
         occupied_fraction: trainer.occupancy.occupied_fraction(),
+        depth_noise: depth_noise.as_ref(),
     });
 
     let time_budget = match (identity.time, identity.steps) {
@@ -872,6 +883,7 @@ fn run(
             let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
             AppearanceReport::new(&learner.maps(), &names)
         }),
+        depth_noise,
         curve: state.curve,
     };
     let model = Model {

@@ -8,6 +8,7 @@ use crate::nerf::train::settings::Preset;
 use crate::nerf::train::settings::TrainConfig;
 use crate::nerf::train::step::TrainCounters;
 use crate::poses::{FrameCorrection, PoseRefinement};
+use crate::scan::DepthNoise;
 use serde::{Deserialize, Serialize};
 
 /// One point of the error-against-run-time curve.
@@ -104,6 +105,10 @@ pub struct FitReport {
     /// when it was not learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub appearance: Option<AppearanceReport>,
+    /// The depth sensor's noise as the scan's depth showed it (metres);
+    /// `None` when it had too few measured surfaces to tell.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_noise: Option<DepthNoise>,
     pub curve: Vec<CurvePoint>,
 }
 

@@ -1246,23 +1246,31 @@ pub(crate) mod tests {
         }
     }
 
-    /// Mean depth error (local units) of the trained plane seen from view 0.
-    fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
+    /// Signed depth offsets (local units, positive = too far; no surface
+    /// counts as 1) of the trained plane, seen from view 0 every `stride`
+    /// pixels of its centre.
+    fn plane_depth_offsets(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig, stride: usize) -> Vec<f32> {
         let opts = colour_options(train_cfg);
         let cam = views[0].camera;
         let pixels: Vec<(f32, f32)> = (8..40)
-            .step_by(4)
-            .flat_map(|v| (8..40).step_by(4).map(move |u| (u as f32, v as f32)))
+            .step_by(stride)
+            .flat_map(|v| (8..40).step_by(stride).map(move |u| (u as f32, v as f32)))
             .collect();
         let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
-        let mut err = 0.0;
-        for (o, &(u, v)) in out.iter().zip(&pixels) {
-            let (ray, _) = cam.ray(u, v);
-            let t_true = (0.6 - ray.origin[2]) / ray.dir[2];
-            // No surface at all counts as the whole way off.
-            err += o.depth_median.map_or(1.0, |t| (t - t_true).abs());
-        }
-        err / out.len() as f32
+        out.iter()
+            .zip(&pixels)
+            .map(|(o, &(u, v))| {
+                let (ray, _) = cam.ray(u, v);
+                let t_true = (0.6 - ray.origin[2]) / ray.dir[2];
+                o.depth_median.map_or(1.0, |t| t - t_true)
+            })
+            .collect()
+    }
+
+    /// Mean depth error (local units) of the trained plane seen from view 0.
+    fn plane_depth_error(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
+        let offsets = plane_depth_offsets(trainer, views, train_cfg, 4);
+        offsets.iter().map(|o| o.abs()).sum::<f32>() / offsets.len() as f32
     }
 
     /// Measured surface: the plane z = 0.6 over x, y in [0.2, 0.8].
@@ -1579,20 +1587,8 @@ pub(crate) mod tests {
     /// Mean signed depth error (local units, positive = too far) of the
     /// trained plane seen from view 0.
     fn plane_depth_bias(trainer: &Trainer, views: &[View], train_cfg: &TrainConfig) -> f32 {
-        let opts = colour_options(train_cfg);
-        let cam = views[0].camera;
-        let pixels: Vec<(f32, f32)> = (8..40)
-            .step_by(2)
-            .flat_map(|v| (8..40).step_by(2).map(move |u| (u as f32, v as f32)))
-            .collect();
-        let out = render_pixels(&trainer.field, &trainer.occupancy, &opts, &cam, &pixels);
-        let mut sum = 0.0;
-        for (o, &(u, v)) in out.iter().zip(&pixels) {
-            let (ray, _) = cam.ray(u, v);
-            let t_true = (0.6 - ray.origin[2]) / ray.dir[2];
-            sum += o.depth_median.map_or(1.0, |t| t - t_true);
-        }
-        sum / out.len() as f32
+        let offsets = plane_depth_offsets(trainer, views, train_cfg, 2);
+        offsets.iter().sum::<f32>() / offsets.len() as f32
     }
 
     #[test]

@@ -255,11 +255,14 @@ impl OccupancyGrid {
         votes
     }
 
-    /// Cells each training camera vouches for as free: the cell it stood
-    /// in, and the cells its depth rays cross nearer than its
-    /// `free_distance` (nothing it measured was that near). Left occupied,
-    /// the spot every ray of a view passes through can grow a floater that
-    /// blinds that view.
+    /// Cells the cameras vouch for as free: the cell each stood in, the
+    /// cells its depth rays cross nearer than its `free_distance` (nothing
+    /// it measured was that near), and the ball of the smallest such
+    /// distance around every camera, held-out ones (free distance 0)
+    /// included. Left occupied, the spot every ray of a view passes through
+    /// can grow a floater that blinds that view: on the realistic tabletop a
+    /// held-out view beside the training cameras' cones rendered a third of
+    /// its pixels 1 cm away after 1505 steps.
     fn camera_vouched(&self, cameras: &[CameraSpace], rays: &[DepthRay]) -> Vec<bool> {
         let mut free = vec![false; self.density.len()];
         let key = |o: [f32; 3]| o.map(f32::to_bits);
@@ -270,6 +273,14 @@ impl OccupancyGrid {
             }
             if cam.free_distance.is_finite() && cam.free_distance > 0.0 {
                 free_distance.insert(key(cam.origin), cam.free_distance);
+            }
+        }
+        // No camera came nearer to anything it measured than this: the ball
+        // of that radius around every camera is free, beside and behind it too.
+        let reach = free_distance.values().copied().fold(f32::INFINITY, f32::min);
+        if reach.is_finite() {
+            for cam in cameras {
+                self.mark_ball(cam.origin, reach, &mut free);
             }
         }
         let step = 0.25 / self.res as f32;
@@ -299,6 +310,28 @@ impl OccupancyGrid {
             free[c] = true;
         }
         free
+    }
+
+    /// Set `marks` of the cells whose centres lie within `radius` of `centre`.
+    fn mark_ball(&self, centre: [f32; 3], radius: f32, marks: &mut [bool]) {
+        let res = self.res;
+        let r = res as f32;
+        let span = |c: f32| {
+            let lo = ((c - radius) * r).floor().max(0.0) as usize;
+            let hi = (((c + radius) * r).ceil().max(0.0) as usize).min(res);
+            lo..hi
+        };
+        for z in span(centre[2]) {
+            for y in span(centre[1]) {
+                for x in span(centre[0]) {
+                    let p = [x, y, z].map(|v| (v as f32 + 0.5) / r);
+                    let d2: f32 = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum();
+                    if d2 <= radius * radius {
+                        marks[(z * res + y) * res + x] = true;
+                    }
+                }
+            }
+        }
     }
 
     /// Carve every cell no training camera sees (no part of it projects
@@ -1189,6 +1222,38 @@ mod tests {
         );
         assert_eq!(bare.occupied, 16 * 16 * 16 - 1);
         assert!(!bare.is_occupied(eye));
+    }
+
+    #[test]
+    fn the_ball_no_camera_measured_anything_in_is_carved_around_every_camera() {
+        // A training camera whose nearest measurement vouches for 0.2, and a
+        // held-out camera (position only) 0.3 to its side.
+        let eye = [0.3, 0.5, 0.1];
+        let held_out = [0.6, 0.5, 0.1];
+        let rays = [DepthRay {
+            origin: eye,
+            dir: [0.0, 0.0, 1.0],
+            t_hit: 0.4,
+        }; 3];
+        let cameras = [
+            CameraSpace {
+                origin: eye,
+                free_distance: 0.2,
+            },
+            CameraSpace {
+                origin: held_out,
+                free_distance: 0.0,
+            },
+        ];
+        let mut grid = OccupancyGrid::full(32);
+        grid.seed_from_depth(&rays, &cameras);
+        for p in [[0.6, 0.5, 0.05], [0.7, 0.55, 0.15], [0.6, 0.38, 0.1], [0.45, 0.5, 0.1]] {
+            assert!(!grid.is_occupied(p), "{p:?} lies within 0.2 of a camera");
+        }
+        for p in [[0.6, 0.5, 0.35], [0.9, 0.5, 0.1], [0.3, 0.5, 0.5]] {
+            assert!(grid.is_occupied(p), "{p:?} lies beyond 0.2 of every camera");
+        }
+        assert!(grid.is_occupied([0.3, 0.5, 0.5]), "the measured surface");
     }
 
     #[test]

@@ -8,7 +8,7 @@ use crate::nerf::appearance;
 use crate::nerf::field::Field;
 use crate::nerf::model_file::{Model, ModelHeader};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
-use crate::nerf::occupancy::OccupancyGrid;
+use crate::nerf::occupancy::{CameraSpace, OccupancyGrid};
 use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::checkpoint::{self, Checkpoint, CheckpointError, FitIdentity, FitProgress};
 use crate::nerf::train::dataset::{self, Dataset};
@@ -264,7 +264,15 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     let mut occupancy = OccupancyGrid::full(settings.occupancy_resolution);
     if seed_occupancy {
         let rays = dataset::depth_rays(&data.train, 4);
-        occupancy.seed_from_depth(&rays, &dataset::camera_spaces(&data.train));
+        // Every frame's camera stood in free space, the held-out ones too
+        // (only their positions: their depth stays out of the fit). A
+        // floater there blinds that frame's whole view.
+        let mut cameras = dataset::camera_spaces(&data.train);
+        cameras.extend(data.holdout.iter().map(|v| CameraSpace {
+            origin: v.camera.origin,
+            free_distance: 0.0,
+        }));
+        occupancy.seed_from_depth(&rays, &cameras);
         occupancy.carve_unseen(&data.train.iter().map(|v| v.camera).collect::<Vec<_>>());
     }
     timings.occupancy_seed_s = t.elapsed().as_secs_f64();

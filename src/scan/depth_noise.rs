@@ -58,10 +58,10 @@ impl DepthNoise {
     }
 }
 
-/// The noise of the scan's depth sensor, or `None` when its frames have too
-/// few measured surfaces to tell.
-pub fn depth_noise(frames: &[Frame]) -> Option<DepthNoise> {
-    let with_depth: Vec<&Frame> = frames.iter().filter(|f| f.depth.is_some()).collect();
+/// The noise of the depth sensor that measured `frames`, or `None` when
+/// they have too few measured surfaces to tell.
+pub fn depth_noise<'a>(frames: impl IntoIterator<Item = &'a Frame>) -> Option<DepthNoise> {
+    let with_depth: Vec<&Frame> = frames.into_iter().filter(|f| f.depth.is_some()).collect();
     let step = with_depth.len().div_ceil(MAX_FRAMES).max(1);
     let mut samples: Vec<(f32, f32)> = Vec::new();
     for frame in with_depth.iter().step_by(step) {
@@ -230,7 +230,7 @@ mod tests {
             let x = i % 640;
             *z = if x % 97 == 0 { 0.0 } else { 1.0 + 0.5 * (x / 16) as f32 };
         }
-        let noise = depth_noise(&[frame]).unwrap();
+        let noise = depth_noise([&frame]).unwrap();
         assert!(noise.sigmas.iter().all(|&s| s < 1e-4), "{noise:?}");
     }
 
@@ -238,7 +238,7 @@ mod tests {
     fn scans_without_depth_have_no_noise_and_lookups_interpolate() {
         let mut frame = noisy_frame((64, 48), 0.001, 2);
         frame.depth = None;
-        assert_eq!(depth_noise(&[frame]), None);
+        assert_eq!(depth_noise([&frame]), None);
         let noise = DepthNoise {
             depths: vec![1.0, 3.0],
             sigmas: vec![0.002, 0.010],

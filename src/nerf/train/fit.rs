@@ -287,7 +287,8 @@ fn prepare_with(scan: &Scan, opts: &FitOptions, seed_occupancy: bool) -> Result<
     if let Some(learner) = pose_learner {
         trainer.learn_poses(learner);
     }
-    let noise = depth_noise(&scan.frames);
+    // The training frames' depth only, as everywhere in the fit.
+    let noise = depth_noise(data.train_frames.iter().map(|&i| &scan.frames[i]));
     if let Some(noise) = &noise {
         trainer.set_depth_noise(noise.scaled(transform.scale() as f32));
     }

@@ -777,8 +777,8 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
     chunk.ray_origins.clear();
     chunk.ray_dirs.clear();
     let cfg = ctx.config;
-    let window = cfg.surface_window;
-    let fine_step = 0.75 * ctx.rule.min_step;
+    let scene_window = cfg.surface_window;
+    let scene_fine_step = 0.75 * ctx.rule.min_step;
     // In front of the surface window only sparse samples: enough to push
     // free space empty and to find occluders the sensor missed.
     let sparse = coarser(&ctx.rule, SPARSE_STEP_FACTOR);
@@ -815,12 +815,11 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
         let jitter = rng.f32();
         // The window spans the sensor's scatter at that depth, with as many
         // samples as the scene's own window.
-        let ray_window = match (depth_t, ctx.depth_noise) {
-            (Some(td), Some(noise)) => window.max(NOISE_WINDOW_SIGMAS * noise.sigma(td / t_per_z) * t_per_z),
-            _ => window,
+        let window = match (depth_t, ctx.depth_noise) {
+            (Some(td), Some(noise)) => scene_window.max(NOISE_WINDOW_SIGMAS * noise.sigma(td / t_per_z) * t_per_z),
+            _ => scene_window,
         };
-        let fine_step = fine_step * ray_window / window;
-        let window = ray_window;
+        let fine_step = scene_fine_step * window / scene_window;
         let t_end = match depth_t {
             Some(td) if td - window < t1 && td + window > t0 => {
                 // Occupancy-skipped up to the surface window, dense inside it

@@ -1186,7 +1186,7 @@ pub(crate) mod tests {
     use crate::nerf::field::{FieldConfig, GridSpec};
     use crate::nerf::occupancy::DepthRay;
     use crate::nerf::render::composite::optical_depth_backward;
-    use crate::nerf::render::rays::{render_image, render_pixels};
+    use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
     use crate::scan::Intrinsics;
 
     /// Views of a textured plane at local z = 0.6 seen from z ~ 0.15.
@@ -1254,6 +1254,17 @@ pub(crate) mod tests {
             seed,
         };
         (field, train)
+    }
+
+    /// Mean absolute colour error (0-1 per channel) of rendered rays
+    /// against the 8-bit colours they should show.
+    fn mean_colour_error<'a>(out: &[RayOutput], wanted: impl Iterator<Item = &'a [u8]>) -> f32 {
+        let sum: f32 = out
+            .iter()
+            .zip(wanted)
+            .map(|(o, want)| (0..3).map(|c| (o.rgb[c] - want[c] as f32 / 255.0).abs()).sum::<f32>() / 3.0)
+            .sum();
+        sum / out.len() as f32
     }
 
     /// Colour rendering with the training step rule, grey behind.
@@ -1336,12 +1347,7 @@ pub(crate) mod tests {
             let out = render_image(&trainer.field, &grid, &opts, &views[1].camera);
             let samples = out.iter().map(|o| o.samples as f32).sum::<f32>() / out.len() as f32;
             let opacity = out.iter().map(|o| o.opacity).sum::<f32>() / out.len() as f32;
-            let colour_error = out
-                .iter()
-                .zip(views[1].rgb.chunks_exact(3))
-                .map(|(o, want)| (0..3).map(|c| (o.rgb[c] - want[c] as f32 / 255.0).abs()).sum::<f32>() / 3.0)
-                .sum::<f32>()
-                / out.len() as f32;
+            let colour_error = mean_colour_error(&out, views[1].rgb.chunks_exact(3));
             (samples, opacity, colour_error)
         };
         let trained = |environment: bool| {
@@ -1400,18 +1406,11 @@ pub(crate) mod tests {
             .flat_map(|v| (4..44).map(move |u| (u as f32, v as f32)))
             .collect();
         let out = render_pixels(&trainer.field, &OccupancyGrid::full(res), &opts, &view.camera, &pixels);
-        let error = out
-            .iter()
-            .zip(&pixels)
-            .map(|(o, &(u, v))| {
-                let p = 3 * (v as usize * size as usize + u as usize);
-                (0..3)
-                    .map(|c| (o.rgb[c] - view.rgb[p + c] as f32 / 255.0).abs())
-                    .sum::<f32>()
-                    / 3.0
-            })
-            .sum::<f32>()
-            / out.len() as f32;
+        let wanted = pixels.iter().map(|&(u, v)| {
+            let p = 3 * (v as usize * size as usize + u as usize);
+            &view.rgb[p..p + 3]
+        });
+        let error = mean_colour_error(&out, wanted);
         let env = trainer
             .environment
             .as_ref()

@@ -839,7 +839,6 @@ mod tests {
         }
         assert!(absorbed > 500, "{absorbed} absorbed rays");
         let mean_excess = excess as f64 / absorbed as f64;
-        eprintln!("EXCESS {mean_excess}");
         // 5.5 before rays inside a surface took only the samples they need.
         assert!(mean_excess < 5.0, "{mean_excess:.2} samples past termination per ray");
     }

@@ -150,7 +150,8 @@ pub struct RenderWorkspace {
     /// Density network outputs of the round, feature-major [16][n].
     features: Vec<f32>,
     sigma: Vec<f32>,
-    /// Optical depth and opacity of each sample of the round.
+    /// Optical depth of each sample of the round, and e^-tau - 1 (its
+    /// opacity negated, as `exp_m1` gives it).
     tau: Vec<f32>,
     alpha: Vec<f32>,
     /// Weight each sample is shaded with (0 = not shaded).

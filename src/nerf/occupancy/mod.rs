@@ -85,14 +85,18 @@ pub(crate) const RENDER_MIN_CELL_OPTICAL_DEPTH: f32 = 0.01;
 /// Never let fewer than this fraction of cells stay occupied.
 const MIN_OCCUPIED_FRACTION: f64 = 1e-3;
 
+/// A faint initial density estimate (0.1 % opacity per cell): seeding and
+/// model refreshes replace it.
+fn initial_density(res: usize) -> f32 {
+    0.001 * res as f32
+}
+
 impl OccupancyGrid {
     /// Every cell occupied (nothing known yet).
     pub fn full(res: usize) -> Self {
         let res = res.clamp(4, MAX_RESOLUTION);
         let cells = res * res * res;
-        // A faint initial estimate (0.1 % opacity per cell): seeding and
-        // model refreshes replace it.
-        let initial = 0.001 * res as f32;
+        let initial = initial_density(res);
         let words = cells.div_ceil(64);
         let mut grid = OccupancyGrid {
             res,
@@ -227,7 +231,20 @@ impl OccupancyGrid {
         self.rebuild_bits();
     }
 
-    /// Empty `cell` for good.
+    /// Make the carved cells unknown again (the faint initial estimate),
+    /// before seeding from depth seen through corrected poses.
+    pub fn forget_carving(&mut self) {
+        let initial = initial_density(self.res);
+        for cell in 0..self.density.len() {
+            if self.is_carved(cell) {
+                self.density[cell] = initial;
+            }
+        }
+        self.carved.iter_mut().for_each(|w| *w = 0);
+        self.rebuild_bits();
+    }
+
+    /// Empty `cell` for good (until [`Self::forget_carving`]).
     fn carve(&mut self, cell: usize) {
         self.density[cell] = 0.0;
         self.carved[cell >> 6] |= 1 << (cell & 63);
@@ -976,6 +993,41 @@ mod tests {
         assert!(grid.is_occupied([0.5, 0.5, 0.8]), "behind the wall is unobserved");
         assert!(grid.is_occupied([0.05, 0.05, 0.2]), "never seen stays occupied");
         assert!(grid.occupied_fraction() > 0.5 && grid.occupied_fraction() < 1.0);
+    }
+
+    #[test]
+    fn carving_forgotten_and_seeded_again_is_the_carving_of_the_new_rays_alone() {
+        // Rays first seen through a pose 4 cells off along x: they carve
+        // columns the corrected rays leave alone (an object without depth there).
+        let shifted: Vec<DepthRay> = wall_rays(0.5, |_| true)
+            .into_iter()
+            .map(|r| DepthRay {
+                origin: [r.origin[0] - 4.0 / 32.0, r.origin[1], r.origin[2]],
+                ..r
+            })
+            .collect();
+        let corrected = wall_rays(0.5, |i| i >= 12);
+        let mut grid = OccupancyGrid::full(32);
+        grid.seed_from_depth(&shifted, &[]);
+        let object = [5.5 / 32.0, 0.5, 0.2];
+        assert!(!grid.is_occupied(object), "the shifted rays carved the object's column");
+        let cell = grid.cell_of([0.5, 0.5, 0.5]).unwrap();
+        grid.density[cell] = 7.0;
+        grid.forget_carving();
+        assert_eq!(grid.occupied_fraction(), 1.0, "nothing is carved once forgotten");
+        assert_eq!(grid.density[cell], 7.0, "estimates of cells never carved are kept");
+        let carved = grid.cell_of(object).unwrap();
+        assert_eq!(
+            grid.density[carved],
+            initial_density(32),
+            "carved cells are unknown again"
+        );
+        grid.seed_from_depth(&corrected, &[]);
+        let mut fresh = OccupancyGrid::full(32);
+        fresh.seed_from_depth(&corrected, &[]);
+        assert_eq!(grid.carved, fresh.carved);
+        assert_eq!(grid.bits, fresh.bits);
+        assert!(grid.is_occupied(object), "the object's column is back");
     }
 
     #[test]

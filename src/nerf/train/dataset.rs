@@ -227,20 +227,37 @@ pub fn camera_spaces(views: &[View]) -> Vec<CameraSpace> {
 
 /// Depth rays of the training views (every `stride`-th pixel both ways).
 pub fn depth_rays(views: &[View], stride: usize) -> Vec<DepthRay> {
+    strided_rays(views, stride, |view, i| {
+        let z = view.depth.as_deref()?[i];
+        (z > 0.0 && z.is_finite()).then_some(z)
+    })
+}
+
+/// Rays of every `stride`-th pixel (in both directions) that the views'
+/// no-return masks mark (see [`View::no_return`]); `t_hit` is infinite.
+pub fn no_return_rays(views: &[View], stride: usize) -> Vec<DepthRay> {
+    strided_rays(views, stride, |view, i| {
+        view.no_return.as_deref()?[i].then_some(f32::INFINITY)
+    })
+}
+
+/// Rays of every `stride`-th pixel (in both directions) where `depth_at`
+/// (a view and a pixel index) gives a depth along the optical axis.
+fn strided_rays<F>(views: &[View], stride: usize, depth_at: F) -> Vec<DepthRay>
+where
+    F: Fn(&View, usize) -> Option<f32> + Sync,
+{
     let stride = stride.max(1);
+    let depth_at = &depth_at;
     views
         .par_iter()
         .flat_map_iter(|view| {
             let cam = view.camera;
             let width = cam.width as usize;
             let height = cam.height as usize;
-            let depth = view.depth.as_deref();
             (0..height).step_by(stride).flat_map(move |y| {
                 (0..width).step_by(stride).filter_map(move |x| {
-                    let z = depth?[y * width + x];
-                    if !(z > 0.0 && z.is_finite()) {
-                        return None;
-                    }
+                    let z = depth_at(view, y * width + x)?;
                     let (ray, t_per_z) = cam.ray(x as f32, y as f32);
                     Some(DepthRay {
                         origin: ray.origin,

@@ -431,7 +431,8 @@ fn carve_seen_space(occupancy: &mut OccupancyGrid, data: &Dataset) {
         origin: v.camera.origin,
         free_distance: 0.0,
     }));
-    occupancy.seed_from_depth(&rays, &cameras);
+    let no_return = dataset::no_return_rays(&data.train, 4);
+    occupancy.seed_from_depth_and_no_return(&rays, &no_return, &cameras);
     occupancy.carve_unseen(&data.train.iter().map(|v| v.camera).collect::<Vec<_>>());
 }
 

@@ -184,8 +184,8 @@ impl OccupancyGrid {
     /// coarse (5 cm on the tabletop scenes): rays grazing over a 9 cm glass
     /// pass through the core of the cell holding its top, and whether the
     /// cells beside it stayed unexplained (which alone kept it) flipped with
-    /// a tenth of a pixel of pose: one fit in four with exact poses lost the
-    /// glass's upper half. Weighed like surface votes (three depth rays
+    /// a tenth of a pixel of pose: one of five fits of the SLAM-like
+    /// tabletop with exact poses lost the glass's upper half. Weighed like surface votes (three depth rays
     /// each), they kept too much around it: the realistic tabletop (seed 3)
     /// labelled the glass 0.954 against 0.979, too small.
     pub fn seed_from_depth_and_no_return(

@@ -275,6 +275,44 @@ mod tests {
     use super::*;
 
     #[test]
+    fn depth_and_no_return_rays_start_at_the_strided_pixels_they_mark() {
+        let (w, h) = (8u32, 6u32);
+        let camera = LocalCamera {
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            origin: [0.5, 0.5, 0.1],
+            fx: 10.0,
+            fy: 10.0,
+            cx: 4.0,
+            cy: 3.0,
+            width: w,
+            height: h,
+        };
+        // Depth 0.4 on the left half, nothing on the right; the right half's
+        // pixels marked as no return.
+        let depth: Vec<f32> = (0..w * h).map(|i| if i % w < 4 { 0.4 } else { 0.0 }).collect();
+        let no_return: Vec<bool> = (0..w * h).map(|i| i % w >= 4).collect();
+        let view = View {
+            camera,
+            rgb: vec![0; (w * h * 3) as usize],
+            depth: Some(depth),
+            no_return: Some(no_return),
+        };
+        let views = [view];
+        // Stride 2: columns 0, 2, 4, 6 and rows 0, 2, 4.
+        let measured = depth_rays(&views, 2);
+        let unseen = no_return_rays(&views, 2);
+        assert_eq!((measured.len(), unseen.len()), (6, 6));
+        for ray in &measured {
+            // The surface lies at depth 0.4 along the optical axis (+z here).
+            let z = ray.t_hit * ray.dir[2];
+            assert!((z - 0.4).abs() < 1e-5, "{z}");
+            assert!(ray.dir[0] < 0.0, "left half");
+        }
+        assert!(unseen.iter().all(|r| r.t_hit == f32::INFINITY && r.dir[0] >= 0.0));
+        assert!(unseen.iter().all(|r| r.origin == [0.5, 0.5, 0.1]));
+    }
+
+    #[test]
     fn no_return_marks_only_wide_regions_without_depth() {
         let (w, h) = (64u32, 48u32);
         let mut depth = vec![1.5f32; (w * h) as usize];

@@ -80,8 +80,9 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
         }),
         FitEvent::PosesRefined(r) => {
             bar.suspend(|| note!(
-                "aligned {} poses to the depth: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",
+                "aligned {} poses to the depth{}: median disagreement {:.2} mm -> {:.2} mm; largest correction {:.1} mm, {:.2} deg",
                 r.frames_refined,
+                if r.colour_aligned { " and to each other by colour" } else { "" },
                 r.median_disagreement_before_m.unwrap_or(f64::NAN) * 1e3,
                 r.median_disagreement_after_m.unwrap_or(f64::NAN) * 1e3,
                 r.largest_translation_m * 1e3,

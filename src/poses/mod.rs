@@ -9,6 +9,7 @@ mod cloud;
 mod error;
 mod normalize;
 mod orient;
+mod pairwise;
 mod refine;
 mod scale;
 #[cfg(test)]
@@ -22,6 +23,7 @@ pub use cloud::{fuse_cloud, fuse_depth_maps, write_ply, CloudOptions, PointCloud
 pub use error::GeometryError;
 pub use normalize::{normalize, Normalization, NormalizeOptions, Orientation, SceneTransform};
 pub(crate) use orient::symmetric_eigen;
+pub use pairwise::{align_pairs, PairwiseOptions};
 pub(crate) use refine::{away_from_edges, stored_pixel_reach};
 pub use refine::{
     gauss_newton_solve, median, pose_difference, refine_poses, trajectory_alignment, FrameCorrection, PoseRefinement,

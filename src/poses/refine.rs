@@ -8,6 +8,7 @@
 //! Every threshold comes from the scan: correspondences are weighted by a
 //! Tukey biweight whose scale is the residuals' own median absolute value.
 
+use super::pairwise::PairwiseOptions;
 use super::GeometryError;
 use crate::scan::{Frame, Scan, EDGE_RELATIVE_GAP};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -29,6 +30,9 @@ pub struct RefineOptions {
     pub rounds: usize,
     /// Neighbours from other frames that fit the plane a point is matched to.
     pub plane_neighbours: usize,
+    /// Then align the frames to each other by their colour
+    /// ([`super::pairwise`]), which pins what their depth leaves free.
+    pub align_colour: bool,
 }
 
 impl Default for RefineOptions {
@@ -37,6 +41,7 @@ impl Default for RefineOptions {
             points_per_frame: 1500,
             rounds: 6,
             plane_neighbours: 12,
+            align_colour: true,
         }
     }
 }
@@ -67,6 +72,8 @@ pub struct FrameCorrection {
 pub struct PoseRefinement {
     pub camera_to_world: Vec<IsometryMatrix3<f64>>,
     pub frames: Vec<FrameCorrection>,
+    /// Whether the frames were also aligned to each other by colour.
+    pub colour_aligned: bool,
 }
 
 impl PoseRefinement {
@@ -166,7 +173,7 @@ impl PoseRefinement {
 /// points cannot pin six degrees of freedom against noise.
 const MIN_CORRESPONDENCES: usize = 60;
 /// Tukey biweight constant (95 % efficiency for Gaussian residuals).
-const TUKEY_C: f64 = 4.685;
+pub(super) const TUKEY_C: f64 = 4.685;
 /// Directions of motion with less than this share of the best-constrained
 /// direction's information are not moved.
 const WEAK_DIRECTION: f64 = 1e-2;
@@ -176,8 +183,11 @@ const MIN_ROUND_GAIN: f64 = 0.1;
 /// A frame disagreeing with the others this many times more than the
 /// scan's median frame is reported as wrong.
 const OUTLIER_RATIO: f64 = 4.0;
+/// Poses aligned by colour are kept while the frames' depth disagrees at
+/// most this many times as much as with the poses aligned to the depth.
+const COLOUR_DEPTH_SLACK: f64 = 1.25;
 /// Median absolute deviation to standard deviation, Gaussian residuals.
-const MAD_TO_SIGMA: f64 = 1.4826;
+pub(super) const MAD_TO_SIGMA: f64 = 1.4826;
 
 /// Align every frame with depth to the other frames' depth. `None` when
 /// fewer than two frames have depth (nothing to align against).
@@ -213,18 +223,39 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
             }
         }
     }
+    // Depth leaves frames free to slide along what they see; their colour
+    // pins that slide.
+    let mut colour_aligned = false;
+    if opts.align_colour {
+        if let Some(aligned) = super::pairwise::align_pairs(&scan.frames, &poses, &PairwiseOptions::default()) {
+            // Colour that pulls the frames' depth apart (colour registered
+            // off its depth, lighting that changes with the view) is not
+            // followed: the depth must still agree nearly as well.
+            let misfit = |p: &[IsometryMatrix3<f64>]| {
+                let matches = Cloud::new(&samples, p).correspondences(&samples, p, opts.plane_neighbours);
+                median(
+                    matches
+                        .iter()
+                        .filter(|m| m.residuals.len() >= MIN_CORRESPONDENCES)
+                        .map(|m| median(m.residuals.iter().map(|r| r.abs()).collect()))
+                        .collect(),
+                )
+            };
+            let (by_depth, with_colour) = (misfit(&poses), misfit(&aligned));
+            if with_colour <= COLOUR_DEPTH_SLACK * by_depth {
+                poses = aligned;
+                colour_aligned = true;
+            }
+        }
+    }
     // The scene as a whole stays where the captured poses put it.
     let gauge = best_rigid_fit(&samples, &poses, &captured);
     for pose in &mut poses {
         *pose = gauge * *pose;
     }
-    Ok(Some(keep_what_fits(
-        scan,
-        &samples,
-        &captured,
-        poses,
-        opts.plane_neighbours,
-    )))
+    let mut refinement = keep_what_fits(scan, &samples, &captured, poses, opts.plane_neighbours);
+    refinement.colour_aligned = colour_aligned;
+    Ok(Some(refinement))
 }
 
 /// Compare each frame's captured and refined pose against the refined
@@ -262,6 +293,7 @@ fn keep_what_fits(
     PoseRefinement {
         camera_to_world: poses,
         frames,
+        colour_aligned: false,
     }
 }
 

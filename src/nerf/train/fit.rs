@@ -560,7 +560,11 @@ fn run(
         on_event(FitEvent::PosesScaled(r));
     }
     let refinement = if opts.settings.refine_poses {
-        refine_poses(scan, &RefineOptions::default())?
+        let options = RefineOptions {
+            align_colour: opts.settings.colour_align,
+            ..RefineOptions::default()
+        };
+        refine_poses(scan, &options)?
     } else {
         None
     };
@@ -576,6 +580,10 @@ fn run(
         ..PhotometricOptions::default()
     };
     let pose_refine_s = t.elapsed().as_secs_f64();
+    // Frames aligned to each other by colour agree to a tenth of a pixel;
+    // aligned to a field still blurred by training they would drift to a
+    // third of one (SLAM-like tabletop, seed 4: 0.05 -> 0.37 px).
+    let align_to_field = opts.settings.refine_poses && !refinement.as_ref().is_some_and(|r| r.colour_aligned);
     let scaled = scale_report.is_some();
     let Prepared {
         mut data,
@@ -764,7 +772,7 @@ fn run(
         // their own images before they are scored. After the warm-up at
         // least: an untrained field has nothing to align to.
         let (steps, warmup) = (trainer.counters.steps, trainer.config.warmup_steps);
-        if opts.settings.refine_poses && pose_alignment_due(&state.pose_alignment, training, steps, warmup) {
+        if align_to_field && pose_alignment_due(&state.pose_alignment, training, steps, warmup) {
             let frames = data.train_frames.clone();
             let before = state.timings.pose_align_s;
             let render = trainer.render_options(&render_opts);
@@ -1001,6 +1009,7 @@ mod tests {
         let refinement = PoseRefinement {
             camera_to_world: vec![IsometryMatrix3::identity(); 21],
             frames,
+            colour_aligned: false,
         };
         assert!((plausible_correction_m(Some(&refinement)) - 0.008).abs() < 1e-9);
         // Without depth, or where it corrected nothing, colour alone decides.
@@ -1008,6 +1017,7 @@ mod tests {
         let untouched = PoseRefinement {
             camera_to_world: vec![IsometryMatrix3::identity()],
             frames: vec![correction(0, 0.0, false)],
+            colour_aligned: false,
         };
         assert_eq!(plausible_correction_m(Some(&untouched)), f64::INFINITY);
     }

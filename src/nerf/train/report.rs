@@ -164,6 +164,10 @@ pub struct PoseRefinementReport {
     pub largest_rotation_deg: f64,
     /// How well the captured poses agreed with the depth, in a sentence.
     pub verdict: String,
+    /// Whether the frames were also aligned to each other by colour (then
+    /// their images are not aligned to the field part-way).
+    #[serde(default)]
+    pub colour_aligned: bool,
     pub frames: Vec<FrameCorrection>,
 }
 
@@ -178,6 +182,7 @@ impl PoseRefinementReport {
             largest_translation_m: translation,
             largest_rotation_deg: rotation,
             verdict: r.verdict(),
+            colour_aligned: r.colour_aligned,
             frames: r.frames.clone(),
         }
     }

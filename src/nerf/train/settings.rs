@@ -98,16 +98,28 @@ pub struct FitSettings {
     pub unseen_objects: bool,
     /// Keep the scan's poses as captured (still made metric when they are
     /// clearly not; see --pose-scale). By default every frame's
-    /// pose is first aligned to the depth the other frames measured (frames
-    /// whose depth fits better with the aligned pose take it; the scene as a
-    /// whole does not move), and during the fit each frame's image and depth
-    /// are aligned to the field (at 45 % of the budget, again while frames
-    /// still move, and at the end), so that masks line up with the images;
-    /// the model keeps the aligned poses for `label` and `synth`, and the
-    /// report lists each frame's correction.
+    /// pose is first aligned to the depth the other frames measured, then
+    /// the frames to each other by colour (frames whose depth fits better
+    /// with the aligned pose take it; the scene as a whole does not move).
+    /// Where the colour alignment is not followed (see --no-colour-align),
+    /// each frame's image and depth are aligned to the field during the fit
+    /// (at 45 % of the budget, again while frames still move, and at the
+    /// end). The model keeps the aligned poses for `label` and `synth`, so
+    /// that masks line up with the images, and the report lists each
+    /// frame's correction.
     #[arg(long = "no-pose-refine", action = clap::ArgAction::SetFalse)]
     #[serde(default)]
     pub refine_poses: bool,
+    /// Align the poses to the depth only, not the frames to each other by
+    /// colour (then their images are aligned to the field during the fit).
+    /// By default each frame's image, carried by its depth into the frames
+    /// that see the same surfaces, pins what the depth leaves free (frames
+    /// sliding along a table top: SLAM-like tabletop labels 0.760 -> 0.980);
+    /// the colour is followed only while the depth agrees nearly as well,
+    /// so colour registered off the depth is ignored on its own.
+    #[arg(long = "no-colour-align", action = clap::ArgAction::SetFalse)]
+    #[serde(default)]
+    pub colour_align: bool,
     /// Also learn each training frame's pose with the field, from the same
     /// losses (pose gradients through the hash grid, as BARF), at a pace set
     /// by the scan's pose error as the depth measured it. For scans with

@@ -233,13 +233,7 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
             // followed: the depth must still agree nearly as well.
             let misfit = |p: &[IsometryMatrix3<f64>]| {
                 let matches = Cloud::new(&samples, p).correspondences(&samples, p, opts.plane_neighbours);
-                median(
-                    matches
-                        .iter()
-                        .filter(|m| m.residuals.len() >= MIN_CORRESPONDENCES)
-                        .map(|m| median(m.residuals.iter().map(|r| r.abs()).collect()))
-                        .collect(),
-                )
+                median(matches.iter().filter_map(FrameMatches::median_misfit).collect())
             };
             let (by_depth, with_colour) = (misfit(&poses), misfit(&aligned));
             if with_colour <= COLOUR_DEPTH_SLACK * by_depth {
@@ -273,10 +267,7 @@ fn keep_what_fits(
     let mut poses = Vec::with_capacity(refined.len());
     let mut frames = Vec::with_capacity(refined.len());
     for (i, frame) in scan.frames.iter().enumerate() {
-        let residual = |m: &FrameMatches| {
-            (m.residuals.len() >= MIN_CORRESPONDENCES).then(|| median(m.residuals.iter().map(|r| r.abs()).collect()))
-        };
-        let (r_before, r_after) = (residual(&before[i]), residual(&after[i]));
+        let (r_before, r_after) = (before[i].median_misfit(), after[i].median_misfit());
         let refined_better = matches!((r_before, r_after), (Some(b), Some(a)) if a < b);
         let pose = if refined_better { refined[i] } else { captured[i] };
         let (translation_m, rotation_deg) = pose_difference(&captured[i], &pose);
@@ -375,6 +366,14 @@ struct FrameMatches {
     points: Vec<Point3<f64>>,
     normals: Vec<Vector3<f64>>,
     residuals: Vec<f64>,
+}
+
+impl FrameMatches {
+    /// Median point-to-plane distance of the frame's matched points;
+    /// `None` with too few matches to tell.
+    fn median_misfit(&self) -> Option<f64> {
+        (self.residuals.len() >= MIN_CORRESPONDENCES).then(|| median(self.residuals.iter().map(|r| r.abs()).collect()))
+    }
 }
 
 impl Cloud {

@@ -20,7 +20,7 @@ fn batch_runs_refuses_twins_resumes_after_kill_9_and_merges_the_finished_scans()
     // b fits by steps (a time budget would leave a resumed fit on a loaded
     // machine too few steps to sample views): long enough that its first
     // checkpoint (after 10 s of training) comes well before the end.
-    let (manifest, [a, b, c]) = three_scans(dir.path(), r#""steps": 400"#);
+    let (manifest, [a, b, c]) = three_scans(dir.path(), r#""steps": 800"#);
 
     // Line 0 through Kubernetes' index variable.
     let o = bin()

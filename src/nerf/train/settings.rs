@@ -13,10 +13,10 @@ use serde::{Deserialize, Deserializer, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Preset {
-    /// Coarser grid, half the samples per step.
+    /// Coarser grid, fewer samples per step (32 Ki against 48 Ki).
     Fast,
     Default,
-    /// Finer grid, twice the samples per step.
+    /// Finer grid, more samples per step (128 Ki against 48 Ki).
     Quality,
 }
 

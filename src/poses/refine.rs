@@ -226,19 +226,26 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
     // Depth leaves frames free to slide along what they see; their colour
     // pins that slide.
     let mut colour_aligned = false;
+    // Each frame's misfit with the poses kept, when already measured (a
+    // rigid move of every pose, as below, leaves it unchanged).
+    let mut kept_misfits = None;
     if opts.align_colour {
         if let Some(aligned) = super::pairwise::align_pairs(&scan.frames, &poses, &PairwiseOptions::default()) {
             // Colour that pulls the frames' depth apart (colour registered
             // off its depth, lighting that changes with the view) is not
             // followed: the depth must still agree nearly as well.
-            let misfit = |p: &[IsometryMatrix3<f64>]| {
+            let misfits = |p: &[IsometryMatrix3<f64>]| -> Vec<Option<f64>> {
                 let matches = Cloud::new(&samples, p).correspondences(&samples, p, opts.plane_neighbours);
-                median(matches.iter().filter_map(FrameMatches::median_misfit).collect())
+                matches.iter().map(FrameMatches::median_misfit).collect()
             };
-            let (by_depth, with_colour) = (misfit(&poses), misfit(&aligned));
-            if with_colour <= COLOUR_DEPTH_SLACK * by_depth {
+            let overall = |m: &[Option<f64>]| median(m.iter().flatten().copied().collect());
+            let (by_depth, with_colour) = (misfits(&poses), misfits(&aligned));
+            if overall(&with_colour) <= COLOUR_DEPTH_SLACK * overall(&by_depth) {
                 poses = aligned;
                 colour_aligned = true;
+                kept_misfits = Some(with_colour);
+            } else {
+                kept_misfits = Some(by_depth);
             }
         }
     }
@@ -247,7 +254,7 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
     for pose in &mut poses {
         *pose = gauge * *pose;
     }
-    let mut refinement = keep_what_fits(scan, &samples, &captured, poses, opts.plane_neighbours);
+    let mut refinement = keep_what_fits(scan, &samples, &captured, poses, kept_misfits, opts.plane_neighbours);
     refinement.colour_aligned = colour_aligned;
     Ok(Some(refinement))
 }
@@ -259,15 +266,19 @@ fn keep_what_fits(
     samples: &[Vec<Point3<f64>>],
     captured: &[IsometryMatrix3<f64>],
     refined: Vec<IsometryMatrix3<f64>>,
+    refined_misfits: Option<Vec<Option<f64>>>,
     neighbours: usize,
 ) -> PoseRefinement {
     let cloud = Cloud::new(samples, &refined);
-    let after = cloud.correspondences(samples, &refined, neighbours);
+    let after = refined_misfits.unwrap_or_else(|| {
+        let matches = cloud.correspondences(samples, &refined, neighbours);
+        matches.iter().map(FrameMatches::median_misfit).collect()
+    });
     let before = cloud.correspondences(samples, captured, neighbours);
     let mut poses = Vec::with_capacity(refined.len());
     let mut frames = Vec::with_capacity(refined.len());
     for (i, frame) in scan.frames.iter().enumerate() {
-        let (r_before, r_after) = (before[i].median_misfit(), after[i].median_misfit());
+        let (r_before, r_after) = (before[i].median_misfit(), after[i]);
         let refined_better = matches!((r_before, r_after), (Some(b), Some(a)) if a < b);
         let pose = if refined_better { refined[i] } else { captured[i] };
         let (translation_m, rotation_deg) = pose_difference(&captured[i], &pose);
@@ -353,8 +364,12 @@ pub(crate) fn away_from_edges(depth: &crate::scan::DepthMap, x: u32, y: u32, z: 
 }
 
 /// All frames' depth points in the world, with the frame each came from.
+/// The search tree holds them in f32 about their mean (neighbours picked
+/// as in f64 at any distance from the world origin, and quicker to query);
+/// planes are fitted to the f64 points.
 pub(super) struct Cloud {
-    tree: ImmutableKdTree<f64, 3>,
+    tree: ImmutableKdTree<f32, 3>,
+    origin: Point3<f64>,
     points: Vec<[f64; 3]>,
     frame_of: Vec<u32>,
 }
@@ -386,8 +401,26 @@ impl Cloud {
                 frame_of.push(i as u32);
             }
         }
-        let tree = ImmutableKdTree::new_from_slice(&points).unwrap_or_default();
-        Cloud { tree, points, frame_of }
+        let sum = points
+            .iter()
+            .fold(Vector3::<f64>::zeros(), |acc, p: &[f64; 3]| acc + Vector3::from(*p));
+        let origin = Point3::from(sum / points.len().max(1) as f64);
+        let local: Vec<[f32; 3]> = points
+            .iter()
+            .map(|p| [0, 1, 2].map(|a| (p[a] - origin[a]) as f32))
+            .collect();
+        let tree = ImmutableKdTree::new_from_slice(&local).unwrap_or_default();
+        Cloud {
+            tree,
+            origin,
+            points,
+            frame_of,
+        }
+    }
+
+    /// Query point in the tree's frame.
+    fn local(&self, x: &Point3<f64>) -> [f32; 3] {
+        [0, 1, 2].map(|a| (x[a] - self.origin[a]) as f32)
     }
 
     /// Each frame's points matched to planes fitted to the nearest points of
@@ -429,13 +462,14 @@ impl Cloud {
         let wanted = NonZeroUsize::new(8)?;
         let found = self
             .tree
-            .query(&(*x).into())
-            .nearest_n::<SquaredEuclidean<f64>>(wanted)
+            .query(&self.local(x))
+            .nearest_n::<SquaredEuclidean<f32>>(wanted)
             .execute();
         found
             .iter()
             .find(|r| self.frame_of.get(r.item as usize).is_some_and(|&f| f != own_frame))
-            .map(|r| r.distance.sqrt())
+            .and_then(|r| self.points.get(r.item as usize))
+            .map(|p| (Point3::from(*p) - x).norm())
     }
 
     /// Plane (centroid, unit normal) through the `neighbours` points nearest
@@ -451,8 +485,8 @@ impl Cloud {
         let wanted = NonZeroUsize::new(neighbours + neighbours / 2)?;
         let found = self
             .tree
-            .query(&(*x).into())
-            .nearest_n::<SquaredEuclidean<f64>>(wanted)
+            .query(&self.local(x))
+            .nearest_n::<SquaredEuclidean<f32>>(wanted)
             .execute();
         let near: Vec<Point3<f64>> = found
             .iter()
@@ -699,6 +733,54 @@ mod tests {
     }
 
     /// Exact poses stay (nearly) exact: refinement must not invent motion.
+    #[test]
+    fn a_scene_far_from_the_origin_refines_as_one_near_it() {
+        // World coordinates like a surveyed site's (hundreds of km): the
+        // search tree must not round the points to its float's spacing there.
+        let mut near = test_scene::Room {
+            frames: 24,
+            ..Default::default()
+        }
+        .scan();
+        let mut rng = crate::rng::Rng::new(7, 0);
+        for f in &mut near.frames {
+            let axis = Vector3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
+            let angle = 0.3f64.to_radians() * rng.normal();
+            let shift = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
+            let centre = f.camera_center().coords;
+            f.camera_to_world = Translation3::from(centre + shift)
+                * IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(axis * angle))
+                * Translation3::from(-centre)
+                * f.camera_to_world;
+        }
+        let mut far = near.clone();
+        let offset = Translation3::new(412_345.0, 5_321_987.0, 250.0);
+        for f in &mut far.frames {
+            f.camera_to_world = offset * f.camera_to_world;
+        }
+        let options = RefineOptions {
+            align_colour: false,
+            ..RefineOptions::default()
+        };
+        let refine = |scan: &Scan| refine_poses(scan, &options).unwrap().expect("the scan has depth");
+        let (near_refined, far_refined) = (refine(&near), refine(&far));
+        assert!(
+            near_refined.largest_correction().0 > 1e-3,
+            "the test needs poses that move: {:?}",
+            near_refined.largest_correction()
+        );
+        for (a, b) in near_refined.frames.iter().zip(&far_refined.frames) {
+            assert_eq!(a.refined, b.refined, "frame {}", a.frame);
+            assert!(
+                (a.translation_m - b.translation_m).abs() < 1e-5,
+                "frame {}: corrected by {:.4} mm near the origin, {:.4} mm far from it",
+                a.frame,
+                a.translation_m * 1e3,
+                b.translation_m * 1e3
+            );
+        }
+    }
+
     #[test]
     fn exact_poses_stay_put() {
         let scan = test_scene::Room {

@@ -673,17 +673,9 @@ mod tests {
     use super::*;
     use crate::poses::test_scene;
 
-    /// A room of six planes constrains each frame only partly (a frame that
-    /// sees one wall and the floor may slide along both): refinement makes
-    /// the frames agree without moving them along what they cannot see.
-    /// (`tests/pose_refine.rs` checks recovery on a scene with objects.)
-    #[test]
-    fn refinement_does_not_slide_frames_along_planes() {
-        let truth = test_scene::Room {
-            frames: 24,
-            ..Default::default()
-        }
-        .scan();
+    /// The scan with every camera turned about its centre by about 0.3 deg
+    /// and moved by about 4 mm (fixed random draws).
+    fn perturbed(truth: &Scan) -> Scan {
         let mut scan = truth.clone();
         let mut rng = crate::rng::Rng::new(7, 0);
         for f in &mut scan.frames {
@@ -696,6 +688,21 @@ mod tests {
                 * Translation3::from(-centre);
             f.camera_to_world = perturb * f.camera_to_world;
         }
+        scan
+    }
+
+    /// A room of six planes constrains each frame only partly (a frame that
+    /// sees one wall and the floor may slide along both): refinement makes
+    /// the frames agree without moving them along what they cannot see.
+    /// (`tests/pose_refine.rs` checks recovery on a scene with objects.)
+    #[test]
+    fn refinement_does_not_slide_frames_along_planes() {
+        let truth = test_scene::Room {
+            frames: 24,
+            ..Default::default()
+        }
+        .scan();
+        let scan = perturbed(&truth);
         let error = |poses: &[IsometryMatrix3<f64>]| {
             let (mut t, mut r) = (0.0, 0.0);
             for (p, f) in poses.iter().zip(&truth.frames) {
@@ -732,27 +739,17 @@ mod tests {
         );
     }
 
-    /// Exact poses stay (nearly) exact: refinement must not invent motion.
     #[test]
     fn a_scene_far_from_the_origin_refines_as_one_near_it() {
         // World coordinates like a surveyed site's (hundreds of km): the
         // search tree must not round the points to its float's spacing there.
-        let mut near = test_scene::Room {
-            frames: 24,
-            ..Default::default()
-        }
-        .scan();
-        let mut rng = crate::rng::Rng::new(7, 0);
-        for f in &mut near.frames {
-            let axis = Vector3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
-            let angle = 0.3f64.to_radians() * rng.normal();
-            let shift = Vector3::new(rng.normal(), rng.normal(), rng.normal()) * 0.004;
-            let centre = f.camera_center().coords;
-            f.camera_to_world = Translation3::from(centre + shift)
-                * IsometryMatrix3::from_parts(Translation3::identity(), Rotation3::new(axis * angle))
-                * Translation3::from(-centre)
-                * f.camera_to_world;
-        }
+        let near = perturbed(
+            &test_scene::Room {
+                frames: 24,
+                ..Default::default()
+            }
+            .scan(),
+        );
         let mut far = near.clone();
         let offset = Translation3::new(412_345.0, 5_321_987.0, 250.0);
         for f in &mut far.frames {
@@ -781,6 +778,7 @@ mod tests {
         }
     }
 
+    /// Exact poses stay (nearly) exact: refinement must not invent motion.
     #[test]
     fn exact_poses_stay_put() {
         let scan = test_scene::Room {

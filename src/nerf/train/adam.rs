@@ -1,7 +1,7 @@
 //! Adam with a dense path for the MLPs and a sparse path for hash-table
 //! entries touched in the step (untouched entries keep their moments).
 
-use crate::nerf::field::simd::vectorised;
+use crate::nerf::field::simd::adam::{adam_word, AdamRule, AdamWord};
 
 /// Adam state for one parameter vector.
 #[derive(Clone, Debug)]
@@ -49,25 +49,30 @@ impl Adam {
     }
 
     /// Counts a step and returns the rule every parameter of it follows.
-    fn next_step(&mut self, lr: f32) -> StepRule {
+    fn next_step(&mut self, lr: f32, weight_decay: f32) -> AdamRule {
         self.steps += 1;
-        let t = self.steps.min(1_000_000) as i32;
-        StepRule {
+        self.rule_at(self.steps, lr, weight_decay)
+    }
+
+    /// The rule of step `step` (counted from 1): its bias corrections.
+    fn rule_at(&self, step: u64, lr: f32, weight_decay: f32) -> AdamRule {
+        let t = step.min(1_000_000) as i32;
+        AdamRule {
             b1: self.beta1,
             b2: self.beta2,
             eps: self.eps,
             c1: 1.0 - self.beta1.powi(t),
             c2: 1.0 - self.beta2.powi(t),
             lr,
+            weight_decay,
         }
     }
 
     /// Update every parameter; `weight_decay` adds an L2 pull to zero.
     pub fn step_dense(&mut self, params: &mut [f32], grads: &[f32], lr: f32, weight_decay: f32) {
-        let rule = self.next_step(lr);
+        let rule = self.next_step(lr, weight_decay);
         for i in 0..params.len() {
-            let g = clamp_gradient(grads[i] + weight_decay * params[i]);
-            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], g);
+            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], grads[i]);
         }
     }
 
@@ -76,14 +81,11 @@ impl Adam {
     /// a block moves along its gradient instead of every entry by about the
     /// learning rate whatever its share of the gradient.
     pub fn step_blocks(&mut self, params: &mut [f32], grads: &[f32], block: usize, lr: f32, weight_decay: f32) {
-        let rule = self.next_step(lr);
+        let rule = self.next_step(lr, weight_decay);
         let block = block.max(1);
         for start in (0..params.len()).step_by(block) {
             let range = start..(start + block).min(params.len());
-            let g: Vec<f32> = range
-                .clone()
-                .map(|i| clamp_gradient(grads[i] + weight_decay * params[i]))
-                .collect();
+            let g: Vec<f32> = range.clone().map(|i| rule.gradient(grads[i], params[i])).collect();
             let mean_square = g.iter().map(|x| x * x).sum::<f32>() / g.len() as f32;
             for (i, g) in range.zip(g) {
                 let v_term = (1.0 - rule.b2) * mean_square;
@@ -95,12 +97,13 @@ impl Adam {
     /// RMS over all parameters of the step the next [`Adam::step_dense`]
     /// would take at learning rate 1, without changing any state.
     pub fn dense_step_rms(&self, params: &[f32], grads: &[f32], weight_decay: f32) -> f32 {
-        let t = (self.steps + 1).min(1_000_000) as i32;
-        let (c1, c2) = (1.0 - self.beta1.powi(t), 1.0 - self.beta2.powi(t));
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let rule = self.rule_at(self.steps + 1, 1.0, weight_decay);
+        let AdamRule {
+            b1, b2, eps, c1, c2, ..
+        } = rule;
         let mut sum = 0.0f64;
         for i in 0..params.len() {
-            let g = clamp_gradient(grads[i] + weight_decay * params[i]);
+            let g = rule.gradient(grads[i], params[i]);
             let m = b1 * self.m[i] + (1.0 - b1) * g;
             let v = b2 * self.v[i] + (1.0 - b2) * g * g;
             let step = (m / c1) / ((v / c2).sqrt() + eps);
@@ -123,10 +126,9 @@ impl Adam {
     where
         I: IntoIterator<Item = usize>,
     {
-        let rule = self.next_step(lr);
+        let rule = self.next_step(lr, weight_decay);
         for i in touched {
-            let g = clamp_gradient(grads[i] + weight_decay * params[i]);
-            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], g);
+            rule.apply(&mut params[i], &mut self.m[i], &mut self.v[i], grads[i]);
         }
     }
 }
@@ -156,7 +158,7 @@ impl Adam {
         I: Iterator<Item = (usize, u64)>,
     {
         use rayon::prelude::*;
-        let rule = self.next_step(lr);
+        let rule = self.next_step(lr, weight_decay);
         let block = block.max(1);
         let len = params.len().div_ceil(parts.max(1)).div_ceil(block).max(1) * block;
         params
@@ -173,21 +175,20 @@ impl Adam {
                         fn slice_of_64(s: &mut [f32], k0: usize) -> &mut [f32; 64] {
                             (&mut s[k0..k0 + 64]).try_into().expect("64 entries")
                         }
-                        let word = Word {
+                        let word = AdamWord {
                             params: slice_of_64(params, k0),
                             m: slice_of_64(ms, k0),
                             v: slice_of_64(vs, k0),
                             grads: slice_of_64(grads, k0),
                             touched: bits,
                         };
-                        update_word(&rule, weight_decay, word);
+                        adam_word(&rule, word);
                     } else {
                         let mut rest = bits;
                         while rest != 0 {
                             let k = k0 + rest.trailing_zeros() as usize;
                             rest &= rest - 1;
-                            let g = clamp_gradient(std::mem::take(&mut grads[k]) + weight_decay * params[k]);
-                            rule.apply(&mut params[k], &mut ms[k], &mut vs[k], g);
+                            rule.apply(&mut params[k], &mut ms[k], &mut vs[k], std::mem::take(&mut grads[k]));
                         }
                     }
                 }
@@ -198,89 +199,6 @@ impl Adam {
 /// Touched entries from which a word of 64 is updated whole (every lane
 /// computed, the untouched ones left as they were) rather than bit by bit.
 const WHOLE_WORD_MIN_TOUCHED: u32 = 8;
-
-/// One word of 64 grid parameters: their values, moments and gradient (zeroed
-/// once used), and which of them the step touched (bit k for entry k).
-struct Word<'a> {
-    params: &'a mut [f32; 64],
-    m: &'a mut [f32; 64],
-    v: &'a mut [f32; 64],
-    grads: &'a mut [f32; 64],
-    touched: u64,
-}
-
-/// Adam on the touched entries of `word`: every lane is computed in SIMD
-/// and only the touched lanes are written back (the same arithmetic per
-/// entry as [`StepRule::apply`]).
-#[inline]
-fn update_word(rule: &StepRule, weight_decay: f32, word: Word) {
-    vectorised(|| update_word_lanes(rule, weight_decay, word))
-}
-
-/// The lane loop, written without branches so that it vectorises.
-#[inline(always)]
-fn update_word_lanes(rule: &StepRule, weight_decay: f32, word: Word) {
-    let Word {
-        params,
-        m: moments,
-        v: squares,
-        grads,
-        touched: bits,
-    } = word;
-    // Local copies: nothing the loop writes can alias what it reads, so it
-    // vectorises whatever the compiler knows of the references.
-    let rule = *rule;
-    let (mut p, mut m, mut v, g) = (*params, *moments, *squares, *grads);
-    for k in 0..64 {
-        let (mut pk, mut mk, mut vk) = (p[k], m[k], v[k]);
-        let gk = clamp_gradient(g[k] + weight_decay * pk);
-        rule.apply(&mut pk, &mut mk, &mut vk, gk);
-        let touched = (bits >> k) & 1 == 1;
-        p[k] = if touched { pk } else { p[k] };
-        m[k] = if touched { mk } else { m[k] };
-        v[k] = if touched { vk } else { v[k] };
-    }
-    (*params, *moments, *squares) = (p, m, v);
-    // Untouched lanes hold zero already.
-    *grads = [0.0; 64];
-}
-
-/// One step's constants: decay rates, eps, bias corrections, learning rate.
-#[derive(Clone, Copy)]
-struct StepRule {
-    b1: f32,
-    b2: f32,
-    eps: f32,
-    c1: f32,
-    c2: f32,
-    lr: f32,
-}
-
-impl StepRule {
-    /// Adam on one parameter with its (clamped, decayed) gradient `g`.
-    #[inline(always)]
-    fn apply(&self, param: &mut f32, m: &mut f32, v: &mut f32, g: f32) {
-        self.apply_with(param, m, v, g, (1.0 - self.b2) * g * g);
-    }
-
-    /// [`StepRule::apply`] with the second moment's new term given.
-    #[inline(always)]
-    fn apply_with(&self, param: &mut f32, m: &mut f32, v: &mut f32, g: f32, v_term: f32) {
-        *m = self.b1 * *m + (1.0 - self.b1) * g;
-        *v = self.b2 * *v + v_term;
-        *param -= self.lr * (*m / self.c1) / ((*v / self.c2).sqrt() + self.eps);
-    }
-}
-
-/// Keeps g*g finite in f32; Adam is invariant to gradient scale anyway.
-#[inline]
-fn clamp_gradient(g: f32) -> f32 {
-    if g.is_finite() {
-        g.clamp(-1e15, 1e15)
-    } else {
-        0.0
-    }
-}
 
 #[cfg(test)]
 mod tests {

@@ -110,6 +110,8 @@ const SUB_BATCH: usize = 4096;
 const MAX_RELATIVE_UPDATE: f32 = 0.1;
 /// L2 pull of the MLP weights towards zero.
 const MLP_WEIGHT_DECAY: f32 = 1e-6;
+/// Grid parameters per part of the parallel Adam update (16 summary words).
+const ADAM_PART_PARAMS: usize = 16 * GridGrad::BLOCK;
 /// L2 prior on the hash-grid entries touched in a step, relative to the RMS
 /// of their gradients (Adam ignores the gradient's scale, so the prior
 /// follows it): the pull on a value of 1 is this fraction of a typical
@@ -579,15 +581,17 @@ impl Trainer {
         };
         let grid_decay = GRID_PRIOR * grid_rms.unwrap_or(0.0);
         // The grid's touched entries are updated on every thread, consuming
-        // their gradients.
+        // their gradients, in many small parts: the finest levels are touched
+        // far more densely than the coarse ones, so halves would not balance.
         let grad = &mut first[0].grad;
         let (grid_grads, touched) = grad.grid.values_and_touched();
+        let parts = self.field.grid.params.len() / ADAM_PART_PARAMS;
         self.adam_grid.step_sparse_decayed_parallel(
             &mut self.field.grid.params,
             grid_grads,
             |start, len| touched.words_in(start, len),
             GridGrad::BLOCK,
-            threads,
+            parts.max(threads),
             lr,
             grid_decay,
         );

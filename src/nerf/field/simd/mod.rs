@@ -6,6 +6,7 @@
 //! [`avx2_fma_available`], [`vectorised`] for plain lane loops elsewhere,
 //! and [`measure_fma_peak_gflops`] for benchmarks.
 
+pub mod adam;
 pub mod exp;
 pub mod grid;
 #[cfg(target_arch = "x86_64")]

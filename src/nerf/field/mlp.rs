@@ -268,6 +268,21 @@ impl Mlp {
         grad: &mut [f32],
         d_input: Option<&mut [f32]>,
     ) {
+        let rows = self.config.input;
+        self.backward_leading_inputs(ws, d_output, n, grad, d_input.map(|d| (d, rows)));
+    }
+
+    /// [`Mlp::backward`] writing only the first `rows` inputs' gradients
+    /// (`d_input[i * n + b]` for `i < rows`): the colour network's direction
+    /// inputs are not learnt, and skipping them saves a sixth of its backward.
+    pub fn backward_leading_inputs(
+        &self,
+        ws: &mut MlpWorkspace,
+        d_output: &[f32],
+        n: usize,
+        grad: &mut [f32],
+        d_input: Option<(&mut [f32], usize)>,
+    ) {
         assert!(
             ws.trained == Some(self.shape_key(n)),
             "Mlp::backward: the workspace holds no forward_train of this network with n = {n}"
@@ -278,11 +293,9 @@ impl Mlp {
         );
         let count = self.param_count();
         assert_eq!(grad.len(), count, "Mlp::backward: grad length must equal param_count");
-        if let Some(d) = &d_input {
-            assert!(
-                d.len() >= self.config.input * n,
-                "Mlp::backward: d_input shorter than input * n"
-            );
+        if let Some((d, rows)) = &d_input {
+            assert!(*rows <= self.config.input, "Mlp::backward: more input rows than inputs");
+            assert!(d.len() >= rows * n, "Mlp::backward: d_input shorter than rows * n");
         }
         let mut d_input = d_input;
         let tile_len = self.max_width * TILE;
@@ -325,7 +338,7 @@ impl Mlp {
                         TILE,
                     );
                     std::mem::swap(&mut dz, &mut dx);
-                } else if let Some(d_in) = d_input.as_deref_mut() {
+                } else if let Some((d_in, rows)) = d_input.as_mut() {
                     mlp_tile::gemm_tile(
                         self.kernel,
                         w,
@@ -335,13 +348,13 @@ impl Mlp {
                         l.out,
                         dz,
                         TILE,
-                        l.inp,
+                        *rows,
                         cols,
                         Epilogue::Linear,
                         dx,
                         TILE,
                     );
-                    scatter(dx, l.inp, t0, valid, d_in, n);
+                    scatter(dx, *rows, t0, valid, d_in, n);
                 }
             }
         }
@@ -774,6 +787,29 @@ mod tests {
             &random(config.output * big, &mut rng),
         );
         assert_eq!(fresh, run(&mut used, n, &input, &d_out));
+    }
+
+    #[test]
+    fn leading_input_gradients_are_the_full_backward_s_first_rows() {
+        let config = cfg(32, &[64, 64], 3);
+        let mlp = random_mlp(config.clone(), 15);
+        let mut rng = Rng::new(16, 0);
+        let (n, rows) = (261, 16);
+        let input = random(config.input * n, &mut rng);
+        let d_out = random(config.output * n, &mut rng);
+        let mut out = vec![0.0; config.output * n];
+        let mut ws = MlpWorkspace::new();
+        mlp.forward_train(&input, n, &mut ws, &mut out);
+        let (mut grad_all, mut d_all) = (vec![0.0; mlp.param_count()], vec![0.0; config.input * n]);
+        mlp.backward(&mut ws, &d_out, n, &mut grad_all, Some(&mut d_all));
+        let (mut grad_lead, mut d_lead) = (vec![0.0; mlp.param_count()], vec![f32::NAN; rows * n]);
+        mlp.backward_leading_inputs(&mut ws, &d_out, n, &mut grad_lead, Some((&mut d_lead, rows)));
+        assert_eq!(grad_lead, grad_all);
+        assert_eq!(d_lead[..], d_all[..rows * n]);
+        assert!(
+            d_all[rows * n..].iter().any(|&g| g != 0.0),
+            "the rows left out carry gradient"
+        );
     }
 
     #[test]

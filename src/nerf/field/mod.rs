@@ -351,22 +351,22 @@ impl Field {
         if n == 0 {
             return;
         }
-        let color_dim = DENSITY_OUTPUTS + SH_COEFFS;
         let started = Instant::now();
         let d_color_out = sized(&mut ws.d_color_out, 3 * n);
         for i in 0..3 * n {
             let s = ws.rgb[i];
             d_color_out[i] = d_rgb[i] * s * (1.0 - s);
         }
-        sized(&mut ws.d_color_in, color_dim * n);
+        // Only the density outputs' part of the colour input is learnt.
+        sized(&mut ws.d_color_in, DENSITY_OUTPUTS * n);
         {
             let mlp_ws = ws.color_ws.get_or_insert_with(MlpWorkspace::new);
-            self.color.backward(
+            self.color.backward_leading_inputs(
                 mlp_ws,
                 &ws.d_color_out[..3 * n],
                 n,
                 &mut grad.color,
-                Some(&mut ws.d_color_in[..color_dim * n]),
+                Some((&mut ws.d_color_in[..DENSITY_OUTPUTS * n], DENSITY_OUTPUTS)),
             );
         }
         let d_density_out = sized(&mut ws.d_density_out, DENSITY_OUTPUTS * n);

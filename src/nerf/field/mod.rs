@@ -155,6 +155,8 @@ pub struct FieldWorkspace {
     /// Colour per sample in [0,1], feature-major [3][n], of the last forward.
     pub rgb: Vec<f32>,
     n: usize,
+    /// Samples encoded by the last [`Field::density_for_training`].
+    encoded_n: usize,
 }
 
 fn sized(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {
@@ -295,8 +297,66 @@ impl Field {
         let enc_dim = self.grid.config.output_dim();
         let started = Instant::now();
         self.grid.encode(positions, sized(&mut ws.encoded, enc_dim * n));
+        ws.seconds.grid += started.elapsed().as_secs_f64();
+        self.forward_encoded(dirs, ws, train);
+    }
+
+    /// First half of a training forward: every sample's grid encoding (kept
+    /// in `ws` for [`Field::forward_train_kept`]) and its density, without
+    /// the colour branch. Samples behind where a ray's light is used up
+    /// carry no gradient and can be left out of the rest.
+    pub fn density_for_training<'w>(&self, positions: &[[f32; 3]], ws: &'w mut FieldWorkspace) -> &'w [f32] {
+        let n = positions.len();
+        let started = Instant::now();
+        self.raw_density_only(positions, ws);
+        ws.seconds.grid += started.elapsed().as_secs_f64();
+        ws.n = 0;
+        ws.encoded_n = n;
+        let sigma = sized(&mut ws.sigma, n);
+        for (s, &raw) in sigma.iter_mut().zip(&ws.density_out[..n]) {
+            *s = density_activation(raw);
+        }
+        &ws.sigma[..n]
+    }
+
+    /// Second half of a training forward: keeps the samples `kept`
+    /// (ascending indices into the last [`Field::density_for_training`];
+    /// `dirs` are theirs) and runs both networks on them with activations
+    /// kept, as [`Field::forward`] would on those samples alone.
+    pub fn forward_train_kept(&self, kept: &[u32], dirs: &[[f32; 3]], ws: &mut FieldWorkspace) {
+        let (n, m) = (ws.encoded_n, kept.len());
+        assert_eq!(
+            dirs.len(),
+            m,
+            "Field::forward_train_kept: one direction per kept sample"
+        );
+        assert!(
+            kept.windows(2).all(|p| p[0] < p[1]) && kept.last().is_none_or(|&k| (k as usize) < n),
+            "Field::forward_train_kept: kept samples must ascend within the density pass"
+        );
+        let started = Instant::now();
+        // In place: kept entry i of row f moves to f m + i <= f n + kept[i],
+        // never onto an entry still to be read.
+        let enc_dim = self.grid.config.output_dim();
+        for f in 0..enc_dim {
+            for (i, &k) in kept.iter().enumerate() {
+                ws.encoded[f * m + i] = ws.encoded[f * n + k as usize];
+            }
+        }
+        ws.seconds.grid += started.elapsed().as_secs_f64();
+        ws.n = m;
+        sized(&mut ws.sigma, m);
+        sized(&mut ws.rgb, 3 * m);
+        if m > 0 {
+            self.forward_encoded(dirs, ws, true);
+        }
+    }
+
+    /// Both networks on the encodings in `ws.encoded` (one per direction).
+    fn forward_encoded(&self, dirs: &[[f32; 3]], ws: &mut FieldWorkspace, train: bool) {
+        let n = dirs.len();
+        let enc_dim = self.grid.config.output_dim();
         let encoded = Instant::now();
-        ws.seconds.grid += (encoded - started).as_secs_f64();
         sized(&mut ws.density_out, DENSITY_OUTPUTS * n);
         {
             let mlp_ws = ws.density_ws.get_or_insert_with(MlpWorkspace::new);
@@ -437,6 +497,54 @@ mod tests {
             l += (c[i] * ws.rgb[i]) as f64;
         }
         l
+    }
+
+    #[test]
+    fn training_on_kept_samples_is_training_on_those_samples_alone() {
+        let mut rng = Rng::new(11, 0);
+        let grid = HashGridConfig::for_scene(1.0, 1.0 / 32.0);
+        let config = FieldConfig {
+            grid: GridSpec::from(&grid),
+            density_hidden: vec![64],
+            color_hidden: vec![64, 64],
+        };
+        let mut field = Field::new(config, &mut rng);
+        for p in field.grid.params.iter_mut() {
+            *p = rng.f32() - 0.5;
+        }
+        let n = 301;
+        let pos: Vec<[f32; 3]> = (0..n).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
+        let kept: Vec<u32> = (0..n as u32).filter(|k| k % 3 != 1 && *k != 0).collect();
+        let m = kept.len();
+        let pos_kept: Vec<[f32; 3]> = kept.iter().map(|&k| pos[k as usize]).collect();
+        let dirs_kept = vec![[0.6, 0.0, -0.8]; m];
+        let d_sigma: Vec<f32> = (0..m).map(|_| rng.f32() - 0.5).collect();
+        let d_rgb: Vec<f32> = (0..3 * m).map(|_| rng.f32() - 0.5).collect();
+
+        let mut alone = FieldWorkspace::default();
+        field.forward(&pos_kept, &dirs_kept, &mut alone, true);
+        let mut want = field.new_grad();
+        field.backward(&pos_kept, &mut alone, &d_sigma, &d_rgb, &mut want);
+
+        let mut ws = FieldWorkspace::default();
+        let sigma_all = field.density_for_training(&pos, &mut ws).to_vec();
+        for (i, &k) in kept.iter().enumerate() {
+            let close = (sigma_all[k as usize] - alone.sigma[i]).abs() <= 1e-5 * alone.sigma[i].max(1.0);
+            assert!(
+                close,
+                "density pass {} against {}",
+                sigma_all[k as usize], alone.sigma[i]
+            );
+        }
+        field.forward_train_kept(&kept, &dirs_kept, &mut ws);
+        assert_eq!(ws.sigma[..m], alone.sigma[..m]);
+        assert_eq!(ws.rgb[..3 * m], alone.rgb[..3 * m]);
+        let mut got = field.new_grad();
+        field.backward(&pos_kept, &mut ws, &d_sigma, &d_rgb, &mut got);
+        assert_eq!(got.density, want.density);
+        assert_eq!(got.color, want.color);
+        assert!(got.grid.touched().eq(want.grid.touched()));
+        assert_eq!(got.grid.values_and_touched().0, want.grid.values_and_touched().0);
     }
 
     #[test]

@@ -11,7 +11,7 @@ use crate::nerf::field::sh::{self, SH_COEFFS};
 use crate::nerf::field::{Field, FieldGrad, FieldSeconds, FieldWorkspace};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
+use crate::nerf::render::composite::{optical_depth_backward, samples_before_termination, weights_from_optical_depth};
 use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule, ThinSteps};
 use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::adam::Adam;
@@ -263,6 +263,8 @@ struct Chunk {
     ray_dirs: Vec<[f32; 3]>,
     sample_positions: Vec<[f32; 3]>,
     sample_dirs: Vec<[f32; 3]>,
+    /// Samples of the sub-batch that go on past the density pass.
+    kept: Vec<u32>,
     tau: Vec<f32>,
     weights: Vec<f32>,
     grad_w: Vec<f32>,
@@ -332,6 +334,7 @@ impl Trainer {
                 ray_dirs: Vec::new(),
                 sample_positions: Vec::new(),
                 sample_dirs: Vec::new(),
+                kept: Vec::new(),
                 tau: Vec::new(),
                 weights: Vec::new(),
                 grad_w: Vec::new(),
@@ -937,8 +940,7 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             chunk.sample_dirs.push(d);
         }
     }
-    ctx.field
-        .forward(&chunk.sample_positions, &chunk.sample_dirs, &mut chunk.ws, true);
+    let n = keep_lit_samples(ctx, chunk, ray_range.clone(), n);
     let tau = sized(&mut chunk.tau, n);
     let weights = sized(&mut chunk.weights, n);
     let grad_w = sized(&mut chunk.grad_w, n);
@@ -1093,6 +1095,45 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
         pose_gradient(ctx, chunk, ray_range, levels);
     }
     let _ = stats;
+}
+
+/// The sub-batch's density pass, then the training forward of the samples
+/// before each ray's light is used up: those after it get no weight, so
+/// they would carry no gradient through the colour network and the
+/// backward (after the first few hundred steps, about a sixth of all
+/// samples, mostly in the surface window behind a surface). Shortens the
+/// rays, their segments and the sample buffers to what is kept; returns
+/// the samples kept.
+fn keep_lit_samples(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<usize>, n: usize) -> usize {
+    let base = chunk.rays[rays.start].first;
+    let sigma = ctx.field.density_for_training(&chunk.sample_positions, &mut chunk.ws);
+    let tau = sized(&mut chunk.tau, n);
+    chunk.kept.clear();
+    for r in rays {
+        let rec = &mut chunk.rays[r];
+        let o = rec.first - base;
+        let segs = &chunk.segments[rec.first..rec.first + rec.count];
+        for (i, seg) in segs.iter().enumerate() {
+            tau[o + i] = sigma[o + i] * seg.dt;
+        }
+        let lit = samples_before_termination(&tau[o..o + rec.count]);
+        // In place, moving left: a kept sample's new index is at most its old one.
+        let first = base + chunk.kept.len();
+        for i in 0..lit {
+            let (from, to) = (o + i, chunk.kept.len());
+            chunk.segments[base + to] = chunk.segments[rec.first + i];
+            chunk.sample_positions[to] = chunk.sample_positions[from];
+            chunk.sample_dirs[to] = chunk.sample_dirs[from];
+            chunk.kept.push(from as u32);
+        }
+        (rec.first, rec.count) = (first, lit);
+    }
+    let m = chunk.kept.len();
+    chunk.sample_positions.truncate(m);
+    chunk.sample_dirs.truncate(m);
+    ctx.field
+        .forward_train_kept(&chunk.kept, &chunk.sample_dirs, &mut chunk.ws);
+    m
 }
 
 /// Adds the sub-batch's gradient with respect to each ray's camera pose to

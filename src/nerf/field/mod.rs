@@ -499,19 +499,26 @@ mod tests {
         l
     }
 
-    #[test]
-    fn training_on_kept_samples_is_training_on_those_samples_alone() {
-        let mut rng = Rng::new(11, 0);
+    /// A small-scene field whose grid values are large enough for the
+    /// encoding to matter, and the generator that drew them.
+    fn field_with_random_grid(seed: u64, density_hidden: Vec<usize>, color_hidden: Vec<usize>) -> (Field, Rng) {
+        let mut rng = Rng::new(seed, 0);
         let grid = HashGridConfig::for_scene(1.0, 1.0 / 32.0);
         let config = FieldConfig {
             grid: GridSpec::from(&grid),
-            density_hidden: vec![64],
-            color_hidden: vec![64, 64],
+            density_hidden,
+            color_hidden,
         };
         let mut field = Field::new(config, &mut rng);
         for p in field.grid.params.iter_mut() {
             *p = rng.f32() - 0.5;
         }
+        (field, rng)
+    }
+
+    #[test]
+    fn training_on_kept_samples_is_training_on_those_samples_alone() {
+        let (field, mut rng) = field_with_random_grid(11, vec![64], vec![64, 64]);
         let n = 301;
         let pos: Vec<[f32; 3]> = (0..n).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
         let kept: Vec<u32> = (0..n as u32).filter(|k| k % 3 != 1 && *k != 0).collect();
@@ -549,18 +556,7 @@ mod tests {
 
     #[test]
     fn field_backward_matches_finite_differences() {
-        let mut rng = Rng::new(9, 0);
-        let grid = HashGridConfig::for_scene(1.0, 1.0 / 32.0);
-        let config = FieldConfig {
-            grid: GridSpec::from(&grid),
-            density_hidden: vec![16],
-            color_hidden: vec![16],
-        };
-        let mut field = Field::new(config, &mut rng);
-        // Larger grid values so the encoding matters for the check.
-        for p in field.grid.params.iter_mut() {
-            *p = rng.f32() - 0.5;
-        }
+        let (field, mut rng) = field_with_random_grid(9, vec![16], vec![16]);
         let n = 37;
         let pos: Vec<[f32; 3]> = (0..n).map(|_| [rng.f32(), rng.f32(), rng.f32()]).collect();
         let dirs: Vec<[f32; 3]> = (0..n)

@@ -21,20 +21,6 @@ pub struct RayComposite {
     pub used: usize,
 }
 
-/// How many of a ray's samples [`weights_from_optical_depth`] weighs: those
-/// before its transmittance falls under [`TERMINATION_TRANSMITTANCE`] (the
-/// rest get no weight and no gradient); at least one of a non-empty ray.
-pub fn samples_before_termination(tau: &[f32]) -> usize {
-    let mut log_t = 0.0f32;
-    for (i, &tau_i) in tau.iter().enumerate() {
-        if log_t.exp() < TERMINATION_TRANSMITTANCE {
-            return i;
-        }
-        log_t -= sanitize_tau(tau_i);
-    }
-    tau.len()
-}
-
 /// Weights w_i = T_i * alpha_i for optical depths tau_i = sigma_i * delta_i.
 ///
 /// `weights` receives one weight per sample; samples after termination get 0.
@@ -171,23 +157,6 @@ mod tests {
                 assert!(c.transmittance.is_finite() && c.transmittance >= 0.0);
             }
         }
-    }
-
-    #[test]
-    fn samples_before_termination_are_the_weighted_ones() {
-        let rays: [&[f32]; 5] = [
-            &[0.1, 0.2, 5.0, 5.0, 5.0, 0.3],
-            &[0.0; 4],
-            &[f32::NAN, 20.0, 1.0],
-            &[9.2, 0.0, 0.01],
-            &[],
-        ];
-        for tau in rays {
-            let mut w = vec![0.0; tau.len()];
-            let comp = weights_from_optical_depth(tau, &mut w);
-            assert_eq!(samples_before_termination(tau), comp.used, "{tau:?}");
-        }
-        assert_eq!(samples_before_termination(&[0.1, 0.2, 5.0, 5.0, 5.0, 0.3]), 4);
     }
 
     #[test]

@@ -11,7 +11,7 @@ use crate::nerf::field::sh::{self, SH_COEFFS};
 use crate::nerf::field::{Field, FieldGrad, FieldSeconds, FieldWorkspace};
 use crate::nerf::occupancy::measured::MeasuredSurfaces;
 use crate::nerf::occupancy::OccupancyGrid;
-use crate::nerf::render::composite::{optical_depth_backward, samples_before_termination, weights_from_optical_depth};
+use crate::nerf::render::composite::{optical_depth_backward, weights_from_optical_depth};
 use crate::nerf::render::march::{march, march_until, ray_interval, Segment, StepRule, ThinSteps};
 use crate::nerf::render::rays::RenderOptions;
 use crate::nerf::train::adam::Adam;
@@ -1108,15 +1108,16 @@ fn keep_lit_samples(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<
     let base = chunk.rays[rays.start].first;
     let sigma = ctx.field.density_for_training(&chunk.sample_positions, &mut chunk.ws);
     let tau = sized(&mut chunk.tau, n);
+    let weights = sized(&mut chunk.weights, n);
     chunk.kept.clear();
     for r in rays {
         let rec = &mut chunk.rays[r];
-        let o = rec.first - base;
-        let segs = &chunk.segments[rec.first..rec.first + rec.count];
+        let (o, k) = (rec.first - base, rec.count);
+        let segs = &chunk.segments[rec.first..rec.first + k];
         for (i, seg) in segs.iter().enumerate() {
             tau[o + i] = sigma[o + i] * seg.dt;
         }
-        let lit = samples_before_termination(&tau[o..o + rec.count]);
+        let lit = weights_from_optical_depth(&tau[o..o + k], &mut weights[o..o + k]).used;
         // In place, moving left: a kept sample's new index is at most its old one.
         let first = base + chunk.kept.len();
         for i in 0..lit {

@@ -96,32 +96,19 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
 }
 
 /// Mark the "no return" pixels of the training views (see
-/// [`View::no_return`]) and drop the depth measured on the rim of their
-/// regions: a depth pixel there straddles the object the sensor cannot see
-/// and the surface behind it, and returns the latter, so it would tell
-/// training that the object's outline is free space. Only the no-return
-/// term of training reads the marks.
+/// [`View::no_return`]); only the no-return term of training reads them.
 pub fn mark_no_return(data: &mut Dataset, scan: &Scan) {
     data.train
         .par_iter_mut()
         .zip(&data.train_frames)
-        .for_each(|(view, &i)| mark_view_no_return(view, depth_pixel_ratio(&scan.frames[i])));
-}
-
-/// [`mark_no_return`] for one view whose depth pixels are `ratio` colour
-/// pixels wide.
-pub fn mark_view_no_return(view: &mut View, ratio: f64) {
-    let (w, h) = (view.camera.width, view.camera.height);
-    let Some(depth) = view.depth.as_mut() else {
-        return;
-    };
-    let Some(gaps) = no_return_gaps(depth, w, h, ratio) else {
-        return;
-    };
-    for (z, _) in depth.iter_mut().zip(&gaps.rim).filter(|(_, &rim)| rim) {
-        *z = 0.0;
-    }
-    view.no_return = Some(gaps.no_return);
+        .for_each(|(view, &i)| {
+            let frame = &scan.frames[i];
+            let (w, h) = frame.size();
+            view.no_return = view
+                .depth
+                .as_deref()
+                .and_then(|d| no_return_mask(d, w, h, depth_pixel_ratio(frame)));
+        });
 }
 
 /// A view's depth is evidence of absence only when most of it was measured
@@ -134,34 +121,19 @@ fn depth_pixel_ratio(frame: &Frame) -> f64 {
     frame.depth_size.map_or(1.0, |(dw, _)| w as f64 / dw.max(1) as f64)
 }
 
-/// Where a view's depth says that something the sensor cannot see is there.
-///
-/// A region without depth is such an object's silhouette when it holds a
-/// pixel more than two depth pixels (`ratio` colour pixels each) from any
-/// measured one (wider than a speck or an edge dropout), does not reach
-/// the image border (the depth camera's field of view or range running
-/// out) and is not a projector shadow. One depth pixel either side of its
-/// outline is neither: a depth pixel there straddles the object and what
-/// lies behind it, and returns the latter.
-pub struct NoReturnGaps {
-    /// The silhouettes' pixels more than one depth pixel from any measured
-    /// one (see [`View::no_return`]).
-    pub no_return: Vec<bool>,
-    /// Measured pixels within one depth pixel of a silhouette: the rim
-    /// whose depth mixes both sides.
-    pub rim: Vec<bool>,
-}
-
-/// The no-return pixels of a depth image and the rim around them; `None`
-/// when too little of it was measured to say anything.
-pub fn no_return_gaps(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<NoReturnGaps> {
+/// Pixels without depth that are more than two depth pixels (`ratio`
+/// colour pixels each) from any measured one, in a region without depth
+/// that does not reach the image border and is not a projector shadow (see
+/// [`View::no_return`]). Regions open to the border are the depth camera's
+/// field of view or range running out, not an object it cannot see.
+pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<bool>> {
     let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0 && z.is_finite()).collect();
     let measured = valid.iter().filter(|&&v| v).count();
     if (measured as f64) < NO_RETURN_MIN_COVERAGE * valid.len() as f64 {
         return None;
     }
-    let one_depth_pixel = ratio.ceil().max(1.0) as usize;
-    let two_depth_pixels = (2.0 * ratio).round().max(2.0) as usize;
+    let radius = (2.0 * ratio).round().max(2.0) as usize;
+    let near_measured = dilate_mask(&valid, w, h, radius);
     // Regions without depth (value 0) that touch the border are open.
     let regions = components(
         &valid.iter().map(|&v| v as u16).collect::<Vec<_>>(),
@@ -169,26 +141,17 @@ pub fn no_return_gaps(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<NoRet
         h as usize,
     );
     let shadow = shadow_regions(depth, &valid, &regions.label, regions.value.len(), w as usize);
-    let mut silhouette_region = vec![false; regions.value.len()];
-    let within_two = dilate_mask(&valid, w, h, two_depth_pixels);
-    for (&region, _) in regions.label.iter().zip(&within_two).filter(|(_, &near)| !near) {
-        let r = region as usize;
-        silhouette_region[r] |= !regions.border[r] && !shadow[r];
-    }
-    let silhouette: Vec<bool> = regions.label.iter().map(|&r| silhouette_region[r as usize]).collect();
-    let within_one = dilate_mask(&valid, w, h, one_depth_pixel);
-    let no_return = silhouette
-        .iter()
-        .zip(&within_one)
-        .map(|(&s, &near)| s && !near)
-        .collect();
-    let near_silhouette = dilate_mask(&silhouette, w, h, one_depth_pixel);
-    let rim = near_silhouette
-        .iter()
-        .zip(&valid)
-        .map(|(&near, &v)| near && v)
-        .collect();
-    Some(NoReturnGaps { no_return, rim })
+    let evidence = |i: usize| {
+        let region = regions.label[i] as usize;
+        !regions.border[region] && !shadow[region]
+    };
+    Some(
+        near_measured
+            .iter()
+            .enumerate()
+            .map(|(i, &near)| !near && evidence(i))
+            .collect(),
+    )
 }
 
 /// Relative depth step across a region without depth above which its row
@@ -363,79 +326,21 @@ mod tests {
         clear(10, 30, 10, 30); // an object the sensor cannot see
         clear(45, 47, 5, 7); // a speck
         clear(50, 51, 2, 46); // a one-pixel dropout line
-        clear(36, 40, 20, 40); // a dropout band four pixels wide
         clear(0, 8, 30, 48); // the depth camera's field of view ending
-        let mask = no_return_gaps(&depth, w, h, 1.0).expect("mostly measured").no_return;
+        let mask = no_return_mask(&depth, w, h, 1.0).expect("mostly measured");
         let at = |x: u32, y: u32| mask[(y * w + x) as usize];
-        // A region with a pixel two pixels from the measured ones (native
-        // resolution) is a silhouette; all of it but its outermost pixel.
-        assert!(at(11, 11) && at(20, 20) && at(28, 28));
-        assert!(!at(10, 20) && !at(29, 20) && !at(5, 5));
+        // Two pixels from the measured ones at native resolution.
+        assert!(at(12, 12) && at(20, 20) && at(27, 27));
+        assert!(!at(11, 20) && !at(28, 20) && !at(5, 5));
         assert!(!at(45, 5) && !at(46, 6) && !at(50, 20));
-        assert!(
-            !at(37, 30) && !at(38, 30),
-            "no pixel of the band is two pixels from depth"
-        );
         assert!(!at(3, 40) && !at(5, 45), "regions open to the border are not evidence");
-        assert_eq!(mask.iter().filter(|&&m| m).count(), 18 * 18);
-        // Depth 2.5x coarser than the colour: three colour pixels in.
-        let coarse = no_return_gaps(&depth, w, h, 2.5).unwrap().no_return;
-        assert_eq!(coarse.iter().filter(|&&m| m).count(), 14 * 14);
+        assert_eq!(mask.iter().filter(|&&m| m).count(), 16 * 16);
+        // Depth 2.5x coarser than the colour: five colour pixels.
+        let coarse = no_return_mask(&depth, w, h, 2.5).unwrap();
+        assert_eq!(coarse.iter().filter(|&&m| m).count(), 10 * 10);
         // A frame the sensor mostly failed on says nothing.
         let failed: Vec<f32> = (0..w * h).map(|i| if i % 10 == 0 { 1.0 } else { 0.0 }).collect();
-        assert!(no_return_gaps(&failed, w, h, 1.0).is_none());
-    }
-
-    #[test]
-    fn the_rim_of_a_no_return_region_loses_its_depth() {
-        // A 20x20 gap an unseen object leaves, a speck, and the field of
-        // view ending on the left; depth 2.5x coarser than the colour.
-        let (w, h) = (64u32, 48u32);
-        let mut depth = vec![1.5f32; (w * h) as usize];
-        let mut clear = |x0: u32, x1: u32, y0: u32, y1: u32| {
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    depth[(y * w + x) as usize] = 0.0;
-                }
-            }
-        };
-        clear(20, 40, 10, 30);
-        clear(50, 52, 40, 42);
-        clear(0, 8, 0, 48);
-        let gaps = no_return_gaps(&depth, w, h, 2.5).unwrap();
-        let rim = |x: u32, y: u32| gaps.rim[(y * w + x) as usize];
-        // Three colour pixels (one depth pixel) round the gap, no further.
-        assert!(rim(17, 20) && rim(19, 20) && rim(42, 20) && rim(30, 7) && rim(30, 32));
-        assert!(!rim(16, 20) && !rim(43, 20) && !rim(30, 6) && !rim(30, 33));
-        assert!(!rim(30, 20), "the gap itself has no depth to drop");
-        assert_eq!(gaps.rim.iter().filter(|&&r| r).count(), 26 * 26 - 20 * 20);
-        assert!(
-            !rim(49, 41) && !rim(9, 20),
-            "a speck or the border keeps its neighbours' depth"
-        );
-
-        // Marking a view drops exactly the rim's depth.
-        let camera = LocalCamera {
-            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            origin: [0.5, 0.5, 0.1],
-            fx: 50.0,
-            fy: 50.0,
-            cx: 32.0,
-            cy: 24.0,
-            width: w,
-            height: h,
-        };
-        let mut view = View {
-            camera,
-            rgb: vec![0; (w * h * 3) as usize],
-            depth: Some(depth.clone()),
-            no_return: None,
-        };
-        mark_view_no_return(&mut view, 2.5);
-        assert_eq!(view.no_return.as_deref(), Some(&gaps.no_return[..]));
-        for (i, (&after, &before)) in view.depth.as_ref().unwrap().iter().zip(&depth).enumerate() {
-            assert_eq!(after, if gaps.rim[i] { 0.0 } else { before }, "pixel {i}");
-        }
+        assert!(no_return_mask(&failed, w, h, 1.0).is_none());
     }
 
     #[test]
@@ -458,7 +363,7 @@ mod tests {
                 depth[(y * w + x) as usize] = 0.0;
             }
         }
-        let mask = no_return_gaps(&depth, w, h, 1.0).unwrap().no_return;
+        let mask = no_return_mask(&depth, w, h, 1.0).unwrap();
         let at = |x: u32, y: u32| mask[(y * w + x) as usize];
         assert!((22..30).all(|x| !at(x, 30)), "the shadow is not evidence");
         assert!(at(9, 24) && at(10, 25), "the enclosed gap in one surface is");
@@ -468,7 +373,7 @@ mod tests {
                 depth[(y * w + x) as usize] = 1.9;
             }
         }
-        let mask = no_return_gaps(&depth, w, h, 1.0).unwrap().no_return;
+        let mask = no_return_mask(&depth, w, h, 1.0).unwrap();
         assert!(mask[(30 * w + 25) as usize]);
     }
 }

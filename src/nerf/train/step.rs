@@ -1569,9 +1569,7 @@ pub(crate) mod tests {
                     }
                 }
             }
-        }
-        for view in &mut views {
-            crate::nerf::train::dataset::mark_view_no_return(view, 1.0);
+            view.no_return = crate::nerf::train::dataset::no_return_mask(depth, size, size, 1.0);
         }
         views
     }

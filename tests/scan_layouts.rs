@@ -7,7 +7,7 @@
 
 use image::{ImageBuffer, Luma, RgbImage};
 use nalgebra::{IsometryMatrix3, Matrix3, Matrix4, Point3, Rotation3, Translation3, Vector3, Vector4};
-use nerflabel::scan::{load, summarize, DepthMap, Frame, Intrinsics, Layout, LoadOptions, Scan};
+use nerflabel::scan::{load, summarize, ColourBorder, DepthMap, Frame, Intrinsics, Layout, LoadOptions, Scan};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -620,6 +620,17 @@ fn real_cabinet_scan_reprojects_consistently() {
         summary.depth_coverage > 0.3 && summary.trajectory_length > 2.0,
         "{summary}"
     );
+    // Its JPEGs end in a dark row and column in every frame (padding).
+    let border = ColourBorder {
+        bottom: 1,
+        right: 1,
+        ..Default::default()
+    };
+    assert!(
+        scan.colour_borders().iter().all(|b| *b == border),
+        "{:?}",
+        scan.colour_borders()[0]
+    );
 }
 
 #[test]
@@ -648,6 +659,8 @@ fn real_tum_desk_loads_and_reprojects_consistently() {
     let worst = medians.iter().cloned().fold(0.0, f64::max);
     eprintln!("tum desk: pair medians {medians:.4?}");
     assert!(worst < 0.01, "worst pair median {worst} m");
+    // Its images show the scene to the edge.
+    assert!(scan.colour_borders().iter().all(ColourBorder::is_none));
 }
 
 /// Speed check (prints, never asserts time): 500 frames of 640x480 PNG.

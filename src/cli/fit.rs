@@ -112,6 +112,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             param_count,
             occupied_fraction,
             depth_noise,
+            colour_border,
         } => {
             bar.suspend(|| note!(
                 "{train_views} training views, {holdout_views} held out; {param_count} parameters; {:.1} % of space occupied after depth carving",
@@ -119,6 +120,12 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             ));
             if let Some(noise) = depth_noise {
                 bar.suspend(|| note!("depth noise: {}", describe_noise(noise)));
+            }
+            if !colour_border.is_none() {
+                bar.suspend(|| note!(
+                    "colour images: lines at the edges that show no scene ({}) are left out of training and of the held-out scores",
+                    colour_border.describe()
+                ));
             }
         }
         FitEvent::Step {

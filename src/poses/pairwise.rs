@@ -14,7 +14,7 @@
 //! the exact ones.
 
 use super::refine::{gauss_newton_solve, median, MAD_TO_SIGMA, TUKEY_C};
-use crate::scan::{Frame, EDGE_RELATIVE_GAP};
+use crate::scan::{colour_borders, ColourBorder, Frame, EDGE_RELATIVE_GAP};
 use nalgebra::{DMatrix, DVector, IsometryMatrix3, Matrix6, Point3, Rotation3, Translation3, Vector3, Vector6};
 use rayon::prelude::*;
 
@@ -68,13 +68,29 @@ struct Gray {
 }
 
 impl Gray {
-    fn from_rgb(image: &crate::scan::RgbImage) -> Gray {
-        let (width, height) = (image.width() as usize, image.height() as usize);
-        let data = image
-            .pixels()
-            .map(|p| 0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
-            .collect();
-        Gray { width, height, data }
+    /// The luma of `image`, its dead `border` lines repeating the nearest
+    /// line that shows the scene (so they make no edge to align).
+    fn from_rgb(image: &crate::scan::RgbImage, border: &ColourBorder) -> Gray {
+        let (w, h) = image.dimensions();
+        let (x0, y0, x1, y1) = border.kept_rect(w, h);
+        let kept = x1 > x0 && y1 > y0;
+        let mut data = Vec::with_capacity((w * h) as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let (sx, sy) = if kept {
+                    (x.clamp(x0, x1 - 1), y.clamp(y0, y1 - 1))
+                } else {
+                    (x, y)
+                };
+                let p = image.get_pixel(sx, sy);
+                data.push(0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]));
+            }
+        }
+        Gray {
+            width: w as usize,
+            height: h as usize,
+            data,
+        }
     }
 
     /// Half the size, each pixel the mean of the four below it.
@@ -130,8 +146,8 @@ struct PairFrame {
 }
 
 impl PairFrame {
-    fn new(frame: &Frame, opts: &PairwiseOptions) -> PairFrame {
-        let mut pyramid = vec![Gray::from_rgb(&frame.rgb)];
+    fn new(frame: &Frame, border: &ColourBorder, opts: &PairwiseOptions) -> PairFrame {
+        let mut pyramid = vec![Gray::from_rgb(&frame.rgb, border)];
         let full = (frame.rgb.width(), frame.rgb.height());
         let mut intrinsics = vec![frame.intrinsics];
         for _ in 1..opts.levels {
@@ -618,7 +634,12 @@ pub fn align_pairs(
     poses: &[IsometryMatrix3<f64>],
     opts: &PairwiseOptions,
 ) -> Option<Vec<IsometryMatrix3<f64>>> {
-    let frames: Vec<PairFrame> = scan_frames.par_iter().map(|f| PairFrame::new(f, opts)).collect();
+    let borders = colour_borders(scan_frames);
+    let frames: Vec<PairFrame> = scan_frames
+        .par_iter()
+        .zip(&borders)
+        .map(|(f, border)| PairFrame::new(f, border, opts))
+        .collect();
     // Pivot and lever: the centre and spread of the frames' depth points.
     let world: Vec<Point3<f64>> = frames
         .iter()
@@ -791,5 +812,35 @@ mod tests {
             .map(|(a, p)| (a.translation.vector - p.translation.vector).norm())
             .fold(0.0, f64::max);
         assert!(moved < 2e-4, "a camera moved {:.3} mm", moved * 1e3);
+    }
+
+    /// A padded dark last row and column would be the strongest edge of
+    /// every frame, fixed in the image: the grey image repeats the last
+    /// line that shows the scene instead.
+    #[test]
+    fn dead_border_lines_make_no_edge() {
+        let mut image = RgbImage::from_fn(16, 12, |x, y| image::Rgb([(10 * x + 5 * y) as u8; 3]));
+        for x in 0..16 {
+            image.put_pixel(x, 11, image::Rgb([0; 3]));
+        }
+        for y in 0..12 {
+            image.put_pixel(15, y, image::Rgb([0; 3]));
+        }
+        let border = ColourBorder {
+            bottom: 1,
+            right: 1,
+            ..Default::default()
+        };
+        let gray = Gray::from_rgb(&image, &border);
+        for x in 0..15 {
+            assert_eq!(gray.at(x, 11), gray.at(x, 10));
+        }
+        for y in 0..11 {
+            assert_eq!(gray.at(15, y), gray.at(14, y));
+        }
+        assert_eq!(gray.at(15, 11), gray.at(14, 10));
+        let untouched = Gray::from_rgb(&image, &ColourBorder::default());
+        assert_eq!(untouched.at(3, 11), 0.0);
+        assert_eq!(untouched.at(3, 4), gray.at(3, 4));
     }
 }

@@ -11,6 +11,7 @@
 
 mod assemble;
 mod colmap;
+mod colour_border;
 mod depth;
 mod depth_noise;
 mod detect;
@@ -28,6 +29,7 @@ mod text;
 mod tum;
 mod validate;
 
+pub use colour_border::{colour_borders, dead_colour_border, ColourBorder};
 pub use depth::{resample_depth_to, vouched_free_distance, vouched_start, DepthMap, EDGE_RELATIVE_GAP, FREE_FRACTION};
 pub use depth_noise::{depth_noise, DepthNoise};
 pub use detect::{detect_layout, Layout, ParseLayoutError};
@@ -175,6 +177,11 @@ impl Scan {
     /// Every frame's camera-to-world pose, in frame order.
     pub fn poses(&self) -> Vec<IsometryMatrix3<f64>> {
         self.frames.iter().map(|f| f.camera_to_world).collect()
+    }
+
+    /// Each frame's dead colour border ([`colour_borders`]).
+    pub fn colour_borders(&self) -> Vec<ColourBorder> {
+        colour_borders(&self.frames)
     }
 
     /// Replace the frames' poses, in frame order.

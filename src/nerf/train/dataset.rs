@@ -5,7 +5,7 @@ use crate::mask::{components, dilate_mask};
 use crate::nerf::camera::LocalCamera;
 use crate::nerf::occupancy::{CameraSpace, DepthRay};
 use crate::poses::SceneTransform;
-use crate::scan::{vouched_free_distance, Frame, Scan};
+use crate::scan::{vouched_free_distance, ColourBorder, Frame, Scan};
 use rayon::prelude::*;
 
 /// One training or evaluation view: camera, colour and optional depth.
@@ -20,6 +20,9 @@ pub struct View {
     /// pixel (not a speck or an edge dropout): something the sensor cannot
     /// see may be there. `None` when the view's missing depth says nothing.
     pub no_return: Option<Vec<bool>>,
+    /// Lines at the image's edges that show no scene: never trained on nor
+    /// scored ([`crate::scan::dead_colour_border`]).
+    pub colour_border: ColourBorder,
 }
 
 /// Views of a scan split into training and held-out sets.
@@ -54,10 +57,12 @@ pub fn local_camera(frame: &crate::scan::Frame, transform: &SceneTransform) -> L
 
 /// Build the views of `scan` in the local frame of `transform`.
 pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> Dataset {
+    let borders = scan.colour_borders();
     let views: Vec<View> = scan
         .frames
         .par_iter()
-        .map(|frame| {
+        .zip(&borders)
+        .map(|(frame, &colour_border)| {
             let depth = frame.depth.as_ref().map(|d| {
                 let scale = transform.scale() as f32;
                 d.metres
@@ -70,6 +75,7 @@ pub fn build(scan: &Scan, transform: &SceneTransform, holdout_every: usize) -> D
                 rgb: frame.rgb.as_raw().clone(),
                 depth,
                 no_return: None,
+                colour_border,
             }
         })
         .collect();
@@ -296,6 +302,7 @@ mod tests {
             rgb: vec![0; (w * h * 3) as usize],
             depth: Some(depth),
             no_return: Some(no_return),
+            colour_border: ColourBorder::default(),
         };
         let views = [view];
         // Stride 2: columns 0, 2, 4, 6 and rows 0, 2, 4.

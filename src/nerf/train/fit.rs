@@ -26,7 +26,7 @@ use crate::poses::{
     NormalizeOptions, PoseRefinement, RefineOptions, SceneTransform,
 };
 use crate::rng::Rng;
-use crate::scan::{depth_noise, DepthNoise, Scan};
+use crate::scan::{depth_noise, ColourBorder, DepthNoise, Scan};
 use nalgebra::{IsometryMatrix3, Rotation3, Translation3, Vector3};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -133,6 +133,8 @@ pub enum FitEvent<'a> {
         occupied_fraction: f64,
         /// The depth sensor's noise as measured on the scan (metres).
         depth_noise: Option<&'a DepthNoise>,
+        /// Dead lines at the edges of the first frame's colour image.
+        colour_border: ColourBorder,
     },
     /// A step finished; `progress` in [0, 1].
     Step {
@@ -166,6 +168,15 @@ pub enum FitError {
     Setting(#[from] SettingError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+}
+
+/// The dead colour border of the scan's first frame (train or held out).
+fn scan_colour_border(data: &Dataset) -> ColourBorder {
+    data.train
+        .first()
+        .or(data.holdout.first())
+        .map(|v| v.colour_border)
+        .unwrap_or_default()
 }
 
 /// Metres covered by one pixel at the typical viewing distance: the median
@@ -650,6 +661,7 @@ fn run(
         param_count,
         occupied_fraction: trainer.occupancy.occupied_fraction(),
         depth_noise: depth_noise.as_ref(),
+        colour_border: scan_colour_border(&data),
     });
 
     let time_budget = match (identity.time, identity.steps) {
@@ -957,6 +969,7 @@ fn run(
             AppearanceReport::new(&learner.maps(), &names)
         }),
         depth_noise,
+        colour_border: Some(scan_colour_border(&data)).filter(|b| !b.is_none()),
         curve: state.curve,
     };
     let model = Model {

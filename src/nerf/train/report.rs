@@ -8,7 +8,7 @@ use crate::nerf::train::settings::Preset;
 use crate::nerf::train::settings::TrainConfig;
 use crate::nerf::train::step::TrainCounters;
 use crate::poses::{FrameCorrection, PoseRefinement};
-use crate::scan::DepthNoise;
+use crate::scan::{ColourBorder, DepthNoise};
 use serde::{Deserialize, Serialize};
 
 /// One point of the error-against-run-time curve.
@@ -109,6 +109,10 @@ pub struct FitReport {
     /// `None` when it had too few measured surfaces to tell.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_noise: Option<DepthNoise>,
+    /// Lines at the colour images' edges that show no scene, left out of
+    /// training and of the held-out scores; `None` when there are none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub colour_border: Option<ColourBorder>,
     pub curve: Vec<CurvePoint>,
 }
 

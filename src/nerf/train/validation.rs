@@ -8,7 +8,7 @@ use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels_past, RenderOptions};
 use crate::nerf::train::dataset::View;
 use crate::nerf::train::metrics;
-use crate::scan::{vouched_free_distance, vouched_start};
+use crate::scan::{vouched_free_distance, vouched_start, ColourBorder};
 
 /// Accuracy on held-out views.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -20,8 +20,16 @@ pub struct Validation {
     pub depth_mae_m: Option<f64>,
 }
 
-/// Pixel grid of a view subsampled so its longer side has about `max_side` pixels.
-pub fn subsample_grid(width: u32, height: u32, max_side: u32) -> (usize, usize, Vec<(f32, f32)>) {
+/// Pixel grid of a view subsampled so its longer side has about `max_side`
+/// pixels, within the lines its `border` keeps.
+pub fn subsample_grid(
+    width: u32,
+    height: u32,
+    max_side: u32,
+    border: &ColourBorder,
+) -> (usize, usize, Vec<(f32, f32)>) {
+    let (x0, y0, x1, y1) = border.kept_rect(width, height);
+    let (width, height) = (x1 - x0, y1 - y0);
     let step = (width.max(height) as f64 / max_side.max(1) as f64).max(1.0);
     let w = ((width as f64 / step).floor() as usize).max(1);
     let h = ((height as f64 / step).floor() as usize).max(1);
@@ -30,13 +38,14 @@ pub fn subsample_grid(width: u32, height: u32, max_side: u32) -> (usize, usize, 
         for i in 0..w {
             let u = ((i as f64 + 0.5) * step - 0.5).round().min(width as f64 - 1.0);
             let v = ((j as f64 + 0.5) * step - 0.5).round().min(height as f64 - 1.0);
-            pixels.push((u as f32, v as f32));
+            pixels.push(((u + x0 as f64) as f32, (v + y0 as f64) as f32));
         }
     }
     (w, h, pixels)
 }
 
-/// Evaluate on `views`; `metres_per_unit` converts local depth to metres.
+/// Evaluate on `views` (their scene pixels: dead border lines are left
+/// out); `metres_per_unit` converts local depth to metres.
 /// With `appearance` (one map per view) the rendered colour goes through
 /// the view's map, as the photo went through its camera's exposure.
 pub fn validate(
@@ -53,7 +62,7 @@ pub fn validate(
     for (i, view) in views.iter().enumerate() {
         let map = appearance.and_then(|maps| maps.get(i));
         let cam = &view.camera;
-        let (w, h, pixels) = subsample_grid(cam.width, cam.height, max_side);
+        let (w, h, pixels) = subsample_grid(cam.width, cam.height, max_side, &view.colour_border);
         // Rays start past the space the view's own depth vouches free, as
         // `label` renders every frame: a held-out camera can stand in
         // density no training view constrained.
@@ -97,7 +106,7 @@ pub fn validate(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nerf::train::step::tests::{plane_views, small_config};
+    use crate::nerf::train::step::tests::{colour_options, plane_views, small_config};
     use crate::rng::Rng;
 
     /// Regression: a held-out camera can stand in density no training view
@@ -113,13 +122,7 @@ mod tests {
         let (outputs, params) = (field.density.config.output, field.density.params.len());
         field.density.params.fill(0.0);
         field.density.params[params - outputs..].fill(8.0);
-        let opts = RenderOptions {
-            color: true,
-            rule: train.step,
-            max_samples_per_ray: 4096,
-            background: [0.5; 3],
-            environment: None,
-        };
+        let opts = colour_options(&train);
         let views = plane_views(1, 32, true);
         let r = validate(&field, &OccupancyGrid::full(64), &opts, &views, 1.0, 32, None);
         let mae = r.depth_mae_m.unwrap();
@@ -128,5 +131,41 @@ mod tests {
             "depth error {mae} (0.45 on the lens, 0.225 past the free space)"
         );
         assert!(r.psnr.is_finite());
+    }
+
+    /// A dead last row and column (a converter's padding) are no view of
+    /// the scene: with the border set, what they hold does not change the
+    /// score, and the grid stays inside the kept lines.
+    #[test]
+    fn dead_border_lines_are_not_scored() {
+        let (config, train) = small_config(2);
+        let field = Field::new(config, &mut Rng::new(2, 0));
+        let opts = colour_options(&train);
+        let grid = OccupancyGrid::full(32);
+        let border = ColourBorder {
+            bottom: 1,
+            right: 1,
+            ..Default::default()
+        };
+        let mut views = plane_views(1, 32, true);
+        views[0].colour_border = border;
+        let clean = validate(&field, &grid, &opts, &views, 1.0, u32::MAX, None);
+        let (w, h) = (views[0].camera.width as usize, views[0].camera.height as usize);
+        for (i, px) in views[0].rgb.chunks_exact_mut(3).enumerate() {
+            if i % w == w - 1 || i / w == h - 1 {
+                px.fill(0);
+            }
+        }
+        let padded = validate(&field, &grid, &opts, &views, 1.0, u32::MAX, None);
+        assert_eq!(clean, padded);
+        views[0].colour_border = ColourBorder::default();
+        let scored = validate(&field, &grid, &opts, &views, 1.0, u32::MAX, None);
+        assert!(
+            scored.psnr < clean.psnr - 0.1,
+            "the padding is scored without the border: {scored:?} vs {clean:?}"
+        );
+        let (gw, gh, pixels) = subsample_grid(32, 32, u32::MAX, &border);
+        assert_eq!((gw, gh, pixels.len()), (31, 31, 961));
+        assert!(pixels.iter().all(|&(u, v)| u < 31.0 && v < 31.0));
     }
 }

@@ -127,19 +127,24 @@ fn depth_pixel_ratio(frame: &Frame) -> f64 {
     frame.depth_size.map_or(1.0, |(dw, _)| w as f64 / dw.max(1) as f64)
 }
 
-/// Pixels without depth that are more than two depth pixels (`ratio`
-/// colour pixels each) from any measured one, in a region without depth
-/// that does not reach the image border and is not a projector shadow (see
-/// [`View::no_return`]). Regions open to the border are the depth camera's
-/// field of view or range running out, not an object it cannot see.
+/// Pixels without depth inside the silhouette of something the sensor
+/// cannot see (see [`View::no_return`]), more than one depth pixel
+/// (`ratio` colour pixels) from any measured one. A region without depth
+/// is such a silhouette when it holds a pixel more than two depth pixels
+/// from any measured one (wider than a speck or an edge dropout), does not
+/// reach the image border (the depth camera's field of view or range
+/// running out) and is not a projector shadow. Within it, the band between
+/// one and two depth pixels from the measured depth is the object too:
+/// left to colour alone, long fits let a glass's lower rim go transparent
+/// and painted it on the table behind.
 pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<bool>> {
     let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0 && z.is_finite()).collect();
     let measured = valid.iter().filter(|&&v| v).count();
     if (measured as f64) < NO_RETURN_MIN_COVERAGE * valid.len() as f64 {
         return None;
     }
-    let radius = (2.0 * ratio).round().max(2.0) as usize;
-    let near_measured = dilate_mask(&valid, w, h, radius);
+    let one_depth_pixel = ratio.ceil().max(1.0) as usize;
+    let two_depth_pixels = (2.0 * ratio).round().max(2.0) as usize;
     // Regions without depth (value 0) that touch the border are open.
     let regions = components(
         &valid.iter().map(|&v| v as u16).collect::<Vec<_>>(),
@@ -147,15 +152,19 @@ pub fn no_return_mask(depth: &[f32], w: u32, h: u32, ratio: f64) -> Option<Vec<b
         h as usize,
     );
     let shadow = shadow_regions(depth, &valid, &regions.label, regions.value.len(), w as usize);
-    let evidence = |i: usize| {
-        let region = regions.label[i] as usize;
-        !regions.border[region] && !shadow[region]
-    };
+    let mut silhouette = vec![false; regions.value.len()];
+    let within_two = dilate_mask(&valid, w, h, two_depth_pixels);
+    for (&region, _) in regions.label.iter().zip(&within_two).filter(|(_, &near)| !near) {
+        let r = region as usize;
+        silhouette[r] |= !regions.border[r] && !shadow[r];
+    }
+    let within_one = dilate_mask(&valid, w, h, one_depth_pixel);
     Some(
-        near_measured
+        regions
+            .label
             .iter()
-            .enumerate()
-            .map(|(i, &near)| !near && evidence(i))
+            .zip(&within_one)
+            .map(|(&r, &near)| silhouette[r as usize] && !near)
             .collect(),
     )
 }
@@ -333,18 +342,24 @@ mod tests {
         clear(10, 30, 10, 30); // an object the sensor cannot see
         clear(45, 47, 5, 7); // a speck
         clear(50, 51, 2, 46); // a one-pixel dropout line
+        clear(36, 40, 20, 40); // a dropout band four pixels wide
         clear(0, 8, 30, 48); // the depth camera's field of view ending
         let mask = no_return_mask(&depth, w, h, 1.0).expect("mostly measured");
         let at = |x: u32, y: u32| mask[(y * w + x) as usize];
-        // Two pixels from the measured ones at native resolution.
-        assert!(at(12, 12) && at(20, 20) && at(27, 27));
-        assert!(!at(11, 20) && !at(28, 20) && !at(5, 5));
+        // A region with a pixel two pixels from the measured ones (native
+        // resolution) is a silhouette: all of it but its outermost pixel.
+        assert!(at(11, 11) && at(20, 20) && at(28, 28));
+        assert!(!at(10, 20) && !at(29, 20) && !at(5, 5));
         assert!(!at(45, 5) && !at(46, 6) && !at(50, 20));
+        assert!(
+            (36..40).all(|x| !at(x, 30)),
+            "a band no wider than four pixels is a dropout"
+        );
         assert!(!at(3, 40) && !at(5, 45), "regions open to the border are not evidence");
-        assert_eq!(mask.iter().filter(|&&m| m).count(), 16 * 16);
-        // Depth 2.5x coarser than the colour: five colour pixels.
+        assert_eq!(mask.iter().filter(|&&m| m).count(), 18 * 18);
+        // Depth 2.5x coarser than the colour: three colour pixels in.
         let coarse = no_return_mask(&depth, w, h, 2.5).unwrap();
-        assert_eq!(coarse.iter().filter(|&&m| m).count(), 10 * 10);
+        assert_eq!(coarse.iter().filter(|&&m| m).count(), 14 * 14);
         // A frame the sensor mostly failed on says nothing.
         let failed: Vec<f32> = (0..w * h).map(|i| if i % 10 == 0 { 1.0 } else { 0.0 }).collect();
         assert!(no_return_mask(&failed, w, h, 1.0).is_none());

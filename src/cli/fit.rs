@@ -123,7 +123,7 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
             }
             if !colour_border.is_none() {
                 bar.suspend(|| note!(
-                    "colour images: lines at the edges that show no scene ({}) are left out of training and of the held-out scores",
+                    "colour images: lines at the edges that show no scene ({}) are left out of the held-out scores",
                     colour_border.describe()
                 ));
             }

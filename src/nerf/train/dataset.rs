@@ -20,8 +20,8 @@ pub struct View {
     /// pixel (not a speck or an edge dropout): something the sensor cannot
     /// see may be there. `None` when the view's missing depth says nothing.
     pub no_return: Option<Vec<bool>>,
-    /// Lines at the image's edges that show no scene: never trained on nor
-    /// scored ([`crate::scan::dead_colour_border`]).
+    /// Lines at the image's edges that show no scene: not scored
+    /// ([`crate::scan::dead_colour_border`]).
     pub colour_border: ColourBorder,
 }
 

@@ -12,7 +12,6 @@
 //! noise where the image changes fast.
 
 use crate::rng::Rng;
-use crate::scan::ColourBorder;
 
 /// Side of the tiles the contrast is summed over, in pixels.
 pub const TILE: usize = 8;
@@ -28,9 +27,8 @@ pub struct DetailSampler {
 }
 
 impl DetailSampler {
-    /// The sampler of an RGB8 image, or `None` when it has no contrast at
-    /// all. Contrast with or within the dead `border` does not count.
-    pub fn from_rgb(rgb: &[u8], width: usize, height: usize, border: &ColourBorder) -> Option<DetailSampler> {
+    /// The sampler of an RGB8 image, or `None` when it has no contrast at all.
+    pub fn from_rgb(rgb: &[u8], width: usize, height: usize) -> Option<DetailSampler> {
         if width == 0 || height == 0 || rgb.len() < 3 * width * height {
             return None;
         }
@@ -41,13 +39,19 @@ impl DetailSampler {
         };
         let (tiles_x, tiles_y) = (width.div_ceil(TILE), height.div_ceil(TILE));
         let mut contrast = vec![0u64; tiles_x * tiles_y];
-        let (x0, y0, x1, y1) = border.kept_rect(width as u32, height as u32);
-        let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
-        for y in y0..y1 {
-            for x in x0..x1 {
+        for y in 0..height {
+            for x in 0..width {
                 let here = luma(x, y);
-                let dx = if x + 1 < x1 { (luma(x + 1, y) - here).abs() } else { 0 };
-                let dy = if y + 1 < y1 { (luma(x, y + 1) - here).abs() } else { 0 };
+                let dx = if x + 1 < width {
+                    (luma(x + 1, y) - here).abs()
+                } else {
+                    0
+                };
+                let dy = if y + 1 < height {
+                    (luma(x, y + 1) - here).abs()
+                } else {
+                    0
+                };
                 contrast[(y / TILE) * tiles_x + x / TILE] += (dx + dy) as u64;
             }
         }
@@ -115,8 +119,7 @@ mod tests {
     #[test]
     fn pixels_come_from_tiles_with_contrast_in_proportion() {
         let (w, h) = (40, 30); // not a multiple of the tile on either axis
-        let sampler =
-            DetailSampler::from_rgb(&image(w, h), w, h, &ColourBorder::default()).expect("the image has contrast");
+        let sampler = DetailSampler::from_rgb(&image(w, h), w, h).expect("the image has contrast");
         let mut rng = Rng::new(1, 0);
         let mut inside = 0;
         let mut seen = vec![false; w * h];
@@ -141,8 +144,7 @@ mod tests {
     #[test]
     fn the_density_ratio_is_how_often_a_pixel_is_drawn_against_uniform() {
         let (w, h) = (40, 30);
-        let sampler =
-            DetailSampler::from_rgb(&image(w, h), w, h, &ColourBorder::default()).expect("the image has contrast");
+        let sampler = DetailSampler::from_rgb(&image(w, h), w, h).expect("the image has contrast");
         // The ratio averages to 1 over the image (it is a probability ratio).
         let mean: f64 = (0..w * h).map(|p| sampler.density_ratio(p)).sum::<f64>() / (w * h) as f64;
         assert!((mean - 1.0).abs() < 1e-9, "mean ratio {mean}");
@@ -163,27 +165,11 @@ mod tests {
 
     #[test]
     fn a_flat_or_empty_image_has_no_sampler() {
-        let none = ColourBorder::default();
-        assert!(DetailSampler::from_rgb(&vec![90u8; 3 * 20 * 10], 20, 10, &none).is_none());
-        assert!(DetailSampler::from_rgb(&[], 0, 0, &none).is_none());
+        assert!(DetailSampler::from_rgb(&vec![90u8; 3 * 20 * 10], 20, 10).is_none());
+        assert!(DetailSampler::from_rgb(&[], 0, 0).is_none());
         assert!(
-            DetailSampler::from_rgb(&[1, 2, 3], 2, 2, &none).is_none(),
+            DetailSampler::from_rgb(&[1, 2, 3], 2, 2).is_none(),
             "too short for its size"
         );
-    }
-
-    /// A padded dark last row is contrast no view of the scene has: with
-    /// the border left out, a flat image stays flat.
-    #[test]
-    fn a_dead_border_draws_no_detail() {
-        let (w, h) = (20, 10);
-        let mut rgb = vec![90u8; 3 * w * h];
-        rgb[3 * w * (h - 1)..].fill(10);
-        assert!(DetailSampler::from_rgb(&rgb, w, h, &ColourBorder::default()).is_some());
-        let bottom = ColourBorder {
-            bottom: 1,
-            ..Default::default()
-        };
-        assert!(DetailSampler::from_rgb(&rgb, w, h, &bottom).is_none());
     }
 }

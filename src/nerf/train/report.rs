@@ -110,7 +110,7 @@ pub struct FitReport {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_noise: Option<DepthNoise>,
     /// Lines at the colour images' edges that show no scene, left out of
-    /// training and of the held-out scores; `None` when there are none.
+    /// the held-out scores; `None` when there are none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub colour_border: Option<ColourBorder>,
     pub curve: Vec<CurvePoint>,

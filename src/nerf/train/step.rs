@@ -441,14 +441,7 @@ impl Trainer {
         if self.detail.len() != views.len() {
             self.detail = views
                 .par_iter()
-                .map(|v| {
-                    DetailSampler::from_rgb(
-                        &v.rgb,
-                        v.camera.width as usize,
-                        v.camera.height as usize,
-                        &v.colour_border,
-                    )
-                })
+                .map(|v| DetailSampler::from_rgb(&v.rgb, v.camera.width as usize, v.camera.height as usize))
                 .collect();
         }
         let rule = self.config.step;
@@ -818,11 +811,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             _ => 1.0,
         };
         let width = view.camera.width as usize;
-        let (x, y) = ((pixel % width) as u32, (pixel / width) as u32);
-        if !view.colour_border.keeps(x, y, view.camera.width, view.camera.height) {
-            continue;
-        }
-        let (ray, t_per_z) = view.camera.ray(x as f32, y as f32);
+        let (ray, t_per_z) = view.camera.ray((pixel % width) as f32, (pixel / width) as f32);
         let Some((t0, t1)) = ray_interval(&ray, ctx.rule.min_step) else {
             continue;
         };
@@ -1244,7 +1233,7 @@ pub(crate) mod tests {
     use crate::nerf::occupancy::DepthRay;
     use crate::nerf::render::composite::optical_depth_backward;
     use crate::nerf::render::rays::{render_image, render_pixels, RayOutput};
-    use crate::scan::{ColourBorder, Intrinsics};
+    use crate::scan::Intrinsics;
 
     /// Views of a textured plane at local z = 0.6 seen from z ~ 0.15.
     pub(crate) fn plane_views(n: usize, size: u32, with_depth: bool) -> Vec<View> {
@@ -1721,63 +1710,6 @@ pub(crate) mod tests {
         let err = plane_depth_error(&trainer, &views, &train_cfg);
         eprintln!("normal learning rate: mean depth error {err}");
         assert!(err < 0.01, "mean depth error {err} (local units)");
-    }
-
-    /// Views whose outer four lines are magenta padding, as a converter's
-    /// border: with the border set, training never draws them, so the plane
-    /// keeps its own colours where other views' padding would have painted it.
-    #[test]
-    fn dead_border_lines_are_never_trained() {
-        let size = 48u32;
-        let clean = plane_views(6, size, true);
-        let border = ColourBorder {
-            top: 4,
-            bottom: 4,
-            left: 4,
-            right: 4,
-        };
-        let padded = |with_border: bool| -> Vec<View> {
-            let mut views = clean.clone();
-            for v in &mut views {
-                for (i, px) in v.rgb.chunks_exact_mut(3).enumerate() {
-                    let (x, y) = ((i as u32) % size, (i as u32) / size);
-                    if !border.keeps(x, y, size, size) {
-                        px.copy_from_slice(&[255, 0, 255]);
-                    }
-                }
-                if with_border {
-                    v.colour_border = border;
-                }
-            }
-            views
-        };
-        let pixels: Vec<(f32, f32)> = (8..40)
-            .step_by(2)
-            .flat_map(|v| (8..40).step_by(2).map(move |u| (u as f32, v as f32)))
-            .collect();
-        let error = |views: &[View]| {
-            let (field_cfg, train_cfg) = small_config(7);
-            let field = Field::new(field_cfg, &mut Rng::new(7, 0));
-            let mut trainer = Trainer::new(field, OccupancyGrid::full(64), train_cfg.clone(), [0.5; 3]);
-            for s in 0..120 {
-                trainer.step(views, s as f32 / 120.0);
-            }
-            let out = render_pixels(
-                &trainer.field,
-                &trainer.occupancy,
-                &colour_options(&train_cfg),
-                &clean[0].camera,
-                &pixels,
-            );
-            let wanted = pixels.iter().map(|&(u, v)| {
-                let p = 3 * (v as usize * size as usize + u as usize);
-                &clean[0].rgb[p..p + 3]
-            });
-            mean_colour_error(&out, wanted)
-        };
-        let (with, without) = (error(&padded(true)), error(&padded(false)));
-        eprintln!("colour error with the border left out {with}, trained on {without}");
-        assert!(with < 0.6 * without, "with the border {with}, without {without}");
     }
 
     /// Mean signed depth error (local units, positive = too far) of the

@@ -21,27 +21,27 @@ pub struct Validation {
 }
 
 /// Pixel grid of a view subsampled so its longer side has about `max_side`
-/// pixels, within the lines its `border` keeps.
+/// pixels, less the points on lines its `border` leaves out (the points
+/// stay where they are without a border, so figures compare across builds).
 pub fn subsample_grid(
     width: u32,
     height: u32,
     max_side: u32,
     border: &ColourBorder,
 ) -> (usize, usize, Vec<(f32, f32)>) {
-    let (x0, y0, x1, y1) = border.kept_rect(width, height);
-    let (width, height) = (x1 - x0, y1 - y0);
     let step = (width.max(height) as f64 / max_side.max(1) as f64).max(1.0);
-    let w = ((width as f64 / step).floor() as usize).max(1);
-    let h = ((height as f64 / step).floor() as usize).max(1);
-    let mut pixels = Vec::with_capacity(w * h);
-    for j in 0..h {
-        for i in 0..w {
-            let u = ((i as f64 + 0.5) * step - 0.5).round().min(width as f64 - 1.0);
-            let v = ((j as f64 + 0.5) * step - 0.5).round().min(height as f64 - 1.0);
-            pixels.push(((u + x0 as f64) as f32, (v + y0 as f64) as f32));
-        }
-    }
-    (w, h, pixels)
+    let (x0, y0, x1, y1) = border.kept_rect(width, height);
+    let along = |count: u32, from: u32, to: u32| -> Vec<f32> {
+        let n = ((count as f64 / step).floor() as usize).max(1);
+        (0..n)
+            .map(|i| ((i as f64 + 0.5) * step - 0.5).round().min(count as f64 - 1.0) as u32)
+            .filter(|&p| p >= from && p < to)
+            .map(|p| p as f32)
+            .collect()
+    };
+    let (xs, ys) = (along(width, x0, x1), along(height, y0, y1));
+    let pixels = ys.iter().flat_map(|&v| xs.iter().map(move |&u| (u, v))).collect();
+    (xs.len(), ys.len(), pixels)
 }
 
 /// Evaluate on `views` (their scene pixels: dead border lines are left
@@ -167,5 +167,14 @@ mod tests {
         let (gw, gh, pixels) = subsample_grid(32, 32, u32::MAX, &border);
         assert_eq!((gw, gh, pixels.len()), (31, 31, 961));
         assert!(pixels.iter().all(|&(u, v)| u < 31.0 && v < 31.0));
+        // The points stay where they were: a coarse grid that never met the
+        // dead lines is the same with the border as without.
+        let none = ColourBorder::default();
+        assert_eq!(
+            subsample_grid(640, 480, 160, &border),
+            subsample_grid(640, 480, 160, &none)
+        );
+        let (w, h, coarse) = subsample_grid(640, 480, 160, &none);
+        assert_eq!((w, h, coarse[0], coarse[161]), (160, 120, (2.0, 2.0), (6.0, 6.0)));
     }
 }

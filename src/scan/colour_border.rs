@@ -23,12 +23,6 @@ impl ColourBorder {
         *self == ColourBorder::default()
     }
 
-    /// Whether pixel (x, y) of a `width` x `height` image shows the scene.
-    #[inline]
-    pub fn keeps(&self, x: u32, y: u32, width: u32, height: u32) -> bool {
-        x >= self.left && y >= self.top && x + self.right < width && y + self.bottom < height
-    }
-
     /// The kept pixels as `(x0, y0, x1, y1)`, ends exclusive (empty when
     /// the border would leave nothing).
     pub fn kept_rect(&self, width: u32, height: u32) -> (u32, u32, u32, u32) {
@@ -240,7 +234,6 @@ mod tests {
             }
         );
         assert_eq!(border.describe(), "bottom 1, left 2, right 1");
-        assert!(border.keeps(2, 0, 160, 120) && !border.keeps(1, 5, 160, 120) && !border.keeps(5, 119, 160, 120));
         assert_eq!(border.kept_rect(160, 120), (2, 0, 159, 119));
     }
 

@@ -12,6 +12,7 @@
 //!
 //! Run: `cargo run --release --example bench_holdout_poses -- SCAN MODEL [HOLDOUT_EVERY]`
 
+use nerflabel::nerf::appearance::NO_VIGNETTING;
 use nerflabel::nerf::model_file::Model;
 use nerflabel::nerf::train::dataset;
 use nerflabel::nerf::train::validation::validate;
@@ -104,7 +105,8 @@ fn score(model: &Model, scan: &Scan, every: usize) -> Result<(f64, f64, f64), Er
         &data.holdout,
         1.0 / transform.scale(),
         u32::MAX,
-        maps.as_deref(),
+        maps.as_deref()
+            .map(|m| (m, model.header.vignetting.as_ref().unwrap_or(&NO_VIGNETTING))),
     );
     Ok((v.psnr, v.ssim, v.depth_mae_m.unwrap_or(f64::NAN) * 1e3))
 }

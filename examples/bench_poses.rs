@@ -125,6 +125,10 @@ fn align_again(model: &Model, scan: &Scan) -> Result<Vec<IsometryMatrix3<f64>>, 
         &model.scene_transform()?,
         &scan.frames,
         &maps,
+        &model
+            .header
+            .vignetting
+            .unwrap_or(nerflabel::nerf::appearance::NO_VIGNETTING),
         &(0..scan.frames.len()).collect::<Vec<_>>(),
         &PhotometricOptions::default(),
     );

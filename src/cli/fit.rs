@@ -222,11 +222,12 @@ pub fn run(args: &FitArgs) -> anyhow::Result<()> {
     }
     if let Some(a) = &r.appearance {
         say!(
-            "appearance: {} frames, colour change median {:.3}, largest {:.3} (frame {})",
+            "appearance: {} frames, colour change median {:.3}, largest {:.3} (frame {}); lens: {:.0} % of the centre's light in the corners",
             a.frames,
             a.median_strength,
             a.largest_strength,
-            a.largest_frame
+            a.largest_frame,
+            100.0 * a.corner_light
         );
     }
     say!("report: {}", report_path.display());

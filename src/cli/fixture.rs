@@ -29,6 +29,9 @@ pub fn options(args: &FixtureArgs) -> anyhow::Result<FixtureOptions> {
     if let Some(e) = args.exposure {
         c.exposure_change = e;
     }
+    if let Some(v) = args.vignetting {
+        c.vignetting = v;
+    }
     if let Some(text) = &args.pose_error {
         let parsed: Option<(f64, f64)> = text
             .split_once(',')

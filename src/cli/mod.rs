@@ -194,6 +194,10 @@ pub struct FixtureArgs {
     /// gain over the scan (e.g. 0.2 for about +-20 %); white balance per channel a third of it.
     #[arg(long, value_name = "LOG_GAIN")]
     pub exposure: Option<f64>,
+    /// A lens that darkens the image towards its corners: share of the light lost in the farthest
+    /// corner (e.g. 0.2 for corners at 80 %), falling off with the squared angle off the axis.
+    #[arg(long, value_name = "LOSS")]
+    pub vignetting: Option<f64>,
     /// As hard as a real handheld scan: JPEG colour (quality 85) and pose error on top of the default corruptions.
     #[arg(long, conflicts_with = "clean")]
     pub realistic: bool,

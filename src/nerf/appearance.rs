@@ -32,6 +32,52 @@ pub fn apply_backward(a: &Affine, c: [f32; 3], g: [f32; 3], grad_a: &mut [f32]) 
     std::array::from_fn(|j| a[j] * g[0] + a[4 + j] * g[1] + a[8 + j] * g[2])
 }
 
+/// A lens's vignetting, one per scan (one camera): colour reaching the
+/// image is scaled by `1 + k1 r^2 + k2 r^4 + k3 r^6`, where `r^2` is the
+/// squared tangent of the angle off the optical axis,
+/// `((u - cx) / fx)^2 + ((v - cy) / fy)^2`. Every consumer camera's
+/// corners get less light than its centre; a field cannot show that (a
+/// surface moves across the image as the camera moves), so without it the
+/// field averages the falloff into every surface.
+pub type Vignetting = [f32; 3];
+
+/// The lens that darkens nothing.
+pub const NO_VIGNETTING: Vignetting = [0.0; 3];
+
+/// Smallest gain a vignetting may give: keeps colour and its gradient
+/// alive while the coefficients are still far off.
+const MIN_GAIN: f32 = 0.05;
+
+/// Gain of `k` at squared off-axis tangent `r2`.
+#[inline]
+pub fn vignetting_gain(k: &Vignetting, r2: f32) -> f32 {
+    (1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))).max(MIN_GAIN)
+}
+
+/// Backward of [`vignetting_gain`]: adds `g` (the loss gradient with
+/// respect to the gain) times the gain's derivative to `grad_k`.
+#[inline]
+pub fn vignetting_backward(k: &Vignetting, r2: f32, g: f32, grad_k: &mut [f32]) {
+    if vignetting_gain(k, r2) > MIN_GAIN {
+        let mut power = r2;
+        for gk in grad_k.iter_mut().take(3) {
+            *gk += g * power;
+            power *= r2;
+        }
+    }
+}
+
+/// The light `k` leaves in the farthest corner of a `width` x `height`
+/// image with intrinsics (fx, fy, cx, cy), as a share of the centre's.
+pub fn corner_gain(k: &Vignetting, fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> f32 {
+    let (w, h) = (width as f64 - 1.0, height as f64 - 1.0);
+    let r2 = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+        .iter()
+        .map(|&(u, v)| ((u - cx) / fx).powi(2) + ((v - cy) / fy).powi(2))
+        .fold(0.0, f64::max);
+    vignetting_gain(k, r2 as f32)
+}
+
 /// One map per scan frame from the maps of the training frames: a frame
 /// that trained keeps its own; a held-out frame gets the mean of the
 /// nearest training frame on each side in scan order (exposure drifts
@@ -102,6 +148,36 @@ mod tests {
             let fd = (loss(&a, up) - loss(&a, down)) / (2.0 * h as f64);
             assert!((fd - grad_c[j] as f64).abs() < 1e-3, "c[{j}]: {fd} vs {}", grad_c[j]);
         }
+    }
+
+    #[test]
+    fn vignetting_gradient_matches_finite_differences() {
+        let k: Vignetting = [-0.3, 0.1, -0.05];
+        let r2 = 0.4f32;
+        let mut grad = [0.0f32; 3];
+        vignetting_backward(&k, r2, 1.0, &mut grad);
+        let h = 1e-3f32;
+        for i in 0..3 {
+            let (mut up, mut down) = (k, k);
+            up[i] += h;
+            down[i] -= h;
+            let fd = (vignetting_gain(&up, r2) - vignetting_gain(&down, r2)) / (2.0 * h);
+            assert!((fd - grad[i]).abs() < 1e-3, "k[{i}]: {fd} vs {}", grad[i]);
+        }
+        assert_eq!(vignetting_gain(&NO_VIGNETTING, 0.7), 1.0);
+        // A gain held at its floor passes no gradient.
+        let mut grad = [0.0f32; 3];
+        vignetting_backward(&[-10.0, 0.0, 0.0], 0.5, 1.0, &mut grad);
+        assert_eq!(grad, [0.0; 3]);
+    }
+
+    #[test]
+    fn corner_gain_is_taken_at_the_farthest_corner() {
+        // Principal point off centre: the far corner is (99, 79).
+        let k: Vignetting = [-0.5, 0.0, 0.0];
+        let g = corner_gain(&k, 100.0, 100.0, 30.0, 20.0, 100, 80);
+        let r2 = (0.69f32).powi(2) + (0.59f32).powi(2);
+        assert!((g - (1.0 - 0.5 * r2)).abs() < 1e-5, "{g}");
     }
 
     #[test]

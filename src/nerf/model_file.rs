@@ -3,7 +3,7 @@
 //! parameters and the occupancy grid as sections. Written atomically; every
 //! defect on load is a clear error.
 
-use crate::nerf::appearance::Affine;
+use crate::nerf::appearance::{Affine, Vignetting};
 use crate::nerf::container::{self, ContainerError, Format, Section, SectionKind};
 use crate::nerf::environment::{Environment, ENVIRONMENT_PARAMS};
 use crate::nerf::field::{Field, FieldConfig};
@@ -76,6 +76,10 @@ pub struct ModelHeader {
     /// order; `None`: fitted without (the field's colour is every frame's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub appearance: Option<Vec<Affine>>,
+    /// The camera's vignetting (`nerf::appearance::Vignetting`), learnt
+    /// with the appearance maps; `None`: fitted without, or before it was learnt.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vignetting: Option<Vignetting>,
     /// Lengths of the sections: grid, density MLP, colour MLP, occupancy
     /// densities (f32 each), then carved-cell mask (u64 words).
     pub sections: [usize; 5],
@@ -105,6 +109,11 @@ impl Model {
     /// appearance and has that frame.
     pub fn frame_appearance(&self, frame: usize) -> Option<Affine> {
         self.header.appearance.as_ref()?.get(frame).copied()
+    }
+
+    /// The camera's vignetting, when the model learnt it.
+    pub fn vignetting(&self) -> Option<Vignetting> {
+        self.header.vignetting
     }
 
     /// The world-to-local scene transform stored in the model.
@@ -330,6 +339,7 @@ mod tests {
                 crate::nerf::appearance::IDENTITY,
                 [0.9, 0.0, 0.0, 0.02, 0.0, 1.1, 0.0, -0.01, 0.0, 0.0, 1.0, 0.0],
             ]),
+            vignetting: Some([-0.25, 0.03, -0.01]),
             sections: [0; 5],
         };
         Model {

@@ -246,7 +246,11 @@ pub fn synthesize_objects(
         let map = model
             .frame_appearance(frame)
             .ok_or_else(|| SynthError::NoAppearance { frame: name() })?;
+        // As the frame was captured: its exposure and the lens's falloff.
         renderer = renderer.with_appearance(map);
+        if let Some(lens) = model.vignetting() {
+            renderer = renderer.with_lens(lens);
+        }
     }
     let first = scan.frames.first().ok_or(SynthError::NoFrames)?;
     let (total, group) = match &options.poses {

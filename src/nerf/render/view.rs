@@ -5,7 +5,7 @@
 //! from the field which cells hold density, at twice the grid's resolution
 //! ([`crate::nerf::occupancy::from_field`]).
 
-use crate::nerf::appearance::{apply, Affine, IDENTITY};
+use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting, IDENTITY, NO_VIGNETTING};
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
@@ -37,6 +37,8 @@ pub struct ViewRenderer<'a> {
     pruned: Option<OccupancyGrid>,
     /// Colour map applied to rendered colour (the identity: neutral).
     appearance: Affine,
+    /// The lens's falloff applied before it (none: neutral).
+    lens: Vignetting,
 }
 
 /// An 8-bit channel of a colour in [0, 1].
@@ -53,6 +55,7 @@ impl<'a> ViewRenderer<'a> {
             transform: model.scene_transform()?,
             pruned: None,
             appearance: IDENTITY,
+            lens: NO_VIGNETTING,
         })
     }
 
@@ -71,6 +74,7 @@ impl<'a> ViewRenderer<'a> {
             transform: model.scene_transform()?,
             pruned: Some(grid),
             appearance: IDENTITY,
+            lens: NO_VIGNETTING,
         })
     }
 
@@ -81,10 +85,20 @@ impl<'a> ViewRenderer<'a> {
         self
     }
 
-    /// An 8-bit colour from a rendered one, through the appearance map.
+    /// Render colour as the camera's lens darkens it (`Model::vignetting`):
+    /// with a frame's map, a view as that frame was captured.
+    pub fn with_lens(mut self, lens: Vignetting) -> Self {
+        self.lens = lens;
+        self
+    }
+
+    /// An 8-bit colour from a rendered one through the lens and the
+    /// appearance map, for a ray whose direction in the camera is
+    /// `t_per_z` times as long as its z (`LocalCamera::ray`).
     #[inline]
-    fn colour_u8(&self, rgb: [f32; 3]) -> [u8; 3] {
-        apply(&self.appearance, rgb).map(to_u8)
+    fn colour_u8(&self, rgb: [f32; 3], t_per_z: f32) -> [u8; 3] {
+        let gain = vignetting_gain(&self.lens, t_per_z * t_per_z - 1.0);
+        apply(&self.appearance, rgb.map(|c| gain * c)).map(to_u8)
     }
 
     /// The occupancy grid rays are marched through.
@@ -124,7 +138,10 @@ impl<'a> ViewRenderer<'a> {
         let opts = self.model.render_options(color);
         let out = render_pixels(&self.model.field, self.grid(), &opts, camera, pixels);
         let rgb = if color {
-            out.iter().map(|o| self.colour_u8(o.rgb)).collect()
+            out.iter()
+                .zip(pixels)
+                .map(|(o, &(u, v))| self.colour_u8(o.rgb, camera.ray(u, v).1))
+                .collect()
         } else {
             Vec::new()
         };
@@ -151,7 +168,10 @@ impl<'a> ViewRenderer<'a> {
         let out = render_image(&self.model.field, self.grid(), &opts, &camera);
         let w = width.max(1) as usize;
         let rgb = if color {
-            out.iter().flat_map(|o| self.colour_u8(o.rgb)).collect()
+            out.iter()
+                .enumerate()
+                .flat_map(|(i, o)| self.colour_u8(o.rgb, camera.ray((i % w) as f32, (i / w) as f32).1))
+                .collect()
         } else {
             Vec::new()
         };

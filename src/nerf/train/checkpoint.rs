@@ -138,6 +138,11 @@ pub struct CheckpointHeader {
     /// The appearance maps and their optimiser, when learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub appearance: Option<LearnerState>,
+    /// The lens's vignetting and its optimiser, learnt with the maps
+    /// (absent from checkpoints of earlier versions: those resume with a
+    /// neutral lens).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lens: Option<LearnerState>,
     /// The environment's coefficients and optimiser, when learnt.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub environment: Option<LearnerState>,
@@ -253,6 +258,10 @@ pub fn save(
             .appearance
             .as_ref()
             .map(|a| LearnerState::of(&a.deltas, &a.adam)),
+        lens: trainer
+            .appearance
+            .as_ref()
+            .map(|a| LearnerState::of(&a.lens, &a.lens_adam)),
         environment: trainer
             .environment
             .as_ref()
@@ -381,7 +390,13 @@ impl Checkpoint {
         }
         let h = self.header;
         let appearance_restored = match (&h.appearance, &mut trainer.appearance) {
-            (Some(saved), Some(learner)) => saved.restore(&mut learner.deltas, &mut learner.adam),
+            (Some(saved), Some(learner)) => {
+                let lens_restored = h
+                    .lens
+                    .as_ref()
+                    .is_none_or(|lens| lens.restore(&mut learner.lens, &mut learner.lens_adam));
+                saved.restore(&mut learner.deltas, &mut learner.adam) && lens_restored
+            }
             (None, None) => true,
             _ => false,
         };
@@ -508,6 +523,9 @@ mod tests {
         let maps = |t: &Trainer| t.appearance.as_ref().unwrap().deltas.clone();
         assert_eq!(maps(&a), maps(&b));
         assert!(maps(&a).iter().any(|&d| d != 0.0), "the maps learnt after warm-up");
+        let lens = |t: &Trainer| t.appearance.as_ref().unwrap().lens;
+        assert_eq!(lens(&a), lens(&b));
+        assert!(lens(&a).iter().any(|&k| k != 0.0), "the lens learnt after warm-up");
         let environment = |t: &Trainer| t.environment.as_ref().unwrap().environment;
         assert_eq!(environment(&a), environment(&b));
         assert_eq!(a.occupancy.densities(), b.occupancy.densities());

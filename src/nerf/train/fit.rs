@@ -408,9 +408,12 @@ fn align_poses_to_field(
 ) {
     let t = Instant::now();
     let grid = trainer.rendering_occupancy();
-    let maps = match &trainer.appearance {
-        Some(learner) => appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len()),
-        None => vec![appearance::IDENTITY; scan.frames.len()],
+    let (maps, lens) = match &trainer.appearance {
+        Some(learner) => (
+            appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len()),
+            learner.lens,
+        ),
+        None => (vec![appearance::IDENTITY; scan.frames.len()], appearance::NO_VIGNETTING),
     };
     let alignment = align_to_field(
         &trainer.field,
@@ -419,6 +422,7 @@ fn align_poses_to_field(
         transform,
         &scan.frames,
         &maps,
+        &lens,
         frames,
         options,
     );
@@ -721,7 +725,8 @@ fn run(
         // A held-out frame is seen with its training neighbours' appearance.
         let holdout_maps = trainer.appearance.as_ref().map(|learner| {
             let table = appearance::per_frame(&data.train_frames, &learner.maps(), frame_count);
-            data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>()
+            let maps = data.holdout_frames.iter().map(|&f| table[f]).collect::<Vec<_>>();
+            (maps, learner.lens)
         });
         let rendering = Instant::now();
         let r: Validation = validate(
@@ -731,7 +736,7 @@ fn run(
             &data.holdout,
             metres_per_unit,
             side,
-            holdout_maps.as_deref(),
+            holdout_maps.as_ref().map(|(maps, lens)| (maps.as_slice(), lens)),
         );
         let render_s = rendering.elapsed().as_secs_f64();
         state.timings.eval_s += t.elapsed().as_secs_f64();
@@ -925,6 +930,7 @@ fn run(
             .appearance
             .as_ref()
             .map(|learner| appearance::per_frame(&data.train_frames, &learner.maps(), scan.frames.len())),
+        vignetting: trainer.appearance.as_ref().map(|learner| learner.lens),
         sections: [0; 5],
     };
     let occupancy = match latest_grid {
@@ -966,7 +972,11 @@ fn run(
         pose_learning,
         appearance: trainer.appearance.as_ref().and_then(|learner| {
             let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
-            AppearanceReport::new(&learner.maps(), &names)
+            let corner_light = scan.frames.first().map_or(1.0, |f| {
+                let (k, (w, h)) = (&f.intrinsics, f.size());
+                appearance::corner_gain(&learner.lens, k.fx, k.fy, k.cx, k.cy, w, h)
+            });
+            AppearanceReport::new(&learner.maps(), &names, learner.lens, corner_light)
         }),
         depth_noise,
         colour_border: Some(scan_colour_border(&data)).filter(|b| !b.is_none()),

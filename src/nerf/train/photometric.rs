@@ -20,7 +20,7 @@
 //! corrected trajectory is then moved back onto the one before as
 //! a whole, so the scene does not drift.
 
-use crate::nerf::appearance::{apply, Affine};
+use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
@@ -105,8 +105,8 @@ pub struct PhotometricAlignment {
 }
 
 /// Align the frames `selected` (indices into `frames`, each with its
-/// appearance map in `maps`) to the field, from their current poses; the
-/// other frames keep theirs.
+/// appearance map in `maps`, all through the camera's `lens`) to the field,
+/// from their current poses; the other frames keep theirs.
 #[allow(clippy::too_many_arguments)]
 pub fn align_to_field(
     field: &Field,
@@ -115,6 +115,7 @@ pub fn align_to_field(
     transform: &SceneTransform,
     frames: &[Frame],
     maps: &[Affine],
+    lens: &Vignetting,
     selected: &[usize],
     opts: &PhotometricOptions,
 ) -> PhotometricAlignment {
@@ -124,7 +125,7 @@ pub fn align_to_field(
         .par_iter()
         .map_init(Workspace::default, |ws, &i| {
             let (frame, map) = (&frames[i], &maps[i]);
-            let (points, depth) = surface_points(field, grid, &render, transform, frame, map, opts);
+            let (points, depth) = surface_points(field, grid, &render, transform, frame, (map, lens), opts);
             (align_frame(frame, &points, opts, ws), depth)
         })
         .collect();
@@ -187,7 +188,8 @@ struct Workspace {
 }
 
 /// A point on the surface the field renders, in the frame's camera
-/// coordinates (metres), and its colour through the frame's appearance.
+/// coordinates (metres), and its colour through the lens and the frame's
+/// appearance.
 struct SurfacePoint {
     camera: Point3<f64>,
     colour: [f32; 3],
@@ -203,7 +205,7 @@ fn surface_points(
     render: &RenderOptions,
     transform: &SceneTransform,
     frame: &Frame,
-    map: &Affine,
+    (map, lens): (&Affine, &Vignetting),
     opts: &PhotometricOptions,
 ) -> (Vec<SurfacePoint>, f64) {
     let (w, h) = frame.size();
@@ -225,7 +227,8 @@ fn surface_points(
             continue;
         }
         let (x, y) = ((f64::from(u) - k.cx) / k.fx * z, (f64::from(v) - k.cy) / k.fy * z);
-        let colour = apply(map, r.rgb).map(|c| c.clamp(0.0, 1.0));
+        let gain = vignetting_gain(lens, norm * norm - 1.0);
+        let colour = apply(map, r.rgb.map(|c| gain * c)).map(|c| c.clamp(0.0, 1.0));
         points.push(SurfacePoint {
             camera: Point3::new(x, y, z),
             colour,

@@ -1,7 +1,7 @@
 //! The fit report (`MODEL.report.json`): settings, phase timings, counters,
 //! pose corrections and the error-against-run-time curve of one fit.
 
-use crate::nerf::appearance::{strength, Affine};
+use crate::nerf::appearance::{strength, Affine, Vignetting};
 use crate::nerf::field::FieldConfig;
 use crate::nerf::train::photometric::{PhotometricAlignment, PhotometricCorrection};
 use crate::nerf::train::settings::Preset;
@@ -125,11 +125,28 @@ pub struct AppearanceReport {
     pub largest_strength: f32,
     /// The frame of the largest strength.
     pub largest_frame: String,
+    /// The lens's learnt vignetting (`nerf::appearance::Vignetting`).
+    #[serde(default)]
+    pub vignetting: Vignetting,
+    /// The light it leaves in the frames' farthest image corner, as a
+    /// share of the centre's (1: no falloff).
+    #[serde(default = "no_falloff")]
+    pub corner_light: f32,
+}
+
+fn no_falloff() -> f32 {
+    1.0
 }
 
 impl AppearanceReport {
-    /// Summary of the training frames' `maps`, named by `names`.
-    pub fn new(maps: &[Affine], names: &[String]) -> Option<AppearanceReport> {
+    /// Summary of the training frames' `maps`, named by `names`, and of the
+    /// lens, which leaves `corner_light` in the farthest corner.
+    pub fn new(
+        maps: &[Affine],
+        names: &[String],
+        vignetting: Vignetting,
+        corner_light: f32,
+    ) -> Option<AppearanceReport> {
         let mut strengths: Vec<(f32, usize)> = maps.iter().map(strength).zip(0..).collect();
         strengths.sort_by(|a, b| a.0.total_cmp(&b.0));
         let &(largest, frame) = strengths.last()?;
@@ -138,6 +155,8 @@ impl AppearanceReport {
             median_strength: strengths[strengths.len() / 2].0,
             largest_strength: largest,
             largest_frame: names.get(frame).cloned().unwrap_or_default(),
+            vignetting,
+            corner_light,
         })
     }
 }

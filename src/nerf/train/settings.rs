@@ -150,12 +150,14 @@ pub struct FitSettings {
     #[arg(long, value_name = "S")]
     #[serde(default)]
     pub pose_scale: Option<f64>,
-    /// Do not learn each frame's exposure and white balance. By default
-    /// every training frame's colour is the model's colour through an affine
-    /// colour map of its own (3x3 matrix and offset), so that exposure
-    /// changes during the capture do not bend the geometry; the model's own
-    /// colour is the scan's average appearance, which `synth` renders unless
-    /// told otherwise.
+    /// Do not learn each frame's exposure and white balance, nor the lens's
+    /// vignetting. By default every training frame's colour is the model's
+    /// colour through an affine colour map of its own (3x3 matrix and
+    /// offset), so that exposure changes during the capture do not bend the
+    /// geometry, and through the lens's falloff towards the image corners
+    /// (one for the scan); the model's own colour is the scan's average
+    /// appearance without falloff, which `synth` renders unless told
+    /// otherwise.
     #[arg(long = "no-appearance", action = clap::ArgAction::SetFalse)]
     #[serde(default)]
     pub per_frame_appearance: bool,

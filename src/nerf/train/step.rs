@@ -4,7 +4,7 @@
 //! divergence. Chunks map to threads deterministically for a given seed and
 //! thread count.
 
-use crate::nerf::appearance::apply_backward;
+use crate::nerf::appearance::{apply, apply_backward, vignetting_backward, vignetting_gain};
 use crate::nerf::environment::{Environment, ENVIRONMENT_PARAMS};
 use crate::nerf::field::hash_grid::GridGrad;
 use crate::nerf::field::sh::{self, SH_COEFFS};
@@ -231,6 +231,9 @@ struct RayRecord {
     absorbed: bool,
     /// Index of the ray's training view.
     view: usize,
+    /// Squared tangent of the ray's angle off the optical axis (the lens's
+    /// vignetting depends on it).
+    lens_r2: f32,
     /// Half-width of the ray's surface window (local units, along the ray).
     window: f32,
     /// Weight of the ray's colour and depth losses: how often uniform
@@ -476,7 +479,7 @@ impl Trainer {
                 .filter(|p| step_index >= p.start_step && p.views() == views.len())
                 .map(|p| p.levels),
         };
-        let appearance_len = self.appearance.as_ref().map_or(0, |a| a.deltas.len());
+        let appearance_len = self.appearance.as_ref().map_or(0, AppearanceLearner::grad_len);
         let environment_len = if self.environment.is_some() {
             ENVIRONMENT_PARAMS
         } else {
@@ -894,6 +897,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             no_return,
             absorbed,
             view: view_index,
+            lens_r2: t_per_z * t_per_z - 1.0,
             window,
             importance,
         });
@@ -986,9 +990,12 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             }
             depth += w * segs[i].mid();
         }
-        // The frame's appearance map between the field's colour and the photo.
-        let map = ctx.appearance.map(|a| a.map(rec.view));
-        let seen = map.as_ref().map_or(color, |a| crate::nerf::appearance::apply(a, color));
+        // Between the field's colour and the photo: the lens's falloff, then
+        // the frame's appearance map.
+        let lens = ctx.appearance.map(|a| (a.map(rec.view), a.lens, a.lens_offset()));
+        let gain = lens.as_ref().map_or(1.0, |(_, k, _)| vignetting_gain(k, rec.lens_r2));
+        let shaded = color.map(|c| gain * c);
+        let seen = lens.as_ref().map_or(shaded, |(a, _, _)| apply(a, shaded));
         let err = [
             seen[0] - rec.target[0],
             seen[1] - rec.target[1],
@@ -1000,12 +1007,14 @@ fn train_sub_batch(ctx: &StepContext, chunk: &mut Chunk, rays: std::ops::Range<u
             2.0 * wc * err[1] / 3.0,
             2.0 * wc * err[2] / 3.0,
         ];
-        if let Some(a) = &map {
+        if let Some((a, k, lens_offset)) = &lens {
             // From here on, the gradient with respect to the field's colour.
             let grad_map = &mut chunk.grad_appearance[12 * rec.view..12 * rec.view + 12];
             let scaled = two_err.map(|g| g * GRAD_SCALE);
-            let back = apply_backward(a, color, scaled, grad_map);
-            two_err = back.map(|g| g / GRAD_SCALE);
+            let back = apply_backward(a, shaded, scaled, grad_map);
+            let grad_gain = back[0] * color[0] + back[1] * color[1] + back[2] * color[2];
+            vignetting_backward(k, rec.lens_r2, grad_gain, &mut chunk.grad_appearance[*lens_offset..]);
+            two_err = back.map(|g| gain * g / GRAD_SCALE);
         }
         let mut g_t = two_err[0] * bg[0] + two_err[1] * bg[1] + two_err[2] * bg[2];
         if ctx.environment.is_some() && t_final > 0.0 && !rec.absorbed {

@@ -2,7 +2,7 @@
 //! subsample of each held-out view's pixels and compare with its colour and
 //! sensor depth.
 
-use crate::nerf::appearance::{apply, Affine};
+use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels_past, RenderOptions};
@@ -46,8 +46,9 @@ pub fn subsample_grid(
 
 /// Evaluate on `views` (their scene pixels: dead border lines are left
 /// out); `metres_per_unit` converts local depth to metres.
-/// With `appearance` (one map per view) the rendered colour goes through
-/// the view's map, as the photo went through its camera's exposure.
+/// With `appearance` (one map per view, and the lens) the rendered colour
+/// goes through the lens's falloff and the view's map, as the photo went
+/// through its camera's lens and exposure.
 pub fn validate(
     field: &Field,
     grid: &OccupancyGrid,
@@ -55,12 +56,12 @@ pub fn validate(
     views: &[View],
     metres_per_unit: f64,
     max_side: u32,
-    appearance: Option<&[Affine]>,
+    appearance: Option<(&[Affine], &Vignetting)>,
 ) -> Validation {
     let (mut psnr, mut ssim) = (0.0, 0.0);
     let (mut depth_sum, mut depth_n) = (0.0, 0usize);
     for (i, view) in views.iter().enumerate() {
-        let map = appearance.and_then(|maps| maps.get(i));
+        let map = appearance.and_then(|(maps, lens)| Some((maps.get(i)?, lens)));
         let cam = &view.camera;
         let (w, h, pixels) = subsample_grid(cam.width, cam.height, max_side, &view.colour_border);
         // Rays start past the space the view's own depth vouches free, as
@@ -80,7 +81,11 @@ pub fn validate(
         let mut truth = Vec::with_capacity(w * h * 3);
         for (o, &(u, v)) in out.iter().zip(&pixels) {
             let idx = v as usize * cam.width as usize + u as usize;
-            let rgb = map.map_or(o.rgb, |a| apply(a, o.rgb));
+            let rgb = map.map_or(o.rgb, |(a, lens)| {
+                let t_per_z = cam.ray(u, v).1;
+                let gain = vignetting_gain(lens, t_per_z * t_per_z - 1.0);
+                apply(a, o.rgb.map(|c| gain * c))
+            });
             rendered.extend(rgb.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8));
             truth.extend_from_slice(&view.rgb[3 * idx..3 * idx + 3]);
             if let (Some(depth), Some(t)) = (&view.depth, o.depth_median) {

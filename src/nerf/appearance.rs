@@ -5,6 +5,8 @@
 //! their mean at the identity, so the field's own colour is the scan's
 //! average, *neutral* appearance. Rendering applies a frame's map, or none.
 
+use crate::scan::Intrinsics;
+
 /// Row-major 3x4 affine colour map `[a00 a01 a02 b0, a10 .. b1, a20 .. b2]`:
 /// `out_i = sum_j a_ij c_j + b_i`.
 pub type Affine = [f32; 12];
@@ -48,6 +50,21 @@ pub const NO_VIGNETTING: Vignetting = [0.0; 3];
 /// alive while the coefficients are still far off.
 const MIN_GAIN: f32 = 0.05;
 
+/// Squared off-axis tangent of a ray whose direction in the camera is
+/// `t_per_z` times as long as its z (`LocalCamera::ray`'s second value).
+#[inline]
+pub fn off_axis_r2(t_per_z: f32) -> f32 {
+    t_per_z * t_per_z - 1.0
+}
+
+/// The field's colour `rgb` as the photo records it: through the lens's
+/// falloff at squared off-axis tangent `r2`, then the frame's map.
+#[inline]
+pub fn as_photographed(map: &Affine, lens: &Vignetting, r2: f32, rgb: [f32; 3]) -> [f32; 3] {
+    let gain = vignetting_gain(lens, r2);
+    apply(map, rgb.map(|c| gain * c))
+}
+
 /// Gain of `k` at squared off-axis tangent `r2`.
 #[inline]
 pub fn vignetting_gain(k: &Vignetting, r2: f32) -> f32 {
@@ -68,14 +85,9 @@ pub fn vignetting_backward(k: &Vignetting, r2: f32, g: f32, grad_k: &mut [f32]) 
 }
 
 /// The light `k` leaves in the farthest corner of a `width` x `height`
-/// image with intrinsics (fx, fy, cx, cy), as a share of the centre's.
-pub fn corner_gain(k: &Vignetting, fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> f32 {
-    let (w, h) = (width as f64 - 1.0, height as f64 - 1.0);
-    let r2 = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
-        .iter()
-        .map(|&(u, v)| ((u - cx) / fx).powi(2) + ((v - cy) / fy).powi(2))
-        .fold(0.0, f64::max);
-    vignetting_gain(k, r2 as f32)
+/// image taken with `intrinsics`, as a share of the centre's.
+pub fn corner_gain(k: &Vignetting, intrinsics: &Intrinsics, width: u32, height: u32) -> f32 {
+    vignetting_gain(k, intrinsics.corner_tan2(width, height) as f32)
 }
 
 /// One map per scan frame from the maps of the training frames: a frame
@@ -175,7 +187,13 @@ mod tests {
     fn corner_gain_is_taken_at_the_farthest_corner() {
         // Principal point off centre: the far corner is (99, 79).
         let k: Vignetting = [-0.5, 0.0, 0.0];
-        let g = corner_gain(&k, 100.0, 100.0, 30.0, 20.0, 100, 80);
+        let intrinsics = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 30.0,
+            cy: 20.0,
+        };
+        let g = corner_gain(&k, &intrinsics, 100, 80);
         let r2 = (0.69f32).powi(2) + (0.59f32).powi(2);
         assert!((g - (1.0 - 0.5 * r2)).abs() < 1e-5, "{g}");
     }

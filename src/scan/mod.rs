@@ -71,6 +71,16 @@ impl Intrinsics {
         }
     }
 
+    /// Squared tangent of the angle off the optical axis at the farthest
+    /// pixel centre of a `width` x `height` image (its corners).
+    pub fn corner_tan2(&self, width: u32, height: u32) -> f64 {
+        let (right, bottom) = (width.saturating_sub(1) as f64, height.saturating_sub(1) as f64);
+        [(0.0, 0.0), (right, 0.0), (0.0, bottom), (right, bottom)]
+            .into_iter()
+            .map(|(u, v)| self.unproject(u, v).xy().norm_squared())
+            .fold(0.0, f64::max)
+    }
+
     /// Camera-frame direction (z = 1) through pixel (u, v).
     #[inline]
     pub fn unproject(&self, u: f64, v: f64) -> Vector3<f64> {

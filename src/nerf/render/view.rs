@@ -5,7 +5,7 @@
 //! from the field which cells hold density, at twice the grid's resolution
 //! ([`crate::nerf::occupancy::from_field`]).
 
-use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting, IDENTITY, NO_VIGNETTING};
+use crate::nerf::appearance::{as_photographed, off_axis_r2, Affine, Vignetting, IDENTITY, NO_VIGNETTING};
 use crate::nerf::camera::LocalCamera;
 
 use crate::nerf::model_file::Model;
@@ -97,8 +97,7 @@ impl<'a> ViewRenderer<'a> {
     /// `t_per_z` times as long as its z (`LocalCamera::ray`).
     #[inline]
     fn colour_u8(&self, rgb: [f32; 3], t_per_z: f32) -> [u8; 3] {
-        let gain = vignetting_gain(&self.lens, t_per_z * t_per_z - 1.0);
-        apply(&self.appearance, rgb.map(|c| gain * c)).map(to_u8)
+        as_photographed(&self.appearance, &self.lens, off_axis_r2(t_per_z), rgb).map(to_u8)
     }
 
     /// The occupancy grid rays are marched through.

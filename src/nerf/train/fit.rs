@@ -973,8 +973,8 @@ fn run(
         appearance: trainer.appearance.as_ref().and_then(|learner| {
             let names: Vec<String> = data.train_frames.iter().map(|&i| scan.frames[i].name.clone()).collect();
             let corner_light = scan.frames.first().map_or(1.0, |f| {
-                let (k, (w, h)) = (&f.intrinsics, f.size());
-                appearance::corner_gain(&learner.lens, k.fx, k.fy, k.cx, k.cy, w, h)
+                let (w, h) = f.size();
+                appearance::corner_gain(&learner.lens, &f.intrinsics, w, h)
             });
             AppearanceReport::new(&learner.maps(), &names, learner.lens, corner_light)
         }),

@@ -20,7 +20,7 @@
 //! corrected trajectory is then moved back onto the one before as
 //! a whole, so the scene does not drift.
 
-use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting};
+use crate::nerf::appearance::{as_photographed, off_axis_r2, Affine, Vignetting};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels, RenderOptions};
@@ -227,8 +227,7 @@ fn surface_points(
             continue;
         }
         let (x, y) = ((f64::from(u) - k.cx) / k.fx * z, (f64::from(v) - k.cy) / k.fy * z);
-        let gain = vignetting_gain(lens, norm * norm - 1.0);
-        let colour = apply(map, r.rgb.map(|c| gain * c)).map(|c| c.clamp(0.0, 1.0));
+        let colour = as_photographed(map, lens, off_axis_r2(norm), r.rgb).map(|c| c.clamp(0.0, 1.0));
         points.push(SurfacePoint {
             camera: Point3::new(x, y, z),
             colour,

@@ -4,7 +4,7 @@
 //! divergence. Chunks map to threads deterministically for a given seed and
 //! thread count.
 
-use crate::nerf::appearance::{apply, apply_backward, vignetting_backward, vignetting_gain};
+use crate::nerf::appearance::{apply, apply_backward, off_axis_r2, vignetting_backward, vignetting_gain};
 use crate::nerf::environment::{Environment, ENVIRONMENT_PARAMS};
 use crate::nerf::field::hash_grid::GridGrad;
 use crate::nerf::field::sh::{self, SH_COEFFS};
@@ -897,7 +897,7 @@ fn draw_rays(ctx: &StepContext, chunk: &mut Chunk, rng: &mut Rng, budget: usize)
             no_return,
             absorbed,
             view: view_index,
-            lens_r2: t_per_z * t_per_z - 1.0,
+            lens_r2: off_axis_r2(t_per_z),
             window,
             importance,
         });

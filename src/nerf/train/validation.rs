@@ -2,7 +2,7 @@
 //! subsample of each held-out view's pixels and compare with its colour and
 //! sensor depth.
 
-use crate::nerf::appearance::{apply, vignetting_gain, Affine, Vignetting};
+use crate::nerf::appearance::{as_photographed, off_axis_r2, Affine, Vignetting};
 use crate::nerf::field::Field;
 use crate::nerf::occupancy::OccupancyGrid;
 use crate::nerf::render::rays::{render_pixels_past, RenderOptions};
@@ -82,9 +82,7 @@ pub fn validate(
         for (o, &(u, v)) in out.iter().zip(&pixels) {
             let idx = v as usize * cam.width as usize + u as usize;
             let rgb = map.map_or(o.rgb, |(a, lens)| {
-                let t_per_z = cam.ray(u, v).1;
-                let gain = vignetting_gain(lens, t_per_z * t_per_z - 1.0);
-                apply(a, o.rgb.map(|c| gain * c))
+                as_photographed(a, lens, off_axis_r2(cam.ray(u, v).1), o.rgb)
             });
             rendered.extend(rgb.map(|c| (c * 255.0).round().clamp(0.0, 255.0) as u8));
             truth.extend_from_slice(&view.rgb[3 * idx..3 * idx + 3]);
